@@ -113,7 +113,9 @@ class UnitConfig:
     pump_b: PumpConfig
     load: LoadConfig
     motor: MotorConfig
-    references_mm: tuple[float, ...]
+    references_mm: dict[str, float]
+    reference_window_mm: float = field(metadata=_positive())
+    reference_hysteresis_mm: float = field(metadata={"ge": 0.0})
 
     def check(self, path: str) -> list[tuple[str, str]]:
         problems = []
@@ -122,9 +124,9 @@ class UnitConfig:
                              f"smaller than the piston-side area {self.area_a_mm2}"))
         if self.friction_coulomb_n > self.friction_static_n:
             problems.append((f"{path}.friction_coulomb_n", "must not exceed friction_static_n"))
-        for i, ref in enumerate(self.references_mm):
+        for name, ref in self.references_mm.items():
             if not 0.0 <= ref <= self.stroke_mm:
-                problems.append((f"{path}.references_mm[{i}]",
+                problems.append((f"{path}.references_mm.{name}",
                                  f"{ref} mm lies outside the stroke 0..{self.stroke_mm} mm"))
         return problems
 
@@ -152,6 +154,32 @@ class TablesConfig:
 
 
 @dataclass(frozen=True)
+class CanUnitConfig:
+    """CAN identity of one unit: its motor controller, its emulated sensor, its Hall inputs."""
+
+    sevcon_node_id: int = field(metadata={"ge": 1, "le": 127})
+    sensor_node_id: int = field(metadata={"ge": 1, "le": 127})
+    hall_bits: dict[str, int]       # reference name -> bit of the I/O module's input byte
+
+    def check(self, path: str) -> list[tuple[str, str]]:
+        for name, bit in self.hall_bits.items():
+            if not 0 <= bit <= 7:
+                return [(f"{path}.hall_bits.{name}", f"bit {bit} is not in 0..7")]
+        return []
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """Node IDs and output settings on the machine's CAN bus (layout in the shipped DBC)."""
+
+    io_module_node_id: int = field(metadata={"ge": 1, "le": 127})
+    oil_temp_node_id: int = field(metadata={"ge": 1, "le": 127})
+    position_step_mm: float = field(metadata=_positive())
+    event_timer_ms: float = field(metadata={"ge": 1.0, "le": 65535.0})
+    units: dict[Literal["boom", "bucket"], CanUnitConfig]
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole machine configuration."""
 
@@ -159,6 +187,7 @@ class Config:
     hydraulics: HydraulicsConfig
     units: dict[Literal["boom", "bucket"], UnitConfig]
     tables: TablesConfig
+    can: CanConfig
     bus: dict[str, Any]
     source: str = field(default="<memory>", compare=False, metadata={"internal": True})
 
@@ -167,6 +196,12 @@ class Config:
         for name in ACTUATORS:
             if name not in self.units:
                 problems.append((f"units.{name}", "missing unit"))
+        for name, unit in self.units.items():
+            missing = set(unit.references_mm) - set(self.can.units[name].hall_bits) \
+                if name in self.can.units else set()
+            if missing:
+                problems.append((f"can.units.{name}.hall_bits",
+                                 f"no input bit for reference(s) {', '.join(sorted(missing))}"))
         if "interface" not in self.bus:
             problems.append(("bus.interface", "missing key (a python-can interface name)"))
         return problems
@@ -177,8 +212,11 @@ class Config:
     def physics_hash(self) -> str:
         """Hash of everything the physics and tables depend on (not the bus, not the source)."""
         data = dataclasses.asdict(self)
-        for key in ("bus", "source"):
+        for key in ("bus", "can", "source"):
             data.pop(key)
+        for unit in data["units"].values():
+            for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm"):
+                unit.pop(key)
         blob = json.dumps(data, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
