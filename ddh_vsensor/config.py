@@ -17,11 +17,13 @@ from typing import Any, Literal
 
 import yaml
 
+from .errors import UserError
+
 ACTUATORS = ("boom", "bucket")
 DEFAULT_CONFIG = Path(__file__).with_name("data") / "loader.yaml"
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError, ValueError):
     """A configuration problem, worded for the person who edits the file."""
 
     def __init__(self, source: str, key_path: str, problem: str) -> None:
