@@ -43,7 +43,14 @@ class Pump:
                    max_speed_rpm=cfg.max_speed_rpm)
 
     def scaled(self, leakage: float = 1.0, displacement: float = 1.0) -> "Pump":
-        """The same pump with its leakage coefficient and displacement scaled (wear, effects)."""
+        """The same pump with its leakage coefficient and displacement scaled (wear, effects).
+
+        Leakage must stay positive: it is what sets the pressure of a chamber whose valves are
+        closed, so a leak-free pump has no steady state unless flows match exactly.
+        """
+        if leakage <= 0.0 or displacement <= 0.0:
+            raise ValueError(f"leakage ({leakage}) and displacement ({displacement}) factors "
+                             "must be positive")
         return replace(self, leak_coeff_m3=self.leak_coeff_m3 * leakage,
                        displacement_m3_rev=self.displacement_m3_rev * displacement)
 

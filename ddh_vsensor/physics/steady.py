@@ -85,7 +85,8 @@ def _side_linear(side: Side, speed_rpm: np.ndarray, mu: np.ndarray) -> _SideLine
     den = g + extra_g
     lo = np.array([-np.inf, cr, 0.0, st])
     hi = np.array([cr, 0.0, st, np.inf])
-    return _SideLinear(a=(q + extra_q) / den, b=-side.sign * side.area_m2 / den, lo=lo, hi=hi)
+    a, b = np.broadcast_arrays((q + extra_q) / den, -side.sign * side.area_m2 / den)
+    return _SideLinear(a=a, b=b, lo=lo, hi=hi)
 
 
 def _outside(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -223,3 +224,35 @@ def holding_speed(unit: DDHUnit, load_force_n: float, oil_temp_c: float) -> Hold
 
     fs = cyl.static_friction_n
     return HoldingSpeed(root(0.0), root(-fs), root(fs))
+
+
+def velocity_torque_curve(unit: DDHUnit, speed_rpm: ArrayLike,
+                          oil_temp_c: float) -> tuple[np.ndarray, np.ndarray]:
+    """The exact velocity-torque relation at each given speed, as its breakpoints.
+
+    At a fixed speed and temperature the steady velocity is a continuous, piecewise-linear,
+    decreasing function of motor torque; its kinks are where a side's pressure crosses a valve
+    threshold or zero. Returns ``(torque_nm, velocity_m_s)``, each ``[speed, 8]``, torque
+    ascending: six kinks plus one far point on either side, so linear interpolation (and
+    extrapolation) between them is exact.
+    """
+    n = np.atleast_1d(np.asarray(speed_rpm, dtype=float))
+    mu = unit.oil.dynamic_viscosity_pa_s(oil_temp_c)
+    kinks = []
+    for side in unit.sides:
+        q = side.pump.geometric_flow_m3_s(n)
+        g = side.pump.leak_conductance_m3_s_pa(mu)
+        for level in (side.anticav.cracking_pa, 0.0, side.relief.setting_pa):
+            kinks.append(side.sign * (q - g * level) / side.area_m2)
+    v = np.stack(kinks, axis=-1)
+    v = np.concatenate([v.min(axis=-1, keepdims=True) - 100.0, v,
+                        v.max(axis=-1, keepdims=True) + 100.0], axis=-1)
+    dp = []
+    for side in unit.sides:
+        lin = _side_linear(side, n, mu)
+        cand = lin.a[:, None, :] + lin.b[:, None, :] * v[..., None]
+        k = np.argmin(_outside(cand, lin.lo, lin.hi), axis=-1)
+        dp.append(np.take_along_axis(cand, k[..., None], axis=-1)[..., 0])
+    tau = unit.motor_torque_nm(dp[0], dp[1], n[:, None])
+    order = np.argsort(tau, axis=-1, kind="stable")
+    return np.take_along_axis(tau, order, -1), np.take_along_axis(v, order, -1)

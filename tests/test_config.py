@@ -1,0 +1,84 @@
+"""Config validation: every bad value gives one message naming file, key path and problem."""
+
+import copy
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from ddh_vsensor.config import ConfigError, load_config, parse_config
+
+from .conftest import REPO
+
+RAW = yaml.safe_load((REPO / "config" / "loader.yaml").read_text())
+
+
+def test_every_value_says_paper_or_chosen():
+    for line in (REPO / "config" / "loader.yaml").read_text().splitlines():
+        body = line.split("#", 1)[0].strip()
+        if body and not body.endswith(":") and ":" in body:
+            comment = line.split("#", 1)[1] if "#" in line else ""
+            nested = line.strip().startswith(("bottom", "mid", "top", "interface", "channel"))
+            assert "paper" in comment or "chosen" in comment or nested, line
+
+
+def test_reference_config_loads(cfg):
+    assert cfg.unit("boom").cylinders == 2
+    assert cfg.unit("bucket").pump_b.relief_bar == 172.0
+    assert load_config(None) == cfg          # the embedded default is the same machine
+
+
+def _mutate(path, value, delete=False):
+    data = copy.deepcopy(RAW)
+    node = data
+    keys = path.split(".")
+    for k in keys[:-1]:
+        node = node[k]
+    if delete:
+        del node[keys[-1]]
+    else:
+        node[keys[-1]] = value
+    return data
+
+
+@pytest.mark.parametrize("path,value,delete,words", [
+    ("units.boom.area_a_mm2", -5.0, False, "greater than"),
+    ("units.boom.area_b_mm2", 20000.0, False, "smaller than the piston-side"),
+    ("units.boom.pump_a.volumetric_efficiency", 1.2, False, "at most 1"),
+    ("units.bucket.pump_b.hydromechanical_efficiency", 0.0, False, "greater than 0"),
+    ("units.boom.pump_b.displacement_cm3_rev", "big", False, "expected a number"),
+    ("units.boom.cylinders", 2.5, False, "whole number"),
+    ("units.boom.stroke_mm", None, True, "missing key"),
+    ("units.boom.colour", "red", False, "unknown key"),
+    ("units.crane", {}, False, "unknown key"),
+    ("units.boom.references_mm.mid", 400.0, False, "outside the stroke"),
+    ("oil.viscosity_cst_at_100c", 40.0, False, "below viscosity_cst_at_40c"),
+])
+def test_bad_values_name_the_key_path(path, value, delete, words):
+    with pytest.raises(ConfigError) as err:
+        parse_config(_mutate(path, value, delete), source="machine.yaml")
+    msg = str(err.value)
+    assert msg.startswith("machine.yaml: ")
+    key = path if not path.endswith(("crane",)) else "units.crane"
+    assert key.split(".")[0] in msg and words in msg, msg
+
+
+def test_cli_exits_2_without_traceback(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(_mutate("units.boom.area_a_mm2", -1.0)))
+    proc = subprocess.run([sys.executable, "-m", "ddh_vsensor.cli.main", "steady", "--config",
+                           str(bad), "--actuator", "boom", "--speed-rpm", "100",
+                           "--oil-temp-c", "27"], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert "bad.yaml: units.boom.area_a_mm2" in proc.stderr
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "nope.yaml")
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("units: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(broken)
