@@ -1,0 +1,144 @@
+"""The DBC: every frame present and round-tripping, IDs following the configured node IDs."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import cantools
+import pytest
+
+from ddh_vsensor.canbus import (IO_MODULE, DiagFlags, FrameCodec, all_message_names, frame_ids,
+                                load_dbc, message_name)
+from ddh_vsensor.canbus.dbc import DEFAULT_DBC
+from ddh_vsensor.config import Config, ConfigError
+from ddh_vsensor.errors import UserError
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def with_can_unit(cfg: Config, actuator: str, **changes: int) -> Config:
+    units = {**cfg.can.units, actuator: dataclasses.replace(cfg.can.units[actuator], **changes)}
+    return dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, units=units))
+
+
+def test_packaged_dbc_is_a_relative_link_to_the_repo_dbc() -> None:
+    assert os.readlink(DEFAULT_DBC) == "../../dbc/ddh_vsensor.dbc"
+    assert DEFAULT_DBC.resolve() == (REPO / "dbc" / "ddh_vsensor.dbc").resolve()
+
+
+def test_dbc_has_every_frame_with_comments() -> None:
+    db = load_dbc()
+    assert sorted(m.name for m in db.messages) == sorted(all_message_names())
+    for message in db.messages:
+        assert message.comment
+        assert all(signal.comment for signal in message.signals), message.name
+        assert all(signal.byte_order == "little_endian" for signal in message.signals)
+
+
+@pytest.mark.parametrize("name", all_message_names())
+def test_each_message_round_trips(name: str) -> None:
+    message = load_dbc().get_message_by_name(name)
+    # The extreme of each signal's range: catches a wrong sign, length or scale.
+    signals = {s.name: s.minimum if s.is_signed else s.maximum for s in message.signals}
+    assert message.decode(message.encode(signals), decode_choices=False) == pytest.approx(signals)
+
+
+def test_documented_layout(cfg: Config) -> None:
+    codec = FrameCodec(cfg)
+    msg = codec.encode_sevcon("bucket", torque_nm=-1.5, speed_rpm=-1000)
+    assert msg.arbitration_id == 0x182 and not msg.is_extended_id
+    assert bytes(msg.data) == (-24).to_bytes(2, "little", signed=True) + \
+        (-1000).to_bytes(4, "little", signed=True)
+    msg = codec.encode_position("boom", position_mm=123.456, speed_mm_s=-12.34, status=3)
+    assert msg.arbitration_id == 0x1B1
+    assert bytes(msg.data) == (12346).to_bytes(4, "little", signed=True) + \
+        (-123).to_bytes(2, "little", signed=True) + b"\x03"
+    msg = codec.encode_diag("bucket", uncertainty_mm=1.5, flags=DiagFlags.ADAPTING,
+                            input_frames=70000, rejected_frames=2)
+    assert msg.arbitration_id == 0x2B2
+    assert bytes(msg.data) == bytes([150, 0, 8]) + (70000 - 65536).to_bytes(2, "little") + \
+        bytes([2, 0, 0])
+    assert bytes(codec.encode_oil_temp(-4.5).data) == (-45).to_bytes(2, "little", signed=True)
+
+
+def test_decode_returns_names_and_numbers(cfg: Config) -> None:
+    codec = FrameCodec(cfg)
+    name, signals = codec.decode(codec.encode("SEVCON_BOOM_HEARTBEAT", {"NmtState": 5}))
+    assert (name, signals) == ("SEVCON_BOOM_HEARTBEAT", {"NmtState": 5})
+    other = codec.encode_sevcon("boom", 1.0, 2.0)
+    other.arbitration_id = 0x123
+    assert codec.decode(other) is None
+
+
+def test_sensor_output_saturates_like_a_sensor(cfg: Config) -> None:
+    codec = FrameCodec(cfg)
+    pos = codec.decode(codec.encode_position("boom", 10.0, speed_mm_s=1e6, status=0))[1]
+    assert pos["Speed"] == pytest.approx(3276.7)
+    diag = codec.decode(codec.encode_diag("boom", 1e4, 0, 0, 0))[1]
+    assert diag["Uncertainty"] == pytest.approx(655.35)
+
+
+def test_default_config_uses_the_dbc_ids(cfg: Config) -> None:
+    db = load_dbc()
+    assert frame_ids(cfg) == {m.name: m.frame_id for m in db.messages}
+
+
+def test_other_node_ids_keep_the_function_code(cfg: Config) -> None:
+    changed = with_can_unit(cfg, "boom", sevcon_node_id=5, sensor_node_id=0x40)
+    ids = frame_ids(changed)
+    assert ids[message_name("sevcon", "boom")] == 0x185
+    assert ids[message_name("heartbeat", "boom")] == 0x705
+    assert ids[message_name("position", "boom")] == 0x1C0
+    assert ids[message_name("diag", "boom")] == 0x2C0
+    assert ids[message_name("sevcon", "bucket")] == 0x182
+    assert FrameCodec(changed).encode_sevcon("boom", 0.0, 0.0).arbitration_id == 0x185
+
+
+def test_clashing_node_ids_are_a_config_error(cfg: Config) -> None:
+    clash = with_can_unit(cfg, "bucket", sensor_node_id=cfg.can.units["boom"].sensor_node_id)
+    with pytest.raises(ConfigError, match=r"can\.units\.bucket\.sensor_node_id.*0x1B1"):
+        frame_ids(clash)
+
+
+def test_position_follows_the_configured_step(cfg: Config) -> None:
+    coarse = dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, position_step_mm=0.1))
+    codec = FrameCodec(coarse)
+    msg = codec.encode_position("boom", 123.44, 0.0, 0)
+    assert bytes(msg.data[:4]) == (1234).to_bytes(4, "little", signed=True)
+    assert codec.decode(msg)[1]["Position"] == pytest.approx(123.4)
+    assert load_dbc().get_message_by_name("POSITION_BOOM_TPDO1") \
+        .get_signal_by_name("Position").scale == 0.01       # the shared DBC is untouched
+
+
+def test_hall_bits_follow_the_config(cfg: Config) -> None:
+    codec = FrameCodec(cfg)
+    msg = codec.encode_inputs({"boom": {"top": 1, "mid": 0}, "bucket": {"bottom": 1}})
+    assert msg.arbitration_id == 0x190 and bytes(msg.data) == bytes([0b0000_1100])
+    decoded = load_dbc().get_message_by_name(IO_MODULE).decode(bytes(msg.data))
+    assert decoded["HallBoomTop"] == 1 and decoded["HallBucketBottom"] == 1
+    assert codec.hall_states("bucket", msg.data) == {"bottom": 1, "mid": 0, "top": 0}
+    rewired = FrameCodec(with_can_unit(cfg, "bucket", hall_bits={"bottom": 7, "mid": 4,
+                                                                 "top": 5}))
+    assert rewired.hall_states("bucket", bytes([0x80])) == {"bottom": 1, "mid": 0, "top": 0}
+    with pytest.raises(cantools.database.DecodeError):
+        codec.hall_states("boom", b"")
+
+
+def test_message_name_rejects_unknown_kind_or_actuator() -> None:
+    assert message_name("diag", "bucket") == "DIAG_BUCKET_TPDO2"
+    with pytest.raises(ValueError, match="kind"):
+        message_name("speed", "boom")
+    with pytest.raises(ValueError, match="actuator"):
+        message_name("sevcon", "stick")
+
+
+def test_load_dbc_errors_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(UserError, match="nowhere.dbc"):
+        load_dbc(tmp_path / "nowhere.dbc")
+    partial = tmp_path / "partial.dbc"
+    text = DEFAULT_DBC.read_text()
+    partial.write_text(text[:text.index("BO_ 1793")] + "\n")
+    with pytest.raises(UserError, match=r"partial\.dbc.*SEVCON_BOOM_HEARTBEAT"):
+        load_dbc(partial)

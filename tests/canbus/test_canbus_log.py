@@ -1,0 +1,129 @@
+"""CAN logs <-> runs: a BLF written from runs reads back as the same data, within quantisation."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from ddh_vsensor.canbus import FrameCodec, read_can_log, write_blf
+from ddh_vsensor.config import Config
+from ddh_vsensor.measured import MeasuredDataError, Run, read_csv, write_csv
+
+# Half of each frame's quantisation step, plus float slack.
+TORQUE_NM, SPEED_RPM, OIL_C, POSITION_MM = 1 / 32 + 1e-9, 0.5 + 1e-9, 0.05 + 1e-9, 0.005 + 1e-9
+TIME_S = 1e-6      # BLF stores nanoseconds; at wall-clock times float64 resolves ~0.2 us
+
+
+def make_run(actuator: str, n: int = 400, start_s: float = 0.0, seed: int = 0) -> Run:
+    rng = np.random.default_rng(seed)
+    time_s = start_s + np.cumsum(rng.uniform(0.0005, 0.002, n))   # uneven, with gaps
+    position_mm = 150.0 + 120.0 * np.sin(time_s)
+    sampled = position_mm.copy()
+    sampled[rng.random(n) < 0.3] = np.nan
+    return Run(time_s=time_s, speed_rpm=rng.normal(0, 1500, n), torque_nm=rng.normal(0, 30, n),
+               oil_temp_c=40.0 + (time_s - start_s) + (5.0 if actuator == "bucket" else 0.0),
+               position_mm=sampled,
+               refs={"top": position_mm > 265, "mid": np.abs(position_mm - 155) < 3,
+                     "bottom": position_mm < 35},
+               comments=[f"test run {actuator}"], source=f"<{actuator}>")
+
+
+def assert_same_data(read: Run, written: Run, oil: Run) -> None:
+    """read is written within quantisation, with the oil temperature held from run oil."""
+    np.testing.assert_allclose(read.time_s, written.time_s, rtol=0, atol=TIME_S)
+    np.testing.assert_allclose(read.torque_nm, written.torque_nm, rtol=0, atol=TORQUE_NM)
+    np.testing.assert_allclose(read.speed_rpm, written.speed_rpm, rtol=0, atol=SPEED_RPM)
+    held = np.maximum(np.searchsorted(oil.time_s, written.time_s, "right") - 1, 0)
+    np.testing.assert_allclose(read.oil_temp_c, oil.oil_temp_c[held], rtol=0, atol=OIL_C)
+    np.testing.assert_array_equal(np.isnan(read.position_mm), np.isnan(written.position_mm))
+    np.testing.assert_allclose(read.position_mm, written.position_mm, rtol=0, atol=POSITION_MM)
+    assert set(read.refs) == {"bottom", "mid", "top"}
+    for name, state in written.refs.items():
+        np.testing.assert_array_equal(read.refs[name], state)
+
+
+def test_blf_round_trip_of_both_units(tmp_path: Path, cfg: Config) -> None:
+    runs = {"boom": make_run("boom", seed=1), "bucket": make_run("bucket", n=300, seed=2)}
+    path = tmp_path / "both.blf"
+    write_blf(path, runs, cfg)
+    for actuator, run in runs.items():
+        assert_same_data(read_can_log(path, actuator, cfg), run, oil=runs["boom"])
+    assert [p.name for p in tmp_path.iterdir()] == ["both.blf"]     # no temp file left
+
+
+@pytest.mark.parametrize("start_s", [12.3456789, 1.7e9])     # relative and wall-clock times
+def test_csv_and_blf_of_one_run_describe_the_same_data(tmp_path: Path, cfg: Config,
+                                                       start_s: float) -> None:
+    write_csv(tmp_path / "bucket.csv", make_run("bucket", start_s=start_s))
+    run = read_csv(tmp_path / "bucket.csv")
+    write_blf(tmp_path / "bucket.blf", {"bucket": run}, cfg)
+    read = read_can_log(tmp_path / "bucket.blf", "bucket", cfg)
+    assert_same_data(read, run, oil=run)
+    assert read.source == str(tmp_path / "bucket.blf")
+
+
+def test_missing_refs_read_back_as_off(tmp_path: Path, cfg: Config) -> None:
+    run = dataclasses.replace(make_run("boom"), refs={})
+    write_blf(tmp_path / "x.blf", {"boom": run}, cfg)
+    read = read_can_log(tmp_path / "x.blf", "boom", cfg)
+    assert all(not state.any() for state in read.refs.values())
+
+
+def test_other_log_formats_and_node_ids(tmp_path: Path, cfg: Config) -> None:
+    units = {**cfg.can.units, "bucket": dataclasses.replace(cfg.can.units["bucket"],
+                                                            sevcon_node_id=9)}
+    moved = dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, units=units))
+    codec = FrameCodec(moved)
+    path = tmp_path / "log.asc"
+    with can.Logger(path) as logger:
+        for i, t in enumerate((0.010, 0.020, 0.030)):
+            logger.on_message_received(codec.encode_sevcon("bucket", 2.0 * i, 100 * i, t))
+            logger.on_message_received(codec.encode_position("bucket", 10.0 * i, 0.0, 0, t))
+        logger.on_message_received(codec.encode_oil_temp(55.5, 0.015))
+    read = read_can_log(path, "bucket", moved)
+    np.testing.assert_allclose(np.diff(read.time_s), [0.01, 0.01], atol=1e-6)  # ASC: relative
+    np.testing.assert_allclose(read.position_mm, [0, 10, 20])
+    np.testing.assert_allclose(read.speed_rpm, [0, 100, 200])
+    np.testing.assert_allclose(read.oil_temp_c, [55.5, 55.5, 55.5])
+    assert read.refs == {}
+    with pytest.raises(MeasuredDataError, match=r"log\.asc.*SEVCON_BUCKET_TPDO1.*0x182"):
+        read_can_log(path, "bucket", cfg)     # default node IDs: the frames are not there
+
+
+@pytest.mark.parametrize("content, problem", [
+    (None, "cannot read CAN log"),
+    (b"this is not a BLF file at all" * 10, "cannot read CAN log"),
+])
+def test_unreadable_log_names_the_file(tmp_path: Path, cfg: Config, content: bytes | None,
+                                       problem: str) -> None:
+    path = tmp_path / "broken.blf"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(MeasuredDataError, match=rf"broken\.blf: {problem}"):
+        read_can_log(path, "boom", cfg)
+
+
+def test_log_without_the_actuator_names_the_file(tmp_path: Path, cfg: Config) -> None:
+    write_blf(tmp_path / "boom_only.blf", {"boom": make_run("boom")}, cfg)
+    with pytest.raises(MeasuredDataError, match=r"boom_only\.blf: no SEVCON_BUCKET_TPDO1"):
+        read_can_log(tmp_path / "boom_only.blf", "bucket", cfg)
+
+
+def test_reference_without_input_bit_is_refused(tmp_path: Path, cfg: Config) -> None:
+    run = make_run("boom")
+    run.refs["extra"] = run.refs["top"]
+    with pytest.raises(MeasuredDataError, match="extra.*hall_bits"):
+        write_blf(tmp_path / "x.blf", {"boom": run}, cfg)
+    assert not list(tmp_path.iterdir())
+
+
+def test_out_of_range_value_names_run_and_time(tmp_path: Path, cfg: Config) -> None:
+    run = make_run("boom")
+    run.torque_nm[5] = 5000.0                     # beyond INT16 at 1/16 N·m
+    with pytest.raises(MeasuredDataError, match=r"<boom>: at time_s .*cannot encode"):
+        write_blf(tmp_path / "x.blf", {"boom": run}, cfg)
+    assert not list(tmp_path.iterdir())
