@@ -156,6 +156,24 @@ class TablesConfig:
 
 
 @dataclass(frozen=True)
+class EstimatorConfig:
+    """How the position is integrated, referenced, adapted, bounded and persisted."""
+
+    mode: Literal["full", "paper"]
+    max_gap_s: float = field(metadata=_positive())
+    soft_limit_margin_mm: float = field(metadata={"ge": 0.0})
+    debounce_s: float = field(metadata={"ge": 0.0})
+    adaptation: bool
+    adaptation_bound: float = field(metadata={"gt": 0.0, "lt": 0.5})
+    adaptation_forgetting: float = field(metadata={"gt": 0.5, "le": 1.0})
+    adaptation_min_travel_mm: float = field(metadata={"ge": 0.0})
+    uncertainty_reference_mm: float = field(metadata={"ge": 0.0})
+    uncertainty_per_travel: float = field(metadata={"ge": 0.0})
+    uncertainty_hold_mm_per_s: float = field(metadata={"ge": 0.0})
+    state_save_interval_s: float = field(metadata=_positive())
+
+
+@dataclass(frozen=True)
 class CanUnitConfig:
     """CAN identity of one unit: its motor controller, its emulated sensor, its Hall inputs."""
 
@@ -189,6 +207,7 @@ class Config:
     hydraulics: HydraulicsConfig
     units: dict[Literal["boom", "bucket"], UnitConfig]
     tables: TablesConfig
+    estimator: EstimatorConfig
     can: CanConfig
     bus: dict[str, Any]
     source: str = field(default="<memory>", compare=False, metadata={"internal": True})
@@ -214,7 +233,7 @@ class Config:
     def physics_hash(self) -> str:
         """Hash of everything the physics and tables depend on (not the bus, not the source)."""
         data = dataclasses.asdict(self)
-        for key in ("bus", "can", "source"):
+        for key in ("bus", "can", "estimator", "source"):
             data.pop(key)
         for unit in data["units"].values():
             for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm"):
@@ -243,6 +262,15 @@ def _convert(value: Any, tp: Any, path: str, source: str) -> Any:
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(source, path, f"expected a whole number, got {value!r}")
+        return value
+    if origin is Literal:
+        if value not in args:
+            raise ConfigError(source, path, f"{value!r} is not one of "
+                              f"{', '.join(map(str, args))}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(source, path, f"expected true or false, got {value!r}")
         return value
     if tp is str:
         if not isinstance(value, str):

@@ -1,0 +1,1 @@
+"""The position estimator: one integrator with an online and an offline face."""

@@ -1,0 +1,282 @@
+"""The position estimator: one integrator, an online step and an offline run that agree.
+
+Per sample: velocity from the mode's table, trapezoidal integration over the measured time
+step (a gap longer than ``max_gap_s`` is not integrated and flags the input stale), the
+adapted travel gain per direction, soft limits at the stroke ends, then the reference
+switches: a debounced edge sets the estimate to the switch's known switching position (plus
+whatever was travelled since the edge) and teaches the gains.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ..config import Config
+from ..tables.lookup import UnitTables
+from .adaptation import DirectionalGain
+from .bounded import bounded_cumsum
+from .model import Mode, VelocityModel
+from .references import Debouncer, Switch, accepted_edges, switches_from_config
+from .state import EstimatorState
+
+FLAG_STALE = 0x01
+FLAG_NOT_REFERENCED = 0x02
+FLAG_SOFT_LIMIT = 0x04
+FLAG_ADAPTING = 0x08
+FLAG_CLAMPED = 0x10
+FLAG_NAMES = {FLAG_STALE: "stale", FLAG_NOT_REFERENCED: "not_referenced",
+              FLAG_SOFT_LIMIT: "soft_limit", FLAG_ADAPTING: "adapting",
+              FLAG_CLAMPED: "table_clamped"}
+
+HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
+
+
+@dataclass(frozen=True)
+class Step:
+    position_mm: float
+    velocity_mm_s: float
+    uncertainty_mm: float
+    flags: int
+
+
+@dataclass(frozen=True)
+class ReferenceEvent:
+    index: int              # sample at which the edge was accepted
+    edge_index: int         # sample of the edge itself
+    switch: str
+    rising: bool
+    switch_position_mm: float
+    error_mm: float         # estimate minus switching position, at the edge
+    adapted: bool
+
+
+@dataclass(frozen=True)
+class RunEstimate:
+    position_mm: np.ndarray
+    velocity_mm_s: np.ndarray
+    uncertainty_mm: np.ndarray
+    flags: np.ndarray
+    events: list[ReferenceEvent]
+
+
+@dataclass
+class _Snapshot:
+    index: int
+    x: float
+    v: float
+    s_up: float
+    s_down: float
+
+
+@dataclass
+class _Online:
+    """Per-sample memory of the online face."""
+
+    t: float | None = None
+    v: float = 0.0
+    index: int = -1
+    s_up: float = 0.0
+    s_down: float = 0.0
+    debouncers: list[Debouncer] = field(default_factory=list)
+    snapshots: list[_Snapshot | None] = field(default_factory=list)
+
+
+class Estimator:
+    """One cylinder's position estimate."""
+
+    def __init__(self, cfg: Config, actuator: str, tables: UnitTables, *,
+                 mode: Mode | None = None, references: bool = True,
+                 adaptation: bool | None = None,
+                 initial_position_mm: float | None = None) -> None:
+        ecfg, ucfg = cfg.estimator, cfg.unit(actuator)
+        self.cfg, self.actuator = cfg, actuator
+        self.model = VelocityModel(tables, mode or ecfg.mode)
+        self.lower_mm = ecfg.soft_limit_margin_mm
+        self.upper_mm = ucfg.stroke_mm - ecfg.soft_limit_margin_mm
+        self.max_gap_s = ecfg.max_gap_s
+        self.debounce_s = ecfg.debounce_s
+        self.switches: tuple[Switch, ...] = switches_from_config(ucfg) if references else ()
+        self.gain = DirectionalGain(ecfg.adaptation_bound, ecfg.adaptation_forgetting,
+                                    ecfg.adaptation_min_travel_mm,
+                                    ecfg.adaptation if adaptation is None else adaptation)
+        self.u_ref = ecfg.uncertainty_reference_mm
+        self.per_travel = ecfg.uncertainty_per_travel
+        self.hold_rate = ecfg.uncertainty_hold_mm_per_s
+        self.position_mm = 0.0 if initial_position_mm is None else float(initial_position_mm)
+        self.u_base = self.u_ref
+        self.referenced = True          # False only after a restore, until a reference
+        self.travel_mm = 0.0
+        self.hold_s = 0.0
+        self.s_ref = (0.0, 0.0)         # raw travel sums at the last reference's edge
+        self._on = _Online(debouncers=[Debouncer(self.debounce_s) for _ in self.switches],
+                           snapshots=[None] * len(self.switches))
+
+    # --- shared pieces -------------------------------------------------------------------
+
+    @property
+    def uncertainty_mm(self) -> float:
+        return self.u_base + self.per_travel * self.travel_mm + self.hold_rate * self.hold_s
+
+    def _clip(self, x: float) -> float:
+        return min(max(x, self.lower_mm), self.upper_mm)
+
+    def _base_flags(self) -> int:
+        flags = 0 if self.referenced else FLAG_NOT_REFERENCED
+        if self.gain.enabled and np.any(self.gain.gain != 1.0):
+            flags |= FLAG_ADAPTING
+        return flags
+
+    def _reference(self, sw: Switch, rising: bool, snap: _Snapshot, x_now: float,
+                   index: int) -> tuple[float, ReferenceEvent]:
+        """Apply an accepted edge: returns the corrected position and what happened."""
+        p = sw.edge_position_mm(rising, snap.v, snap.x)
+        error = snap.x - p
+        adapted = self.gain.update(error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1])
+        self.s_ref = (snap.s_up, snap.s_down)
+        self.travel_mm, self.hold_s, self.u_base = 0.0, 0.0, self.u_ref
+        self.referenced = True
+        return self._clip(p + (x_now - snap.x)), ReferenceEvent(
+            index, snap.index, sw.name, rising, p, error, adapted)
+
+    # --- online face -----------------------------------------------------------------------
+
+    def step(self, t_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float,
+             refs: Mapping[str, bool] | None = None) -> Step:
+        """One sample in, position out. ``refs`` holds the Hall switch states by name."""
+        on = self._on
+        v, clamped = self.model.velocity(speed_rpm, torque_nm, oil_temp_c)
+        stale = False
+        dx_raw = 0.0
+        if on.t is not None:
+            dt = t_s - on.t
+            if 0.0 < dt <= self.max_gap_s:
+                dx_raw = 0.5 * (on.v + v) * dt
+                if abs(v) < HOLD_SPEED_MM_S:
+                    self.hold_s += dt
+            else:
+                stale = dt > 0.0
+                self.hold_s += max(dt, 0.0)
+        on.t, on.v, on.index = t_s, v, on.index + 1
+        dx = self.gain.scale(dx_raw)
+        self.position_mm = self._clip(self.position_mm + dx)
+        self.travel_mm += abs(dx)
+        if dx_raw > 0.0:
+            on.s_up += dx_raw
+        else:
+            on.s_down += dx_raw
+        if refs:
+            accepted = []
+            for i, (sw, deb) in enumerate(zip(self.switches, on.debouncers)):
+                raw = refs.get(sw.name)
+                if raw is None:
+                    continue
+                waiting = deb.candidate_since_s is not None
+                edge = deb.update(t_s, bool(raw), on.index)
+                if deb.candidate_since_s is not None and not waiting or (
+                        edge is not None and edge[0] == on.index):
+                    on.snapshots[i] = _Snapshot(on.index, self.position_mm, v, on.s_up,
+                                                on.s_down)
+                if edge is not None:
+                    accepted.append((sw, edge[1], on.snapshots[i]))
+            for sw, rising, snap in accepted:
+                self.position_mm, _ = self._reference(sw, rising, snap, self.position_mm,
+                                                      on.index)
+        flags = self._base_flags()
+        if stale:
+            flags |= FLAG_STALE
+        if clamped:
+            flags |= FLAG_CLAMPED
+        if self.position_mm <= self.lower_mm or self.position_mm >= self.upper_mm:
+            flags |= FLAG_SOFT_LIMIT
+        return Step(self.position_mm, v, self.uncertainty_mm, flags)
+
+    # --- offline face ----------------------------------------------------------------------
+
+    def run(self, time_s: ArrayLike, speed_rpm: ArrayLike, torque_nm: ArrayLike,
+            oil_temp_c: ArrayLike, refs: Mapping[str, ArrayLike] | None = None) -> RunEstimate:
+        """A whole run at once, from this (fresh) estimator's state; equal to feeding
+        :meth:`step` sample by sample."""
+        if self._on.t is not None:
+            raise RuntimeError("run() starts from a fresh estimator; use step() to continue")
+        t = np.asarray(time_s, dtype=float)
+        n = len(t)
+        v, clamped = self.model.velocity_many(speed_rpm, torque_nm, oil_temp_c)
+        dt = np.diff(t)
+        valid = (dt > 0.0) & (dt <= self.max_gap_s)
+        dx_raw = np.zeros(n)
+        dx_raw[1:] = np.where(valid, 0.5 * (v[:-1] + v[1:]) * dt, 0.0)
+        hold_dt = np.zeros(n)
+        hold_dt[1:] = np.where(valid, np.where(np.abs(v[1:]) < HOLD_SPEED_MM_S, dt, 0.0),
+                               np.maximum(dt, 0.0))
+        stale = np.zeros(n, dtype=bool)
+        stale[1:] = ~valid & (dt > 0.0)
+        s_up = np.cumsum(np.maximum(dx_raw, 0.0))
+        s_down = np.cumsum(np.minimum(dx_raw, 0.0))
+
+        events = []
+        for order, sw in enumerate(self.switches):
+            if refs is None or sw.name not in refs:
+                continue
+            for k, c, rising in accepted_edges(t, np.asarray(refs[sw.name]), self.debounce_s):
+                events.append((k, order, c, rising, sw))
+        events.sort(key=lambda e: (e[0], e[1]))
+
+        x = np.empty(n)
+        u = np.empty(n)
+        not_ref = np.zeros(n, dtype=bool)
+        adapting = np.zeros(n, dtype=bool)
+        pre_correction: dict[int, float] = {}
+        log: list[ReferenceEvent] = []
+        i, start = 0, self.position_mm
+        for k, _, c, rising, sw in events + [(n - 1, -1, -1, False, None)]:
+            if k >= i:
+                dx = self.gain.scale_many(dx_raw[i:k + 1])
+                x[i:k + 1], _ = bounded_cumsum(start, dx, self.lower_mm, self.upper_mm)
+                travel = self.travel_mm + np.cumsum(np.abs(dx))
+                hold = self.hold_s + np.cumsum(hold_dt[i:k + 1])
+                u[i:k + 1] = self.u_base + self.per_travel * travel + self.hold_rate * hold
+                self.travel_mm, self.hold_s = float(travel[-1]), float(hold[-1])
+                not_ref[i:k + 1] = not self.referenced
+                adapting[i:k + 1] = self._base_flags() & FLAG_ADAPTING != 0
+                i = k + 1
+            if sw is None:
+                break
+            pre_correction.setdefault(k, float(x[k]))
+            snap = _Snapshot(c, pre_correction.get(c, float(x[c])), float(v[c]),
+                             float(s_up[c]), float(s_down[c]))
+            x[k], event = self._reference(sw, rising, snap, float(x[k]), k)
+            u[k] = self.uncertainty_mm
+            not_ref[k] = False
+            adapting[k] = self._base_flags() & FLAG_ADAPTING != 0
+            log.append(event)
+            start = float(x[k])
+        self.position_mm = float(x[-1]) if n else self.position_mm
+        flags = (np.where(stale, FLAG_STALE, 0) | np.where(clamped, FLAG_CLAMPED, 0)
+                 | np.where(not_ref, FLAG_NOT_REFERENCED, 0)
+                 | np.where(adapting, FLAG_ADAPTING, 0)
+                 | np.where((x <= self.lower_mm) | (x >= self.upper_mm), FLAG_SOFT_LIMIT, 0))
+        return RunEstimate(x, v, u, flags.astype(np.uint8), log)
+
+    # --- persistence -----------------------------------------------------------------------
+
+    def snapshot(self) -> EstimatorState:
+        return EstimatorState(actuator=self.actuator, config_hash=self.cfg.physics_hash(),
+                              position_mm=self.position_mm, uncertainty_mm=self.uncertainty_mm,
+                              gain_up=float(self.gain.gain[0]),
+                              gain_down=float(self.gain.gain[1]),
+                              covariance=self.gain.cov.tolist())
+
+    def restore(self, state: EstimatorState) -> None:
+        """Carry on from a saved state: trusted for position, flagged until a reference."""
+        self.position_mm = self._clip(state.position_mm)
+        self.u_base = state.uncertainty_mm
+        self.travel_mm = self.hold_s = 0.0
+        self.gain.gain = np.clip([state.gain_up, state.gain_down], 1 - self.gain.bound,
+                                 1 + self.gain.bound)
+        if np.shape(state.covariance) == (2, 2):
+            self.gain.cov = np.asarray(state.covariance, dtype=float)
+        self.referenced = False

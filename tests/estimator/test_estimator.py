@@ -1,0 +1,138 @@
+"""The estimator on synthetic runs whose truth is the exact steady state."""
+
+import numpy as np
+import pytest
+
+from ddh_vsensor.estimator.bounded import bounded_cumsum
+from ddh_vsensor.estimator.estimator import (FLAG_NOT_REFERENCED, FLAG_SOFT_LIMIT, FLAG_STALE,
+                                             Estimator)
+from ddh_vsensor.physics.steady import holding_speed, steady_state
+
+
+def _online(est, run, refs=True):
+    out = []
+    for k in range(len(run.time_s)):
+        r = {n: bool(a[k]) for n, a in run.refs.items()} if refs else None
+        out.append(est.step(run.time_s[k], run.speed_rpm[k], float(run.torque_nm[k]),
+                            run.oil_temp_c[k], r))
+    return out
+
+
+@pytest.mark.parametrize("mode", ["full", "paper"])
+def test_online_and_offline_faces_agree(cfg, boom, unit_tables, make_run, mode):
+    run = make_run(boom, seconds=40, leakage=2.0, unit_cfg=cfg.unit("boom"))
+    run.time_s[1500] = run.time_s[1499]                    # a repeated timestamp
+    run.time_s[2000:] += 0.2                               # and a gap
+    off = Estimator(cfg, "boom", unit_tables["boom"], mode=mode, initial_position_mm=22.0)
+    res = off.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+    on = Estimator(cfg, "boom", unit_tables["boom"], mode=mode, initial_position_mm=22.0)
+    steps = _online(on, run)
+    assert len(res.events) >= 4
+    assert np.max(np.abs(np.array([s.position_mm for s in steps]) - res.position_mm)) < 1e-6
+    assert np.max(np.abs(np.array([s.uncertainty_mm for s in steps]) - res.uncertainty_mm)) < 1e-6
+    assert [s.flags for s in steps] == res.flags.tolist()
+    assert res.flags[2000] & FLAG_STALE and not res.flags[1999] & FLAG_STALE
+    assert np.allclose(on.gain.gain, off.gain.gain)
+
+
+def test_full_mode_tracks_the_truth_without_references(cfg, boom, unit_tables, make_run):
+    run = make_run(boom, seconds=60, )
+    est = Estimator(cfg, "boom", unit_tables["boom"], references=False,
+                    initial_position_mm=run.position_mm[0])
+    res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c)
+    assert np.max(np.abs(res.position_mm - run.position_mm)) < 0.5
+
+
+def test_standstill_at_the_holding_speed_in_full_mode(cfg, boom, unit_tables):
+    f = boom.load_force_n(0)
+    h = holding_speed(boom, f, 27.0)
+    torque = float(steady_state(boom, h.speed_rpm, f, 27.0).torque_nm)
+    t = np.arange(0, 60, 0.01)
+    for mode, bound in (("full", 0.5), ("paper", None)):
+        est = Estimator(cfg, "boom", unit_tables["boom"], mode=mode, references=False,
+                        initial_position_mm=290.0)
+        res = est.run(t, np.full_like(t, h.speed_rpm), np.full_like(t, torque),
+                      np.full_like(t, 27.0))
+        creep = res.position_mm[-1] - 290.0
+        if bound is not None:
+            assert abs(creep) < bound                     # full: the held boom stands still
+        else:
+            assert creep > 5.0                            # paper: creeps up, as published
+
+
+def test_resync_corrects_a_planted_offset(cfg, boom, unit_tables, make_run):
+    run = make_run(boom, seconds=30, unit_cfg=cfg.unit("boom"))
+    est = Estimator(cfg, "boom", unit_tables["boom"], adaptation=False,
+                    initial_position_mm=run.position_mm[0] + 12.0)
+    res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+    first = res.events[0]
+    assert first.error_mm == pytest.approx(12.0, abs=0.5)
+    after = slice(first.index + 1, None)
+    assert np.max(np.abs(res.position_mm[after] - run.position_mm[after])) < 1.0
+    assert res.uncertainty_mm[first.index] == cfg.estimator.uncertainty_reference_mm
+
+
+def _cycle_errors(cfg, boom, unit_tables, make_run, adaptation, leakage, seed=1):
+    run = make_run(boom, seconds=240, leakage=leakage, unit_cfg=cfg.unit("boom"),
+                   seed=seed)
+    est = Estimator(cfg, "boom", unit_tables["boom"], adaptation=adaptation,
+                    initial_position_mm=run.position_mm[0])
+    res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+    return [abs(e.error_mm) for e in res.events if e.switch == "mid"], est
+
+
+def test_adaptation_converges_on_a_planted_leakage_error(cfg, boom, unit_tables, make_run):
+    errs, est = _cycle_errors(cfg, boom, unit_tables, make_run, True, leakage=4.0)
+    fixed, _ = _cycle_errors(cfg, boom, unit_tables, make_run, False, leakage=4.0)
+    assert np.mean(fixed[-6:]) > 0.3                      # the planted error shows
+    assert np.mean(errs[-6:]) < 0.5 * np.mean(fixed[-6:])  # and learning removes most of it
+    assert np.all(np.abs(est.gain.gain - 1) <= cfg.estimator.adaptation_bound)
+
+
+def test_adaptation_stays_bounded_on_noise(cfg, boom, unit_tables, make_run):
+    rng = np.random.default_rng(4)
+    run = make_run(boom, seconds=240, unit_cfg=cfg.unit("boom"))
+    noisy_torque = run.torque_nm + rng.normal(0, 2.0, len(run.torque_nm))
+    est = Estimator(cfg, "boom", unit_tables["boom"], initial_position_mm=run.position_mm[0])
+    res = est.run(run.time_s, run.speed_rpm, noisy_torque, run.oil_temp_c, run.refs)
+    assert np.all(np.abs(est.gain.gain - 1) < 0.02)
+    assert np.max(np.abs(res.position_mm - run.position_mm)) < 3.0
+
+
+def test_soft_limits_act_and_are_flagged(cfg, boom, unit_tables):
+    t = np.arange(0, 10, 0.01)
+    est = Estimator(cfg, "boom", unit_tables["boom"], references=False,
+                    initial_position_mm=300.0)
+    res = est.run(t, np.full_like(t, 3000.0), np.full_like(t, 22.0), np.full_like(t, 27.0))
+    assert res.position_mm.max() == pytest.approx(cfg.unit("boom").stroke_mm)
+    assert res.flags[-1] & FLAG_SOFT_LIMIT and not res.flags[0] & FLAG_SOFT_LIMIT
+
+
+def test_bounded_cumsum_equals_the_clipped_loop():
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        dx = rng.normal(0.3 * rng.normal(), 1.0, 3000)
+        x0 = rng.uniform(0, 100)
+        x, _ = bounded_cumsum(x0, dx, 0.0, 100.0)
+        ref, p = [], x0
+        for d in dx:
+            p = min(max(p + d, 0.0), 100.0)
+            ref.append(p)
+        assert np.max(np.abs(np.array(ref) - x)) < 1e-9
+
+
+def test_restored_estimate_is_flagged_until_a_reference(cfg, boom, unit_tables, make_run):
+    run = make_run(boom, seconds=30, unit_cfg=cfg.unit("boom"))
+    first = Estimator(cfg, "boom", unit_tables["boom"], initial_position_mm=run.position_mm[0])
+    half = len(run.time_s) // 3
+    for k in range(half):
+        first.step(run.time_s[k], run.speed_rpm[k], float(run.torque_nm[k]), 27.0)
+    second = Estimator(cfg, "boom", unit_tables["boom"])
+    second.restore(first.snapshot())
+    assert second.position_mm == pytest.approx(first.position_mm)
+    flags = []
+    for k in range(half, len(run.time_s)):
+        refs = {n: bool(a[k]) for n, a in run.refs.items()}
+        flags.append(second.step(run.time_s[k], run.speed_rpm[k], float(run.torque_nm[k]),
+                                 27.0, refs).flags)
+    assert flags[0] & FLAG_NOT_REFERENCED and not flags[-1] & FLAG_NOT_REFERENCED
