@@ -209,14 +209,17 @@ def _cells(column: np.ndarray) -> list[str]:
     return ["" if v != v else repr(v) for v in column.tolist()]
 
 
-def write_csv(path: str | Path, run: Run) -> None:
-    """Write one run: comments as '# ' lines, then header and rows; atomic."""
+def write_csv(path: str | Path, run: Run, extra: dict[str, np.ndarray] | None = None) -> None:
+    """Write one run: comments as '# ' lines, then header and rows; atomic. ``extra`` adds
+    columns (readers of the format ignore unknown ones)."""
     columns = {name: _cells(getattr(run, name)) for name in REQUIRED}
     for name in PRESSURES:
         if getattr(run, name) is not None:
             columns[name] = _cells(getattr(run, name))
     for name, state in run.refs.items():
         columns[REF_PREFIX + name] = [str(v) for v in state.tolist()]
+    for name, values in (extra or {}).items():
+        columns[name] = _cells(np.asarray(values, dtype=float))
     comment_lines = [f"# {line}" for text in run.comments
                      for line in (text.splitlines() or [""])]
     try:

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import argparse
 
+from typing import TYPE_CHECKING
+
 from ..config import ACTUATORS, Config, load_config
+
+if TYPE_CHECKING:
+    from ..measured import Run
+    from ..tables.lookup import UnitTables
 
 
 def add_config_arg(parser: argparse.ArgumentParser) -> None:
@@ -18,3 +24,23 @@ def add_actuator_arg(parser: argparse.ArgumentParser) -> None:
 
 def config_from(args: argparse.Namespace) -> Config:
     return load_config(args.config)
+
+
+def load_run(path: str, actuator: str, cfg: Config) -> "Run":
+    """A measured run from a CSV of the interchange format or from any CAN log python-can
+    reads (decoded with the project's DBC)."""
+    from ..canbus.log import read_can_log
+    from ..measured import read_csv
+    if path.lower().endswith(".csv"):
+        return read_csv(path)
+    return read_can_log(path, actuator, cfg)
+
+
+def load_tables_for(args: argparse.Namespace, cfg: Config, actuator: str) -> "UnitTables":
+    """Tables from ``--tables DIR`` (refused if built for another config), else built now
+    from the config (well under a second)."""
+    from ..tables.build import build_unit_tables
+    from ..tables.store import load_unit_tables
+    if getattr(args, "tables", None):
+        return load_unit_tables(args.tables, actuator, cfg)
+    return build_unit_tables(cfg, actuator)

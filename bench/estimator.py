@@ -1,0 +1,57 @@
+"""Benchmark: offline estimator samples per second and the online step's cost, both units."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _results import publish  # noqa: E402
+
+from ddh_vsensor.config import ACTUATORS, load_config  # noqa: E402
+from ddh_vsensor.estimator.estimator import Estimator  # noqa: E402
+from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
+
+
+def _signals(count: int, seed: int) -> tuple[np.ndarray, ...]:
+    """A smooth work-cycle-like signal at 1 kHz with a mid reference switch toggling."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(count) * 1e-3
+    speed = 4000 * np.sin(2 * np.pi * t / 8.0) + rng.normal(0, 5, count)
+    torque = 20 + 5 * np.sin(2 * np.pi * t / 3.0)
+    temp = 27 + 0.001 * t
+    mid = (np.sin(2 * np.pi * t / 8.0) > 0.95)
+    return t, speed, torque, temp, mid
+
+
+def main() -> None:
+    cfg = load_config(None)
+    figures: dict[str, object] = {}
+    for actuator in ACTUATORS:
+        tables = build_unit_tables(cfg, actuator)
+        t, n, q, temp, mid = _signals(2_000_000, 0)
+        refs = {"mid": mid}
+        est = Estimator(cfg, actuator, tables, initial_position_mm=100.0)
+        t0 = time.perf_counter()
+        est.run(t, n, q, temp, refs)
+        figures[f"{actuator}_offline_Msamples_s"] = round(len(t) / (time.perf_counter() - t0) / 1e6, 2)
+        est = Estimator(cfg, actuator, tables, initial_position_mm=100.0)
+        count = 100_000
+        step = est.step
+        args = list(zip(t[:count].tolist(), n[:count].tolist(), q[:count].tolist(),
+                        temp[:count].tolist()))
+        ref_dicts = [{"mid": bool(m)} for m in mid[:count]]
+        t0 = time.perf_counter()
+        for (tk, nk, qk, tc), r in zip(args, ref_dicts):
+            step(tk, nk, qk, tc, r)
+        figures[f"{actuator}_online_step_us"] = round((time.perf_counter() - t0) / count * 1e6, 2)
+    figures["goal_offline_Msamples_s"] = 2.0
+    figures["goal_online_step_us"] = 20.0
+    publish("estimator", figures)
+
+
+if __name__ == "__main__":
+    main()

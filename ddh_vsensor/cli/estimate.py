@@ -1,0 +1,86 @@
+"""``ddh-vsensor estimate``: run the estimator over a measured run and score it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from ..errors import UserError
+from ..estimator.accuracy import accuracy
+from ..estimator.estimator import Estimator
+from ..measured import Run, write_csv
+from .common import add_actuator_arg, add_config_arg, config_from, load_run, load_tables_for
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("estimate", help="estimate positions over a measured run (CSV or CAN log)")
+    p.add_argument("run", metavar="RUN", help="CSV of the measured-data format, or a CAN log")
+    add_config_arg(p)
+    add_actuator_arg(p)
+    p.add_argument("--mode", choices=("full", "paper"), default=None,
+                   help="estimator mode (default: the config's)")
+    p.add_argument("--tables", metavar="DIR", help="table set (default: built from --config)")
+    p.add_argument("--no-references", action="store_true", help="ignore the Hall switches")
+    p.add_argument("--no-adaptation", action="store_true", help="do not learn at references")
+    p.add_argument("--initial-position-mm", type=float, default=None,
+                   help="start here (default: the run's first measured position)")
+    p.add_argument("--out", metavar="EST.csv", help="write the estimate")
+    p.add_argument("--plot", metavar="FILE.png", help="the paper's Figures 6/8")
+    p.add_argument("--json", action="store_true", help="print the errors as JSON")
+    p.set_defaults(func=_run)
+
+
+def initial_position(run: Run, given: float | None) -> float:
+    if given is not None:
+        return given
+    known = run.position_mm[np.isfinite(run.position_mm)]
+    return float(known[0]) if known.size else 0.0
+
+
+def estimate_run(args: argparse.Namespace, run: Run, actuator: str):
+    """Estimator and result for one run, as the CLI options say."""
+    cfg = config_from(args)
+    tables = load_tables_for(args, cfg, actuator)
+    est = Estimator(cfg, actuator, tables, mode=args.mode, references=not args.no_references,
+                    adaptation=False if args.no_adaptation else None,
+                    initial_position_mm=initial_position(run, args.initial_position_mm))
+    refs = None if args.no_references else run.refs
+    return est, est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, refs)
+
+
+def _run(args: argparse.Namespace) -> int:
+    cfg = config_from(args)
+    run = load_run(args.run, args.actuator, cfg)
+    est, res = estimate_run(args, run, args.actuator)
+    score = accuracy(res.position_mm, run.position_mm)
+    if args.out:
+        write_csv(args.out, Run(
+            time_s=run.time_s, speed_rpm=run.speed_rpm, torque_nm=run.torque_nm,
+            oil_temp_c=run.oil_temp_c, position_mm=res.position_mm,
+            comments=[f"ddh-vsensor estimate of {args.run} ({args.actuator}, mode "
+                      f"{est.model.mode}); position_mm is the estimate",
+                      "extra columns: uncertainty_mm, flags, reference_mm (the run's own)"],
+            source=args.out), extra={"uncertainty_mm": res.uncertainty_mm,
+                                     "flags": res.flags.astype(float),
+                                     "reference_mm": run.position_mm})
+    if args.plot:
+        from ..estimator.plot import plot_estimate
+        plot_estimate(run.time_s, run.position_mm, res.position_mm, res.uncertainty_mm,
+                      f"{args.actuator}, {est.model.mode} mode: {args.run}", args.plot)
+    if score is None:
+        if args.json:
+            print(json.dumps({"max_abs_error_mm": None, "rms_error_mm": None,
+                              "final_error_mm": None}))
+        else:
+            print(f"final position {res.position_mm[-1]:.2f} mm (the run has no reference "
+                  "position to score against)")
+        return 0
+    if args.json:
+        print(json.dumps(score.as_dict()))
+    else:
+        print(f"{args.actuator} ({est.model.mode}): max |error| {score.max_abs_error_mm:.2f} mm,"
+              f" RMS {score.rms_error_mm:.2f} mm, final {score.final_error_mm:+.2f} mm over "
+              f"{score.samples} samples; {len(res.events)} reference events")
+    return 0
