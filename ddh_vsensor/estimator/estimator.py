@@ -67,6 +67,7 @@ class RunEstimate:
 class _Snapshot:
     index: int
     x: float
+    dx: float           # increment applied at the edge sample: the edge's timing resolution
     v: float
     s_up: float
     s_down: float
@@ -135,7 +136,10 @@ class Estimator:
         """Apply an accepted edge: returns the corrected position and what happened."""
         p = sw.edge_position_mm(rising, snap.v, snap.x)
         error = snap.x - p
-        adapted = self.gain.update(error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1])
+        # The edge happened somewhere within the last sample's travel: a smaller error is no
+        # evidence against the model, and learning from it only fits sampling noise.
+        adapted = abs(error) > abs(snap.dx) and self.gain.update(
+            error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1])
         self.s_ref = (snap.s_up, snap.s_down)
         self.travel_mm, self.hold_s, self.u_base = 0.0, 0.0, self.u_ref
         self.referenced = True
@@ -162,7 +166,9 @@ class Estimator:
                 self.hold_s += max(dt, 0.0)
         on.t, on.v, on.index = t_s, v, on.index + 1
         dx = self.gain.scale(dx_raw)
-        self.position_mm = self._clip(self.position_mm + dx)
+        before = self.position_mm
+        self.position_mm = self._clip(before + dx)
+        applied = self.position_mm - before
         self.travel_mm += abs(dx)
         if dx_raw > 0.0:
             on.s_up += dx_raw
@@ -178,8 +184,8 @@ class Estimator:
                 edge = deb.update(t_s, bool(raw), on.index)
                 if deb.candidate_since_s is not None and not waiting or (
                         edge is not None and edge[0] == on.index):
-                    on.snapshots[i] = _Snapshot(on.index, self.position_mm, v, on.s_up,
-                                                on.s_down)
+                    on.snapshots[i] = _Snapshot(on.index, self.position_mm, applied, v,
+                                                on.s_up, on.s_down)
                 if edge is not None:
                     accepted.append((sw, edge[1], on.snapshots[i]))
             for sw, rising, snap in accepted:
@@ -232,6 +238,7 @@ class Estimator:
         pre_correction: dict[int, float] = {}
         log: list[ReferenceEvent] = []
         i, start = 0, self.position_mm
+        x_start = start
         for k, _, c, rising, sw in events + [(n - 1, -1, -1, False, None)]:
             if k >= i:
                 dx = self.gain.scale_many(dx_raw[i:k + 1])
@@ -246,8 +253,10 @@ class Estimator:
             if sw is None:
                 break
             pre_correction.setdefault(k, float(x[k]))
-            snap = _Snapshot(c, pre_correction.get(c, float(x[c])), float(v[c]),
-                             float(s_up[c]), float(s_down[c]))
+            x_c = pre_correction.get(c, float(x[c]))
+            x_before = float(x[c - 1]) if c > 0 else x_start
+            snap = _Snapshot(c, x_c, x_c - x_before, float(v[c]), float(s_up[c]),
+                             float(s_down[c]))
             x[k], event = self._reference(sw, rising, snap, float(x[k]), k)
             u[k] = self.uncertainty_mm
             not_ref[k] = False
