@@ -1,0 +1,219 @@
+"""Setpoint profiles: the paper's work cycle at four speeds, and user profiles from CSV.
+
+A profile gives, for each actuator, the position setpoint and its rate as functions of time.
+The paper's cycle (lift the bucket = retract it; lift the boom; dump the bucket = extend it,
+then lift it again; lower the boom; finally the bucket back to its digging position, so that
+the cycle ends in its start state and repeats) is built from smooth point-to-point moves:
+trapezoidal velocity with raised-cosine acceleration and deceleration, no jerk steps.
+
+Positions are chosen so that every cycle crosses the middle reference switches (boom 155 mm,
+bucket 425 mm), the boom's bottom end switch (0 mm, window 3 mm) is on at each cycle's start
+and end (boom low setpoint 1.5 mm, clear of the end stop), and the boom's top setpoint
+(297 mm) stays below the top end (311.15 mm) as in the paper ("not allowed to reach the upper
+limits"). The four speed levels scale the travel velocities by 1/4 ... 4/4; at speed 4 the
+motors peak near 5000-5500 rpm and the cycle lasts about 26 s (paper: about 25 s, motors at
+5000-6000 rpm).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import ACTUATORS, Config
+from ..errors import UserError
+
+SPEED_LEVELS = (1, 2, 3, 4)
+ACCEL_FRACTION = 0.25          # share of each move spent accelerating (and decelerating)
+
+
+@dataclass(frozen=True)
+class PaperCycleDesign:
+    """Positions (mm), travel velocities at speed 4 (mm/s) and pauses (s) of the cycle."""
+
+    boom_low_mm: float = 1.5
+    boom_high_mm: float = 297.0
+    bucket_dig_mm: float = 600.0
+    bucket_lifted_mm: float = 200.0
+    bucket_dumped_mm: float = 700.0
+    boom_velocity_mm_s: float = 95.0
+    bucket_velocity_mm_s: float = 195.0
+    start_hold_s: float = 1.0
+    pause_s: float = 0.4
+    end_hold_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """One actuator's setpoint: knots (s, mm) joined by smooth moves or straight lines."""
+
+    time_s: np.ndarray
+    position_mm: np.ndarray
+    smooth: bool = True
+
+    def evaluate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Setpoint (mm) and its rate (mm/s) at times ``t`` (held outside the knots)."""
+        x, v, _ = self.evaluate_all(t)
+        return x, v
+
+    def evaluate_all(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Setpoint (mm), rate (mm/s) and acceleration (mm/s^2; 0 for straight lines)."""
+        t = np.asarray(t, dtype=float)
+        tk, xk = self.time_s, self.position_mm
+        if len(tk) == 1:
+            return np.full_like(t, xk[0]), np.zeros_like(t), np.zeros_like(t)
+        i = np.clip(np.searchsorted(tk, t, side="right") - 1, 0, len(tk) - 2)
+        dt = tk[i + 1] - tk[i]
+        u = np.clip((t - tk[i]) / dt, 0.0, 1.0)
+        inside = (t > tk[0]) & (t < tk[-1])
+        if self.smooth:
+            s, ds, dds = _smooth_step(u)
+        else:
+            s, ds, dds = u, np.ones_like(u), np.zeros_like(u)
+        dx = xk[i + 1] - xk[i]
+        return (xk[i] + dx * s, np.where(inside, dx * ds / dt, 0.0),
+                np.where(inside, dx * dds / (dt * dt), 0.0))
+
+
+def _smooth_step(u: np.ndarray, a: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raised-cosine trapezoid: normalised position 0..1 and its first two derivatives in u."""
+    a = ACCEL_FRACTION if a is None else a
+    area = 1.0 - a
+    rise, fall = u < a, u > 1.0 - a
+    w = np.where(rise, u, np.where(fall, 1.0 - u, a))       # distance from the nearer end
+
+    def ramp(z: np.ndarray) -> np.ndarray:       # integral of (1 - cos(pi z / a)) / 2
+        return 0.5 * z - a / (2.0 * math.pi) * np.sin(math.pi * z / a)
+
+    s = np.where(rise, ramp(u), np.where(fall, area - ramp(1.0 - u), 0.5 * a + (u - a)))
+    ds = np.where(rise | fall, 0.5 * (1.0 - np.cos(math.pi * w / a)), 1.0)
+    dds = np.where(rise, 1.0, np.where(fall, -1.0, 0.0)) * (
+        0.5 * math.pi / a * np.sin(math.pi * w / a))
+    return s / area, ds / area, dds / area
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Setpoints of both actuators over one cycle, repeated ``cycles`` times."""
+
+    name: str
+    trajectories: dict[str, Trajectory]
+    cycle_s: float
+    cycles: int = 1
+
+    @property
+    def duration_s(self) -> float:
+        return self.cycle_s * self.cycles
+
+    def evaluate(self, actuator: str, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Setpoint (mm) and rate (mm/s) of one actuator at absolute times ``t``."""
+        x, v, _ = self.evaluate_all(actuator, t)
+        return x, v
+
+    def evaluate_all(self, actuator: str, t: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Setpoint (mm), rate (mm/s), acceleration (mm/s^2) at absolute times ``t``."""
+        t = np.asarray(t, dtype=float)
+        local = t - self.cycle_s * np.clip(np.floor(t / self.cycle_s), 0, self.cycles - 1)
+        return self.trajectories[actuator].evaluate_all(local)
+
+    def repeated(self, cycles: int) -> "Profile":
+        if cycles < 1:
+            raise UserError(f"cycles must be at least 1, got {cycles}")
+        if cycles > 1:
+            for name, tr in self.trajectories.items():
+                if abs(tr.position_mm[0] - tr.position_mm[-1]) > 1e-9:
+                    raise UserError(f"profile '{self.name}' does not end where it starts "
+                                    f"for {name} ({tr.position_mm[0]:g} -> "
+                                    f"{tr.position_mm[-1]:g} mm): cannot repeat it")
+        return Profile(self.name, self.trajectories, self.cycle_s, cycles)
+
+
+def _move_time(distance_mm: float, velocity_mm_s: float) -> float:
+    return abs(distance_mm) / (velocity_mm_s * (1.0 - ACCEL_FRACTION))
+
+
+def paper_cycle(speed: int, cycles: int = 1,
+                design: PaperCycleDesign = PaperCycleDesign()) -> Profile:
+    """The paper's work cycle at speed level 1..4 (4 the fastest), repeated ``cycles`` times."""
+    if speed not in SPEED_LEVELS:
+        raise UserError(f"speed must be one of 1, 2, 3, 4 (4 the fastest), got {speed}")
+    f = speed / 4.0
+    d = design
+    knots: dict[str, list[tuple[float, float]]] = {
+        "boom": [(0.0, d.boom_low_mm)], "bucket": [(0.0, d.bucket_dig_mm)]}
+    t = d.start_hold_s
+
+    def move(actuator: str, target: float) -> None:
+        nonlocal t
+        velocity = (d.boom_velocity_mm_s if actuator == "boom" else d.bucket_velocity_mm_s) * f
+        start = knots[actuator][-1][1]
+        knots[actuator].append((t, start))
+        t += _move_time(target - start, velocity)
+        knots[actuator].append((t, target))
+        t += d.pause_s
+
+    move("bucket", d.bucket_lifted_mm)      # lift the bucket (retract)
+    move("boom", d.boom_high_mm)            # lift the boom
+    move("bucket", d.bucket_dumped_mm)      # dump (extend) ...
+    move("bucket", d.bucket_lifted_mm)      # ... and lift the bucket again
+    move("boom", d.boom_low_mm)             # lower the boom
+    move("bucket", d.bucket_dig_mm)         # bucket back to digging: the start state
+    t += d.end_hold_s - d.pause_s
+    trajectories = {}
+    for name, pts in knots.items():
+        pts.append((t, pts[-1][1]))
+        tk = np.array([p[0] for p in pts])
+        xk = np.array([p[1] for p in pts])
+        trajectories[name] = Trajectory(tk, xk, smooth=True)
+    return Profile(f"paper speed {speed}", trajectories, t).repeated(cycles)
+
+
+def load_profile_csv(path: str | Path, cfg: Config, cycles: int = 1) -> Profile:
+    """A user profile: CSV with columns time_s, boom_mm, bucket_mm (``#`` lines are comments).
+
+    Setpoints are joined by straight lines (sample the file finely for smooth motion).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read the profile: {exc.strerror or exc}") from None
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    reader = csv.DictReader(lines)
+    need = ("time_s",) + tuple(f"{a}_mm" for a in ACTUATORS)
+    missing = [c for c in need if c not in (reader.fieldnames or [])]
+    if missing:
+        raise UserError(f"{path}: profile needs columns {', '.join(need)}; "
+                        f"missing {', '.join(missing)}")
+    cols: dict[str, list[float]] = {c: [] for c in need}
+    for row_no, row in enumerate(reader, start=2):
+        for c in need:
+            try:
+                value = float(row[c])
+            except (TypeError, ValueError):
+                raise UserError(f"{path}: row {row_no}: {c} = {row[c]!r} is not a number") \
+                    from None
+            if not math.isfinite(value):
+                raise UserError(f"{path}: row {row_no}: {c} is not finite")
+            cols[c].append(value)
+    t = np.array(cols["time_s"])
+    if len(t) < 2:
+        raise UserError(f"{path}: a profile needs at least two rows")
+    if np.any(np.diff(t) <= 0.0):
+        raise UserError(f"{path}: time_s must increase strictly from row to row")
+    if t[0] != 0.0:
+        raise UserError(f"{path}: time_s must start at 0")
+    trajectories = {}
+    for a in ACTUATORS:
+        x = np.array(cols[f"{a}_mm"])
+        stroke = cfg.unit(a).stroke_mm
+        if np.any(x < 0.0) or np.any(x > stroke):
+            raise UserError(f"{path}: {a}_mm must stay within the stroke 0..{stroke:g} mm")
+        trajectories[a] = Trajectory(t, x, smooth=False)
+    return Profile(path.name, trajectories, float(t[-1])).repeated(cycles)

@@ -1,0 +1,155 @@
+"""Effects catalogue: what a real machine has that the nominal tables do not.
+
+Each effect is named, documented, has one parameter and composes with the others; each applies
+to both units unless the caller names one (``boom.pump_leakage=1.5``). The nominal plant is
+every effect at its neutral value.
+
+``pump_leakage`` (factor, > 0, neutral 1)
+    Factor on the laminar leakage coefficient of every pump of the unit (wear). Changes the
+    leakage flows, hence the holding creep speed and the mm per revolution under load.
+``compressibility`` (air volume fraction at atmospheric pressure, 0 <= X < 0.2, neutral 0)
+    Entrained air. The effective bulk modulus follows the oil-air mixture law with adiabatic
+    air (kappa = 1.4): 1/beta = [(1-X)/beta_oil + X (p0/p)^(1/k)/(k p)] / [(1-X) + X (p0/p)^(1/k)],
+    p absolute, p0 = 1.013 bar (see ``plant.inverse_bulk_modulus``); it collapses at low
+    pressure. The chamber balance uses it throughout, so oil is conserved; only the transient
+    changes (steady states do not depend on the bulk modulus).
+``belt_slip`` (% per 100 N*m, 0 <= s <= 20, neutral 0)
+    The belt's pump-to-motor speed ratio drops by s % per 100 N*m of |motor torque|; the
+    torque ratio (pulley radii) is unchanged, so the pumps deliver less flow for the same
+    motor speed and torque.
+``displacement`` (factor, > 0, neutral 1)
+    Factor on every pump displacement of the unit (a pump that is not what the data sheet
+    says). Flow per revolution and torque per bar scale together.
+``time_offset`` (s, -1 <= t <= 1, neutral 0)
+    Logging only, not the plant: the logged motor speed and torque lag the logged position
+    (and the other channels) by t seconds (t < 0: they lead).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields, replace
+from typing import Callable, Iterable, Mapping
+
+from ..config import ACTUATORS
+from ..errors import UserError
+from ..physics.unit import DDHUnit
+from .plant import RowSpec
+
+
+@dataclass(frozen=True)
+class EffectDef:
+    name: str
+    parameter: str
+    neutral: float
+    check: Callable[[float], bool]
+    allowed: str
+    doc: str
+
+
+EFFECTS: dict[str, EffectDef] = {e.name: e for e in (
+    EffectDef("pump_leakage", "factor", 1.0, lambda v: 0.0 < v <= 100.0, "0 < factor <= 100",
+              "factor on every pump's laminar leakage coefficient (wear)"),
+    EffectDef("compressibility", "air fraction", 0.0, lambda v: 0.0 <= v < 0.2,
+              "0 <= fraction < 0.2",
+              "entrained air volume fraction at atmospheric pressure"),
+    EffectDef("belt_slip", "% per 100 N*m", 0.0, lambda v: 0.0 <= v <= 20.0, "0 <= % <= 20",
+              "pump speed ratio drops by this % per 100 N*m of |motor torque|"),
+    EffectDef("displacement", "factor", 1.0, lambda v: 0.0 < v <= 2.0, "0 < factor <= 2",
+              "factor on every pump displacement"),
+    EffectDef("time_offset", "s", 0.0, lambda v: -1.0 <= v <= 1.0, "-1 <= t <= 1 s",
+              "logged speed and torque lag the logged position by t seconds"),
+)}
+
+
+@dataclass(frozen=True)
+class UnitEffects:
+    """The effects on one unit, each at its value (neutral = nominal plant)."""
+
+    pump_leakage: float = 1.0
+    compressibility: float = 0.0
+    belt_slip: float = 0.0
+    displacement: float = 1.0
+    time_offset: float = 0.0
+
+    def non_neutral(self) -> dict[str, float]:
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if getattr(self, f.name) != EFFECTS[f.name].neutral}
+
+    def row(self, unit: DDHUnit, payload_kg: float) -> RowSpec:
+        """The plant row of ``unit`` with these effects applied."""
+        if self.pump_leakage != 1.0 or self.displacement != 1.0:
+            unit = unit.with_pumps(leakage=self.pump_leakage, displacement=self.displacement)
+        return RowSpec(unit=unit, payload_kg=payload_kg, air_fraction=self.compressibility,
+                       belt_slip_per_nm=self.belt_slip / 100.0 / 100.0)
+
+
+NOMINAL = UnitEffects()
+
+
+def check_effect(name: str, value: float) -> float:
+    """Validate one effect value; UserError naming the effect and its allowed range."""
+    if name not in EFFECTS:
+        raise UserError(f"unknown effect {name!r} (known: {', '.join(EFFECTS)})")
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise UserError(f"effect {name}: value {value!r} is not a number") from None
+    spec = EFFECTS[name]
+    if not math.isfinite(value) or not spec.check(value):
+        raise UserError(f"effect {name}: {value:g} is out of range ({spec.allowed}; "
+                        f"{spec.doc})")
+    return value
+
+
+def parse_effect(text: str) -> tuple[str | None, str, float]:
+    """``NAME=VALUE`` or ``UNIT.NAME=VALUE`` -> (unit or None for both, name, value)."""
+    if "=" not in text:
+        raise UserError(f"effect {text!r}: expected NAME=VALUE or UNIT.NAME=VALUE "
+                        f"(effects: {', '.join(EFFECTS)})")
+    key, raw = (s.strip() for s in text.split("=", 1))
+    unit = None
+    if "." in key:
+        unit, key = (s.strip() for s in key.split(".", 1))
+        if unit not in ACTUATORS:
+            raise UserError(f"effect {text!r}: unknown unit {unit!r} (units: "
+                            f"{', '.join(ACTUATORS)})")
+    try:
+        value = float(raw)
+    except ValueError:
+        if key not in EFFECTS:
+            raise UserError(f"unknown effect {key!r} (known: {', '.join(EFFECTS)})") from None
+        raise UserError(f"effect {key}: value {raw!r} is not a number") from None
+    return unit, key, check_effect(key, value)
+
+
+def build_effects(items: Iterable[str | tuple[str | None, str, float]] | Mapping[str, float]
+                  | None) -> dict[str, UnitEffects]:
+    """Effects per unit from CLI strings, (unit, name, value) tuples or a {name: value} map.
+
+    A name without a unit applies to both units; the same effect twice on a unit is an error.
+    """
+    if items is None:
+        items = []
+    if isinstance(items, Mapping):
+        items = [f"{k}={v}" for k, v in items.items()]
+    out = {a: {} for a in ACTUATORS}
+    for item in items:
+        unit, name, value = parse_effect(item) if isinstance(item, str) else item
+        value = check_effect(name, value)
+        if unit is not None and unit not in ACTUATORS:
+            raise UserError(f"unknown unit {unit!r} (units: {', '.join(ACTUATORS)})")
+        for a in ([unit] if unit else ACTUATORS):
+            if name in out[a]:
+                raise UserError(f"effect {name} given twice for the {a}")
+            out[a][name] = value
+    return {a: replace(NOMINAL, **vals) for a, vals in out.items()}
+
+
+def describe(effects: Mapping[str, UnitEffects]) -> str:
+    """One line for logs and CSV comments, e.g. 'boom: pump_leakage=1.5; bucket: none'."""
+    parts = []
+    for a in ACTUATORS:
+        vals = effects[a].non_neutral() if a in effects else {}
+        parts.append(f"{a}: " + (", ".join(f"{k}={v:g}" for k, v in vals.items()) or "none"))
+    return "; ".join(parts)

@@ -1,0 +1,447 @@
+"""Time-domain plant of DDH units: motor, pumps, chambers, valves, cylinder, load.
+
+States per row (one row = one unit of one run; rows run in lockstep, numpy arrays of shape
+``(rows,)``): rod position x and velocity v, chamber pressures over the reservoir dp_a, dp_b,
+motor speed n (rpm).
+
+    J dw/dt          = tau - tau_pump(dp_a, dp_b, n)               (w = n * 2pi/60)
+    V_s(x)/beta dp_s/dt = q_pump,s(n) - g_leak,s dp_s + q_anticav(dp_s) - q_relief,s(dp_s)
+                         - sign_s * A_s * v                        (s = a, b)
+    m dv/dt          = A_a dp_a - A_b dp_b - F_load - friction(v)
+
+with V_a = dead + A_a x and V_b = dead + A_b (stroke - x). Every element is the one of
+``physics/`` (same pump, leakage, torque-efficiency and valve laws), so the steady state of
+this model is exactly ``physics.steady.steady_state``.
+
+Integration is fixed-step backward (implicit) Euler on (v, dp_a, dp_b, n), position by
+x_{k+1} = x_k + h v_{k+1}, chamber volumes taken at x_k. Each element is piecewise linear, so
+for a given set of discrete states - per side the valve regime (anti-cavitation, closed below
+or above the reservoir pressure, relief), the friction state (moving up, moving down, stuck,
+hitting an end stop) and the motor state (turning either way, held in the pump's own friction
+band at zero speed, at the speed limit, speed-controlled) - a step is a 2x2 linear solve in
+(n, v). The discrete states start from the previous step's and are updated from the solution
+until they are self-consistent (an active-set iteration; one pass almost always). The fixed
+points of backward Euler are the steady-state equations, which is why it converges to
+``steady_state`` exactly.
+
+Stick-slip: a stuck rod stays stuck while the force it needs from static friction (including
+the inertia term of the step) is within the static value; a moving rod keeps moving while its
+velocity keeps its sign, and sticks when it would reverse. The motor has the same structure
+at zero speed because the pump torque switches between pumping (1/eta_hm) and motoring
+(x eta_hm): between those two torques the shaft stands still.
+
+The drive's speed limit acts like the Sevcon's in torque mode: when the commanded torque would
+take the motor past the limit, the speed is held at the limit and the reported torque is the
+one needed to hold it.
+
+Effects that are plant changes enter per row: pump leakage and displacement through the
+``DDHUnit`` (``unit.with_pumps``), entrained air through the effective bulk modulus
+(:func:`inverse_bulk_modulus`), belt slip as a speed-ratio drop proportional to |motor torque|
+(the torque of the previous step: slip is slow, this keeps the step linear).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from ..physics.unit import DDHUnit
+
+RPM_RAD_S = 2.0 * math.pi / 60.0
+ATMOSPHERE_PA = 101325.0           # absolute pressure at which the air fraction is given
+POLYTROPIC_EXPONENT = 1.4          # adiabatic compression of the entrained air
+MIN_ABSOLUTE_PA = 1000.0           # floor of the absolute pressure in the air law
+
+# friction states
+F_UP, F_DOWN, F_STUCK, F_IMPACT = 1, -1, 0, 2
+# motor states
+M_POS, M_NEG, M_STUCK, M_LIM_POS, M_LIM_NEG, M_SPEED = 1, -1, 0, 2, -2, 3
+MAX_ITERATIONS = 16
+AIR_PASSES = 8                     # secant bulk-modulus updates per step at most (with air)
+AIR_TOLERANCE_PA = 1.0             # ... until the pressures move less than this between them
+# gain-table offset (direction * 4) of each motor state + 2: -2, -1 -> negative; 0 -> standstill;
+# 1, 2 -> positive; 3 (speed mode) is looked up from the command's sign instead
+_DIRECTION4 = np.array([0, 0, 4, 8, 8, 4], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class RowSpec:
+    """One row of a plant batch: a unit (pump effects already applied) and its extras."""
+
+    unit: DDHUnit
+    payload_kg: float = 0.0
+    air_fraction: float = 0.0       # entrained air volume fraction at atmospheric pressure
+    belt_slip_per_nm: float = 0.0   # fractional speed-ratio drop per N*m of |motor torque|
+
+
+def mixture_log_volume(p_gauge_pa: np.ndarray, air_fraction: np.ndarray, beta_oil: np.ndarray,
+                       reservoir_pa: np.ndarray) -> np.ndarray:
+    """-ln of the specific volume of an oil-air mixture (relative to atmospheric pressure).
+
+    V(p) = (1-X) exp(-(p-p0)/beta_oil) + X (p0/p)^(1/kappa), p absolute, p0 atmospheric.
+    Its log-derivative is the effective bulk modulus (:func:`inverse_bulk_modulus`), so the
+    chamber balance V_ch * d(-ln V) = net inflow conserves the oil and air mass exactly.
+    """
+    p = np.maximum(p_gauge_pa + reservoir_pa + ATMOSPHERE_PA, MIN_ABSOLUTE_PA)
+    oil = (1.0 - air_fraction) * np.exp(-(p - ATMOSPHERE_PA) / beta_oil)
+    air = air_fraction * (ATMOSPHERE_PA / p) ** (1.0 / POLYTROPIC_EXPONENT)
+    return -np.log(oil + air)
+
+
+def inverse_bulk_modulus(p_gauge_pa: np.ndarray, air_fraction: np.ndarray,
+                         beta_oil: np.ndarray, reservoir_pa: np.ndarray) -> np.ndarray:
+    """1/beta_eff of the oil-air mixture at a gauge pressure (the standard mixture law).
+
+    1/beta = [(1-X') / beta_oil + X (p0/p)^(1/k) / (k p)] / [(1-X') + X (p0/p)^(1/k)],
+    with X' = X at atmospheric pressure and the oil's own compression kept in its volume
+    share ((1-X') = (1-X) exp(-(p-p0)/beta_oil); below 1e-2 of a difference at 270 bar).
+    """
+    p = np.maximum(p_gauge_pa + reservoir_pa + ATMOSPHERE_PA, MIN_ABSOLUTE_PA)
+    oil = (1.0 - air_fraction) * np.exp(-(p - ATMOSPHERE_PA) / beta_oil)
+    air = air_fraction * (ATMOSPHERE_PA / p) ** (1.0 / POLYTROPIC_EXPONENT)
+    return (oil / beta_oil + air / (POLYTROPIC_EXPONENT * p)) / (oil + air)
+
+
+def secant_inverse_bulk_modulus(p0: np.ndarray, p1: np.ndarray, air_fraction: np.ndarray,
+                                beta_oil: np.ndarray, reservoir_pa: np.ndarray) -> np.ndarray:
+    """Mean 1/beta over [p0, p1]: exactly the compression between the two pressures."""
+    dp = p1 - p0
+    small = np.abs(dp) < 100.0
+    phi = (mixture_log_volume(p1, air_fraction, beta_oil, reservoir_pa)
+           - mixture_log_volume(p0, air_fraction, beta_oil, reservoir_pa))
+    tangent = inverse_bulk_modulus(0.5 * (p0 + p1), air_fraction, beta_oil, reservoir_pa)
+    return np.where(small, tangent, phi / np.where(small, 1.0, dp))
+
+
+class Plant:
+    """A batch of independent DDH units integrated in lockstep by backward Euler.
+
+    Public state arrays (shape ``(rows,)``, SI units, n in rpm): ``x``, ``v``, ``dp_a``,
+    ``dp_b``, ``n``, ``torque`` (the motor's actual torque over the last step) and the
+    discrete states ``friction_state``, ``motor_state``, ``regime_a``, ``regime_b``.
+    """
+
+    def __init__(self, rows: Sequence[RowSpec], step_s: float) -> None:
+        if not rows:
+            raise ValueError("a plant needs at least one row")
+        if step_s <= 0.0:
+            raise ValueError("step must be positive")
+        self.rows = tuple(rows)
+        self.h = float(step_s)
+        self.size = len(rows)
+        self._idx = np.arange(self.size)
+
+        def col(fn) -> np.ndarray:
+            return np.array([float(fn(r)) for r in rows])
+
+        u = lambda r: r.unit  # noqa: E731
+        self.area_a = col(lambda r: u(r).a.area_m2)
+        self.area_b = col(lambda r: u(r).b.area_m2)
+        self.stroke = col(lambda r: u(r).cylinder.stroke_m)
+        self.dead = col(lambda r: u(r).dead_volume_m3)
+        self.mass = col(lambda r: u(r).moving_mass_kg(r.payload_kg))
+        self.load = col(lambda r: u(r).load_force_n(r.payload_kg))
+        self.f_static = col(lambda r: u(r).cylinder.static_friction_n)
+        self.f_coulomb = col(lambda r: u(r).cylinder.coulomb_friction_n)
+        self.c_viscous = col(lambda r: u(r).cylinder.viscous_friction_n_s_m)
+        self.inertia = col(lambda r: u(r).motor.inertia_kg_m2)
+        self.torque_limit = col(lambda r: u(r).motor.torque_limit_nm)
+        self.speed_limit = col(lambda r: u(r).motor.speed_limit_rpm)
+        self.reservoir = col(lambda r: u(r).reservoir_pa)
+        self.beta_oil = col(lambda r: u(r).bulk_modulus_pa)
+        self.air = col(lambda r: r.air_fraction)
+        self.slip = col(lambda r: r.belt_slip_per_nm)
+        self.has_air = bool(np.any(self.air > 0.0))
+        self.has_slip = bool(np.any(self.slip > 0.0))
+        # pump flow per motor rpm, signed into the chamber; leakage coefficient (m^3)
+        self.q_a = col(lambda r: u(r).a.pump.geometric_flow_m3_s(1.0))
+        self.q_b = col(lambda r: u(r).b.pump.geometric_flow_m3_s(1.0))
+        self.leak_a = col(lambda r: u(r).a.pump.leak_coeff_m3)
+        self.leak_b = col(lambda r: u(r).b.pump.leak_coeff_m3)
+        # valve tables per regime: conductance G and G * (pressure where the flow is zero)
+        self.crack_a = col(lambda r: u(r).a.anticav.cracking_pa)
+        self.crack_b = col(lambda r: u(r).b.anticav.cracking_pa)
+        self.relief_a = col(lambda r: u(r).a.relief.setting_pa)
+        self.relief_b = col(lambda r: u(r).b.relief.setting_pa)
+        zero = np.zeros(self.size)
+
+        def valve_tables(side: str) -> tuple[np.ndarray, np.ndarray]:
+            g_ac = col(lambda r: getattr(u(r), side).anticav.gradient_m3_s_pa)
+            cr = col(lambda r: getattr(u(r), side).anticav.cracking_pa)
+            g_rv = col(lambda r: getattr(u(r), side).relief.gradient_m3_s_pa)
+            st = col(lambda r: getattr(u(r), side).relief.setting_pa)
+            g = np.stack([g_ac, zero, zero, g_rv], axis=1)
+            ge = np.stack([g_ac * cr, zero, zero, g_rv * st], axis=1)
+            return g, ge
+
+        self._g_a, self._ge_a = valve_tables("a")
+        self._g_b, self._ge_b = valve_tables("b")
+        # torque gain tables [row, direction (neg, standstill, pos), regime]
+        self._k_a = self._gain_table("a")
+        self._k_b = self._gain_table("b")
+        # state
+        n = self.size
+        self.x = np.zeros(n)
+        self.v = np.zeros(n)
+        self.dp_a = np.zeros(n)
+        self.dp_b = np.zeros(n)
+        self.n = np.zeros(n)
+        self.torque = np.zeros(n)
+        self.friction_state = np.zeros(n, dtype=np.int64)
+        self.motor_state = np.zeros(n, dtype=np.int64)
+        self.regime_a = np.full(n, 2, dtype=np.int8)
+        self.regime_b = np.full(n, 2, dtype=np.int8)
+        self.speed_controlled = np.zeros(n, dtype=bool)
+        self.speed_command = np.zeros(n)
+        self.any_speed_controlled = False
+        self._dir_cmd = np.ones(n, dtype=np.int64)
+        # step-size dependent constants
+        h = self.h
+        self._hq_a, self._hq_b = h * self.q_a, h * self.q_b
+        self._hg_a, self._hge_a = h * self._g_a, h * self._ge_a
+        self._hg_b, self._hge_b = h * self._g_b, h * self._ge_b
+        self._nha, self._hb = -h * self.area_a, h * self.area_b
+        self._inv_beta = 1.0 / self.beta_oil
+        self._h_leak_a, self._h_leak_b = h * self.leak_a, h * self.leak_b
+        self._mu = None
+        self._jp = self.inertia * RPM_RAD_S / h      # N*m per rpm of speed change in a step
+        self._mp = self.mass / h
+        self._mpc = self._mp + self.c_viscous
+        # flat lookup tables: [row * 4 + regime], [row * 12 + direction * 4 + regime]
+        self._base4 = self._idx * 4
+        self._base12 = self._idx * 12
+        self._hg_a_f, self._hge_a_f = self._hg_a.ravel(), self._hge_a.ravel()
+        self._hg_b_f, self._hge_b_f = self._hg_b.ravel(), self._hge_b.ravel()
+        self._k_a_f, self._k_b_f = self._k_a.ravel(), self._k_b.ravel()
+        self.unconverged_steps = 0
+        self.iterations = 0
+        self.steps = 0
+
+    # --- construction helpers ----------------------------------------------------------
+
+    def _gain_table(self, side: str) -> np.ndarray:
+        out = np.empty((self.size, 3, 4))
+        p_sign = np.array([-1.0, -1.0, 1.0, 1.0])
+        for i, r in enumerate(self.rows):
+            pump = getattr(r.unit, side).pump
+            for d, direction in enumerate((-1.0, 0.0, 1.0)):
+                out[i, d] = pump.torque_gain_nm_per_pa(p_sign, direction)
+        return out
+
+    def set_speed_control(self, mask: np.ndarray, speed_rpm: np.ndarray | float = 0.0) -> None:
+        """Rows in ``mask`` follow ``speed_rpm`` exactly (the drive in speed mode); the others
+        are torque-controlled. The torque then reported is the one the drive needs."""
+        mask = np.asarray(mask, dtype=bool) & np.ones(self.size, dtype=bool)
+        self.speed_command = np.where(mask, speed_rpm, 0.0) * np.ones(self.size)
+        self._dir_cmd = (np.sign(self.speed_command) + 1).astype(np.int64)
+        released = self.speed_controlled & ~mask
+        self.motor_state = np.where(released, np.sign(self.n).astype(np.int64),
+                                    np.where(mask, M_SPEED, self.motor_state))
+        self.speed_controlled = mask
+        self.any_speed_controlled = bool(mask.any())
+
+    def set_state(self, x_m: np.ndarray, speed_rpm: np.ndarray, dp_a: np.ndarray,
+                  dp_b: np.ndarray, velocity_m_s: np.ndarray | None = None) -> None:
+        """Start from given states; discrete states are derived from them."""
+        self.x = np.clip(np.asarray(x_m, dtype=float).copy(), 0.0, self.stroke)
+        self.n = np.asarray(speed_rpm, dtype=float).copy()
+        self.dp_a = np.asarray(dp_a, dtype=float).copy()
+        self.dp_b = np.asarray(dp_b, dtype=float).copy()
+        self.v = (np.zeros(self.size) if velocity_m_s is None
+                  else np.asarray(velocity_m_s, dtype=float).copy())
+        self.friction_state = np.sign(self.v).astype(np.int64)
+        self.motor_state = np.where(self.speed_controlled, M_SPEED,
+                                    np.sign(self.n).astype(np.int64))
+        self.regime_a = self._regime(self.dp_a, self.crack_a, self.relief_a)
+        self.regime_b = self._regime(self.dp_b, self.crack_b, self.relief_b)
+        self.torque = self.pump_torque(self.dp_a, self.dp_b, self.n)
+
+    def _air_only(self, inv_beta: np.ndarray) -> np.ndarray:
+        """Rows without air keep exactly 1/beta_oil (results independent of the batch)."""
+        return np.where(self.air > 0.0, inv_beta, self._inv_beta)
+
+    @staticmethod
+    def _regime(dp: np.ndarray, crack: np.ndarray, relief: np.ndarray) -> np.ndarray:
+        """0 anti-cavitation open, 1 closed below reservoir, 2 closed above, 3 relief open."""
+        return ((dp >= crack).view(np.int8) + (dp >= 0.0).view(np.int8)
+                + (dp > relief).view(np.int8))
+
+    def pump_torque(self, dp_a: np.ndarray, dp_b: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """Pump torque at the motor for given pressures and speeds (physics' efficiency law)."""
+        d = (np.sign(n) + 1).astype(np.int64)
+        ra = self._regime(dp_a, self.crack_a, self.relief_a)
+        rb = self._regime(dp_b, self.crack_b, self.relief_b)
+        return self._k_a[self._idx, d, ra] * dp_a + self._k_b[self._idx, d, rb] * dp_b
+
+    # --- the step ----------------------------------------------------------------------
+
+    def step(self, torque_cmd: np.ndarray, mu_pa_s: np.ndarray) -> None:
+        """Advance one step with the commanded motor torque (clipped to the limit)."""
+        h = self.h
+        tau = np.minimum(np.maximum(torque_cmd, -self.torque_limit), self.torque_limit)
+        x, v0, pa0, pb0, n0 = self.x, self.v, self.dp_a, self.dp_b, self.n
+        va = self.dead + self.area_a * x
+        vb = self.dead + self.area_b * (self.stroke - x)
+        if mu_pa_s is not self._mu:                # the viscosity changes once per sample
+            self._mu = mu_pa_s
+            self._ga, self._gb = self._h_leak_a / mu_pa_s, self._h_leak_b / mu_pa_s
+        ga, gb = self._ga, self._gb
+        qa, qb = self._hq_a, self._hq_b
+        if self.has_slip:
+            ratio = np.maximum(1.0 - self.slip * np.abs(self.torque), 0.0)
+            qa, qb = qa * ratio, qb * ratio
+        if self.has_air:
+            inv_ba = self._air_only(inverse_bulk_modulus(pa0, self.air, self.beta_oil,
+                                                         self.reservoir))
+            inv_bb = self._air_only(inverse_bulk_modulus(pb0, self.air, self.beta_oil,
+                                                         self.reservoir))
+        else:
+            inv_ba = inv_bb = self._inv_beta
+        ca, cb = va * inv_ba, vb * inv_bb
+        gca, gcb = ca + ga, cb + gb
+        cpa, cpb = ca * pa0, cb * pb0
+        jp = self._jp
+        area_a, area_b = self.area_a, self.area_b
+        psi = tau + jp * n0                        # torque the pump must take at n = 0
+        inertia_force = self._mp * v0 - self.load  # force balance at v = 0, without friction
+        lim = self.speed_limit
+        k_a_f, k_b_f, base12 = self._k_a_f, self._k_b_f, self._base12
+
+        mf = self.friction_state
+        mm = self.motor_state
+        ra, rb = self.regime_a, self.regime_b
+        v_fix = x_stop = None
+        air_passes = AIR_PASSES if self.has_air else 0
+        p_prev = None
+        converged = False
+        for _ in range(MAX_ITERATIONS):
+            ia, ib = self._base4 + ra, self._base4 + rb
+            den_a = gca + self._hg_a_f[ia]
+            den_b = gcb + self._hg_b_f[ib]
+            al_a = (cpa + self._hge_a_f[ia]) / den_a
+            al_b = (cpb + self._hge_b_f[ib]) / den_b
+            a_a, a_b = qa / den_a, qb / den_b            # pressure per rpm
+            b_a, b_b = self._nha / den_a, self._hb / den_b   # pressure per m/s
+            kd = _DIRECTION4[mm + 2]
+            if self.any_speed_controlled:
+                kd = np.where(mm == M_SPEED, self._dir_cmd * 4, kd)
+            kd = kd + base12
+            k_a, k_b = k_a_f[kd + ra], k_b_f[kd + rb]
+            torque_mode = mm * mm == 1
+            moving = mf * mf == 1
+            all_torque, all_moving = torque_mode.all(), moving.all()
+            m11 = jp + k_a * a_a + k_b * a_b
+            m12 = k_a * b_a + k_b * b_b
+            r1 = psi - k_a * al_a - k_b * al_b
+            if not all_torque:
+                n_fix = np.where(mm == M_SPEED, self.speed_command,
+                                 np.where(mm == M_LIM_POS, lim,
+                                          np.where(mm == M_LIM_NEG, -lim, 0.0)))
+                m11 = np.where(torque_mode, m11, 1.0)
+                m12 = np.where(torque_mode, m12, 0.0)
+                r1 = np.where(torque_mode, r1, n_fix)
+            m21 = area_b * a_b - area_a * a_a
+            m22 = self._mpc + area_b * b_b - area_a * b_a
+            r2 = inertia_force - mf * self.f_coulomb + area_a * al_a - area_b * al_b
+            if not all_moving:
+                m21 = np.where(moving, m21, 0.0)
+                m22 = np.where(moving, m22, 1.0)
+                r2 = np.where(moving, r2, 0.0 if v_fix is None else v_fix)
+            det = m11 * m22 - m12 * m21
+            n = (r1 * m22 - m12 * r2) / det
+            v = (m11 * r2 - m21 * r1) / det
+            pa = al_a + a_a * n + b_a * v
+            pb = al_b + a_b * n + b_b * v
+            self.iterations += 1
+
+            # --- are the discrete states self-consistent? ------------------------------
+            new_ra = self._regime(pa, self.crack_a, self.relief_a)
+            new_rb = self._regime(pb, self.crack_b, self.relief_b)
+            bad = (new_ra != ra) | (new_rb != rb)
+            bad |= torque_mode & ((mm * n <= 0.0) | (np.abs(n) > lim))
+            x_new = x + h * v
+            past_stop = (x_new < 0.0) | (x_new > self.stroke)
+            bad |= moving & ((mf * v <= 0.0) | past_stop)
+            stuck = mf == F_STUCK
+            if not all_moving:
+                force0 = inertia_force + area_a * pa - area_b * pb
+                f_hi = np.where(x >= self.stroke, np.inf, self.f_static)   # an end stop
+                f_lo = np.where(x <= 0.0, -np.inf, -self.f_static)         # takes any force
+                bad |= stuck & ((force0 > f_hi) | (force0 < f_lo))
+            other_motor = (not all_torque) and bool(((mm != M_SPEED) & ~torque_mode).any())
+            if other_motor:
+                t_pos = k_a_f[base12 + 8 + new_ra] * pa + k_b_f[base12 + 8 + new_rb] * pb
+                t_neg = k_a_f[base12 + new_ra] * pa + k_b_f[base12 + new_rb] * pb
+                bad |= (((mm == M_STUCK) & ((psi > t_pos) | (psi < t_neg)))
+                        | ((mm == M_LIM_POS) & (jp * lim + t_pos > psi))
+                        | ((mm == M_LIM_NEG) & (-jp * lim + t_neg < psi)))
+            any_bad = bad.any()
+            if air_passes > 0:
+                # secant bulk modulus over the step, iterated until the pressures it gives
+                # agree with the ones it was taken over: the compression is then exact
+                moved = (np.inf if p_prev is None else
+                         max(np.max(np.abs(pa - p_prev[0])), np.max(np.abs(pb - p_prev[1]))))
+                if moved > AIR_TOLERANCE_PA:
+                    p_prev = (pa, pb)
+                    inv_ba = self._air_only(secant_inverse_bulk_modulus(
+                        pa0, pa, self.air, self.beta_oil, self.reservoir))
+                    inv_bb = self._air_only(secant_inverse_bulk_modulus(
+                        pb0, pb, self.air, self.beta_oil, self.reservoir))
+                    ca, cb = va * inv_ba, vb * inv_bb
+                    gca, gcb = ca + ga, cb + gb
+                    cpa, cpb = ca * pa0, cb * pb0
+                    air_passes -= 1
+                    if not any_bad:
+                        continue
+            if not any_bad:
+                converged = True
+                break
+            # --- slow path: move each row to the states its solution implies -----------
+            if all_moving:              # no stuck row: the stuck conditions are all False
+                force0 = f_hi = f_lo = 0.0
+            new_mf = np.select(
+                [moving & (mf * v <= 0.0), moving & past_stop,
+                 stuck & (force0 > f_hi), stuck & (force0 < f_lo)],
+                [F_STUCK, F_IMPACT, F_UP, F_DOWN], mf)
+            stop = np.where(mf == F_UP, self.stroke, 0.0)
+            x_stop = np.where(new_mf == F_IMPACT, stop,
+                              x if x_stop is None else np.where(mf == F_IMPACT, x_stop, x))
+            v_fix = (x_stop - x) / h                  # the velocity that reaches the stop
+            if not other_motor:
+                t_pos = t_neg = psi
+            new_mm = np.select(
+                [torque_mode & (mm * n <= 0.0), (mm == M_POS) & (n > lim),
+                 (mm == M_NEG) & (n < -lim),
+                 (mm == M_STUCK) & (psi > t_pos), (mm == M_STUCK) & (psi < t_neg),
+                 (mm == M_LIM_POS) & (jp * lim + t_pos > psi),
+                 (mm == M_LIM_NEG) & (-jp * lim + t_neg < psi)],
+                [M_STUCK, M_LIM_POS, M_LIM_NEG, M_POS, M_NEG, M_POS, M_NEG], mm)
+            ra, rb, mf, mm = new_ra, new_rb, new_mf, new_mm
+        if not converged:
+            self.unconverged_steps += 1
+        self.steps += 1
+
+        # actual motor torque: the command, unless the speed is imposed (limit, speed mode)
+        if not all_torque:
+            imposed = (mm == M_LIM_POS) | (mm == M_LIM_NEG) | (mm == M_SPEED)
+            if imposed.any():
+                d4 = (np.sign(n).astype(np.int64) + 1) * 4
+                t_pump = k_a_f[base12 + d4 + ra] * pa + k_b_f[base12 + d4 + rb] * pb
+                tau = np.where(imposed, jp * (n - n0) + t_pump, tau)
+        if x_stop is not None:                    # an end stop reached exactly
+            x_new = np.where(mf == F_IMPACT, x_stop, x_new)
+        self.x = np.minimum(np.maximum(x_new, 0.0), self.stroke)
+        self.v = v
+        self.dp_a, self.dp_b, self.n, self.torque = pa, pb, n, tau
+        self.regime_a, self.regime_b = ra, rb
+        self.friction_state = mf if all_moving else np.where(mf == F_IMPACT, F_STUCK, mf)
+        self.motor_state = mm
+
+    # --- diagnostics used by the tests -------------------------------------------------
+
+    def chamber_volumes_m3(self, x: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        x = self.x if x is None else x
+        return self.dead + self.area_a * x, self.dead + self.area_b * (self.stroke - x)

@@ -1,0 +1,103 @@
+"""Sensor models: what the machine's logger would have recorded of a simulated unit.
+
+Sampled at a configurable rate (default 100 Hz, the draw-wire sensors' 10 ms event timer):
+
+- motor speed in whole rpm and motor torque in 1/16 N*m, as the Sevcon reports them;
+- oil temperature to 0.1 degC; the oil warms slowly during work: the default drift is
+  +0.01 degC/s (0.6 degC/min, a typical warm-up rate of a working machine's hydraulics: the
+  paper's runs stayed within 25-30 degC). The plant's viscosity follows the same temperature;
+- draw-wire position to the configured measuring step (0.01 mm) with small Gaussian noise
+  (0.02 mm by default), seeded per run and unit: the same seed gives the same samples,
+  whatever else is simulated in the same batch;
+- chamber pressures, gauge, in bar to 0.01 bar (no noise);
+- Hall reference switches ``ref_<name>`` from the true position: on when within the
+  configured window of the switch position, off only beyond window + hysteresis.
+
+The ``time_offset`` effect is applied here: the logged speed and torque are the true ones
+``time_offset`` seconds earlier (linear interpolation between samples), i.e. they lag the
+logged position.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import UnitConfig
+from ..measured import Run
+from ..physics.units import BAR_PA
+
+
+@dataclass(frozen=True)
+class SensorSettings:
+    rate_hz: float = 100.0
+    oil_temp_drift_c_per_s: float = 0.01
+    position_noise_mm: float = 0.02
+    speed_step_rpm: float = 1.0
+    torque_step_nm: float = 1.0 / 16.0
+    oil_temp_step_c: float = 0.1
+    pressure_step_bar: float = 0.01
+
+
+@dataclass
+class Truth:
+    """True signals of one unit at the sample times (SI inside, speed in rpm)."""
+
+    time_s: np.ndarray
+    x_m: np.ndarray
+    v_m_s: np.ndarray
+    dp_a_pa: np.ndarray
+    dp_b_pa: np.ndarray
+    speed_rpm: np.ndarray
+    torque_nm: np.ndarray
+    oil_temp_c: np.ndarray
+    reservoir_pa: float = 0.0
+
+
+def quantise(values: np.ndarray, step: float) -> np.ndarray:
+    """Round to a multiple of ``step``, as clean decimals (no -0.0, no 0.30000000000000004)."""
+    decimals = next((d for d in range(12) if abs(step * 10 ** d - round(step * 10 ** d))
+                     < 1e-9 * 10 ** d), 12)
+    return np.round(np.round(np.asarray(values, dtype=float) / step) * step, decimals) + 0.0
+
+
+def hall_switch(x_mm: np.ndarray, position_mm: float, window_mm: float,
+                hysteresis_mm: float) -> np.ndarray:
+    """0/1 state of a Hall switch: on within the window, off beyond window + hysteresis."""
+    d = np.abs(np.asarray(x_mm) - position_mm)
+    on, off = d < window_mm, d > window_mm + hysteresis_mm
+    events = np.where(on, 1, np.where(off, 0, -1))
+    # between the thresholds the switch keeps its last state (off before any event)
+    idx = np.where(events >= 0, np.arange(len(d)), -1)
+    last = np.maximum.accumulate(idx)
+    state = np.where(last >= 0, events[np.maximum(last, 0)], 0)
+    return state.astype(np.uint8)
+
+
+def lagged(time_s: np.ndarray, signal: np.ndarray, lag_s: float) -> np.ndarray:
+    """The signal ``lag_s`` seconds earlier (held at the ends)."""
+    if lag_s == 0.0:
+        return signal
+    return np.interp(time_s - lag_s, time_s, signal)
+
+
+def measure(truth: Truth, unit_cfg: UnitConfig, settings: SensorSettings,
+            rng: np.random.Generator, position_step_mm: float, time_offset_s: float = 0.0,
+            comments: list[str] | None = None, source: str = "<simulated>") -> Run:
+    """The logged run of one unit."""
+    t = truth.time_s
+    speed = quantise(lagged(t, truth.speed_rpm, time_offset_s), settings.speed_step_rpm)
+    torque = quantise(lagged(t, truth.torque_nm, time_offset_s), settings.torque_step_nm)
+    x_mm = truth.x_m * 1e3
+    noise = rng.standard_normal(len(t)) * settings.position_noise_mm
+    position = quantise(x_mm + noise, position_step_mm)
+    refs = {name: hall_switch(x_mm, pos, unit_cfg.reference_window_mm,
+                              unit_cfg.reference_hysteresis_mm)
+            for name, pos in unit_cfg.references_mm.items()}
+    p_a = quantise((truth.dp_a_pa + truth.reservoir_pa) / BAR_PA, settings.pressure_step_bar)
+    p_b = quantise((truth.dp_b_pa + truth.reservoir_pa) / BAR_PA, settings.pressure_step_bar)
+    return Run(time_s=np.round(t, 9), speed_rpm=speed, torque_nm=torque,
+               oil_temp_c=quantise(truth.oil_temp_c, settings.oil_temp_step_c),
+               position_mm=position, p_a_bar=p_a, p_b_bar=p_b, refs=refs,
+               comments=list(comments or []), source=source)

@@ -1,0 +1,91 @@
+"""Setpoint profiles and sensor models."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.sim.cycles import load_profile_csv, paper_cycle
+from ddh_vsensor.sim.sensors import hall_switch, lagged, quantise
+
+
+@pytest.mark.parametrize("speed", [1, 2, 3, 4])
+def test_paper_cycle_positions_cross_the_references(cfg, speed):
+    p = paper_cycle(speed)
+    t = np.arange(0.0, p.duration_s, 0.01)
+    boom, _ = p.evaluate("boom", t)
+    bucket, _ = p.evaluate("bucket", t)
+    b = cfg.unit("boom")
+    assert boom[0] == boom[-1] and bucket[0] == bucket[-1]              # repeatable
+    assert abs(boom[0] - b.references_mm["bottom"]) < b.reference_window_mm
+    assert boom.max() < b.references_mm["top"] - b.reference_window_mm - b.reference_hysteresis_mm
+    assert boom.min() < b.references_mm["mid"] < boom.max()
+    assert bucket.min() < cfg.unit("bucket").references_mm["mid"] < bucket.max()
+    # lift the bucket (retract) first, then the boom
+    first_bucket = t[np.argmax(np.abs(bucket - bucket[0]) > 1.0)]
+    first_boom = t[np.argmax(np.abs(boom - boom[0]) > 1.0)]
+    assert bucket[np.searchsorted(t, first_bucket) + 5] < bucket[0] and first_bucket < first_boom
+
+
+def test_speed_levels_and_repetition():
+    durations = [paper_cycle(s).duration_s for s in (1, 2, 3, 4)]
+    assert durations == sorted(durations, reverse=True)
+    assert 20.0 <= durations[-1] <= 32.0
+    three = paper_cycle(4, cycles=3)
+    assert three.duration_s == pytest.approx(3 * durations[-1])
+    t = np.array([1.0, 9.0, 15.0])
+    for a in ("boom", "bucket"):
+        np.testing.assert_allclose(three.evaluate(a, t + 2 * durations[-1])[0],
+                                   three.evaluate(a, t)[0])
+    with pytest.raises(UserError, match="speed"):
+        paper_cycle(5)
+
+
+def test_smooth_moves_have_consistent_rates():
+    p = paper_cycle(4)
+    t = np.arange(0.0, p.duration_s, 1e-4)
+    x, v, a = p.trajectories["bucket"].evaluate_all(t)
+    np.testing.assert_allclose(np.gradient(x, t), v, atol=1e-3)
+    np.testing.assert_allclose(np.gradient(v, t)[2:-2], a[2:-2], atol=0.1)
+    assert np.max(np.abs(v)) == pytest.approx(195.0)
+
+
+def test_profile_csv(cfg, tmp_path):
+    good = tmp_path / "p.csv"
+    good.write_text("# my profile\ntime_s,boom_mm,bucket_mm\n0,2,600\n5,150,400\n10,2,600\n")
+    p = load_profile_csv(good, cfg, cycles=2)
+    assert p.duration_s == 20.0
+    x, v = p.evaluate("boom", np.array([2.5, 12.5]))
+    np.testing.assert_allclose(x, [76.0, 76.0])
+    np.testing.assert_allclose(v, [29.6, 29.6])
+    bad = {"time_s,boom_mm\n0,1\n1,2\n": "missing bucket_mm",
+           "time_s,boom_mm,bucket_mm\n0,1,600\n0,2,600\n": "increase",
+           "time_s,boom_mm,bucket_mm\n0,1,600\n1,400,600\n": "stroke",
+           "time_s,boom_mm,bucket_mm\n0,1,600\n1,x,600\n": "not a number",
+           "time_s,boom_mm,bucket_mm\n0,1,600\n": "two rows"}
+    for i, (text, words) in enumerate(bad.items()):
+        path = tmp_path / f"bad{i}.csv"
+        path.write_text(text)
+        with pytest.raises(UserError, match=words):
+            load_profile_csv(path, cfg)
+    one_way = tmp_path / "oneway.csv"
+    one_way.write_text("time_s,boom_mm,bucket_mm\n0,2,600\n5,150,400\n")
+    with pytest.raises(UserError, match="does not end where it starts"):
+        load_profile_csv(one_way, cfg, cycles=2)
+    with pytest.raises(UserError, match="cannot read"):
+        load_profile_csv(tmp_path / "missing.csv", cfg)
+
+
+def test_hall_switch_hysteresis():
+    x = np.array([10.0, 3.5, 2.9, 1.0, 3.2, 3.49, 3.51, 2.0, 10.0])
+    np.testing.assert_array_equal(hall_switch(x, 0.0, 3.0, 0.5), [0, 0, 1, 1, 1, 1, 0, 1, 0])
+
+
+def test_quantise_and_lag():
+    np.testing.assert_array_equal(quantise(np.array([1.234, -0.004, 0.3]), 0.01),
+                                  [1.23, 0.0, 0.3])
+    q = quantise(np.array([22.1, -1.03]), 1 / 16)
+    np.testing.assert_array_equal(q * 16, np.round(q * 16))
+    t = np.arange(5) * 0.1
+    np.testing.assert_allclose(lagged(t, t * 10, 0.2), [0, 0, 0, 1, 2])

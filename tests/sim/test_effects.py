@@ -1,0 +1,131 @@
+"""The effects catalogue: each effect changes what it should, and nothing else."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.physics.steady import holding_speed
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.sim import EFFECTS, RunSpec, build_effects, simulate_with_truth
+from ddh_vsensor.sim.effects import parse_effect
+
+CASES = {
+    "nominal": [],
+    "pump_leakage": ["boom.pump_leakage=2"],
+    "displacement": ["boom.displacement=0.9"],
+    "compressibility": ["boom.compressibility=0.02"],
+    "belt_slip": ["boom.belt_slip=5"],
+    "time_offset": ["time_offset=0.1"],
+}
+TRUTH_FIELDS = ("x_m", "v_m_s", "dp_a_pa", "dp_b_pa", "speed_rpm", "torque_nm")
+
+
+@pytest.fixture(scope="module")
+def runs(cfg, short_profile):
+    specs = [RunSpec(cycle=short_profile, effects=e, seed=7) for e in CASES.values()]
+    return dict(zip(CASES, simulate_with_truth(cfg, specs)))
+
+
+def _same_truth(a, b) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in TRUTH_FIELDS)
+
+
+def _same_log(a, b) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True)
+               for f in ("speed_rpm", "torque_nm", "position_mm", "p_a_bar", "p_b_bar"))
+
+
+def _revs(truth, t0, t1) -> float:
+    sel = (truth.time_s >= t0) & (truth.time_s <= t1)
+    return float(np.sum(np.abs(truth.speed_rpm[sel])) / 60.0 * (truth.time_s[1] - truth.time_s[0]))
+
+
+def _hold_speed(truth) -> float:            # motor speed while the boom waits at the start
+    return float(np.mean(truth.speed_rpm[(truth.time_s > 0.1) & (truth.time_s < 0.45)]))
+
+
+@pytest.mark.parametrize("name", ["pump_leakage", "displacement", "compressibility",
+                                  "belt_slip"])
+def test_boom_only_effect_leaves_the_bucket_alone(runs, name):
+    nominal, changed = runs["nominal"], runs[name]
+    assert _same_truth(changed["bucket"][1], nominal["bucket"][1])
+    assert _same_log(changed["bucket"][0], nominal["bucket"][0])
+    assert not _same_truth(changed["boom"][1], nominal["boom"][1])
+    # the position loop still follows the setpoint: the cylinder does the same thing
+    np.testing.assert_allclose(changed["boom"][1].x_m, nominal["boom"][1].x_m, atol=2e-3)
+    assert f"effects: {CASES[name][0].split('.', 1)[1]}" in changed["boom"][0].comments
+
+
+def test_pump_leakage_scales_the_holding_creep(cfg, runs):
+    boom = DDHUnit.from_config(cfg, "boom")
+    force = boom.load_force_n(0.0)
+    expected = holding_speed(boom.with_pumps(leakage=2.0), force, 27.0).speed_rpm
+    nominal = holding_speed(boom, force, 27.0).speed_rpm
+    assert expected == pytest.approx(2.0 * nominal, rel=0.01)
+    assert _hold_speed(runs["pump_leakage"]["boom"][1]) == pytest.approx(expected, rel=0.01)
+    assert _hold_speed(runs["nominal"]["boom"][1]) == pytest.approx(nominal, rel=0.01)
+
+
+def test_displacement_needs_more_revolutions(runs):
+    ratio = _revs(runs["displacement"]["boom"][1], 0.5, 3.3) / _revs(
+        runs["nominal"]["boom"][1], 0.5, 3.3)
+    assert ratio == pytest.approx(1.0 / 0.9, rel=0.01)
+
+
+def test_compressibility_changes_transients_not_steady_states(runs):
+    nominal, airy = runs["nominal"]["boom"][1], runs["compressibility"]["boom"][1]
+    assert _hold_speed(airy) == pytest.approx(_hold_speed(nominal), rel=1e-3)
+    assert np.max(np.abs(airy.dp_b_pa - nominal.dp_b_pa)) > 2e5      # > 2 bar somewhere
+    ratio = _revs(airy, 0.5, 3.3) / _revs(nominal, 0.5, 3.3)
+    assert ratio == pytest.approx(1.0, abs=0.01)
+
+
+def test_belt_slip_grows_with_torque(runs):
+    nominal, slipping = runs["nominal"]["boom"][1], runs["belt_slip"]["boom"][1]
+    hold_torque = float(np.mean(np.abs(nominal.torque_nm[:40])))
+    assert _hold_speed(slipping) / _hold_speed(nominal) == pytest.approx(
+        1.0 / (1.0 - 0.05 * hold_torque / 100.0), rel=2e-3)
+    ratio = _revs(slipping, 0.5, 3.3) / _revs(nominal, 0.5, 3.3)
+    assert 1.005 < ratio < 1.05
+
+
+def test_time_offset_is_a_logging_lag(runs):
+    nominal, lagged = runs["nominal"], runs["time_offset"]
+    for a in ("boom", "bucket"):
+        assert _same_truth(lagged[a][1], nominal[a][1])
+        log, ref = lagged[a][0], nominal[a][0]
+        assert np.array_equal(log.position_mm, ref.position_mm)
+        assert np.array_equal(log.p_a_bar, ref.p_a_bar)
+        assert np.array_equal(log.speed_rpm[10:], ref.speed_rpm[:-10])   # 0.1 s at 100 Hz
+        assert np.array_equal(log.torque_nm[10:], ref.torque_nm[:-10])
+        assert not np.array_equal(log.speed_rpm, ref.speed_rpm)
+
+
+def test_effects_compose():
+    eff = build_effects(["pump_leakage=1.5", "bucket.displacement=0.95", "boom.belt_slip=1"])
+    assert eff["boom"].non_neutral() == {"pump_leakage": 1.5, "belt_slip": 1.0}
+    assert eff["bucket"].non_neutral() == {"pump_leakage": 1.5, "displacement": 0.95}
+
+
+@pytest.mark.parametrize("text, words", [
+    ("pump_leakage=-1", "out of range"),
+    ("displacement=0", "out of range"),
+    ("compressibility=0.2", "out of range"),
+    ("belt_slip=abc", "not a number"),
+    ("time_offset=2", "out of range"),
+    ("wear=2", "known: pump_leakage, compressibility, belt_slip, displacement, time_offset"),
+    ("stick.pump_leakage=2", "unknown unit"),
+    ("pump_leakage", "NAME=VALUE"),
+])
+def test_bad_effects_are_user_errors(text, words):
+    with pytest.raises(UserError, match=words):
+        parse_effect(text)
+
+
+def test_same_effect_twice_is_an_error():
+    with pytest.raises(UserError, match="twice"):
+        build_effects(["pump_leakage=2", "boom.pump_leakage=3"])
+    assert set(EFFECTS) == {"pump_leakage", "compressibility", "belt_slip", "displacement",
+                            "time_offset"}
