@@ -161,6 +161,7 @@ class EstimatorConfig:
 
     mode: Literal["full", "paper"]
     max_gap_s: float = field(metadata=_positive())
+    inertia_compensation: bool
     soft_limit_margin_mm: float = field(metadata={"ge": 0.0})
     debounce_s: float = field(metadata={"ge": 0.0})
     adaptation: bool

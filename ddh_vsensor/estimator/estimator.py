@@ -79,6 +79,7 @@ class _Online:
 
     t: float | None = None
     v: float = 0.0
+    n: float = 0.0
     index: int = -1
     s_up: float = 0.0
     s_down: float = 0.0
@@ -99,6 +100,10 @@ class Estimator:
         self.lower_mm = ecfg.soft_limit_margin_mm
         self.upper_mm = ucfg.stroke_mm - ecfg.soft_limit_margin_mm
         self.max_gap_s = ecfg.max_gap_s
+        # The tables hold steady states, where motor torque equals pump torque; while the
+        # motor accelerates part of its torque goes into the rotating inertia instead.
+        self.inertia_nm_per_rpm_s = (ucfg.motor.inertia_kg_m2 * 2.0 * np.pi / 60.0
+                                     if ecfg.inertia_compensation else 0.0)
         self.debounce_s = ecfg.debounce_s
         self.switches: tuple[Switch, ...] = switches_from_config(ucfg) if references else ()
         self.gain = DirectionalGain(ecfg.adaptation_bound, ecfg.adaptation_forgetting,
@@ -152,19 +157,22 @@ class Estimator:
              refs: Mapping[str, bool] | None = None) -> Step:
         """One sample in, position out. ``refs`` holds the Hall switch states by name."""
         on = self._on
-        v, clamped = self.model.velocity(speed_rpm, torque_nm, oil_temp_c)
+        dt = t_s - on.t if on.t is not None else 0.0
+        valid = 0.0 < dt <= self.max_gap_s
+        pump_torque = torque_nm - (self.inertia_nm_per_rpm_s * (speed_rpm - on.n) / dt
+                                   if valid else 0.0)
+        v, clamped = self.model.velocity(speed_rpm, pump_torque, oil_temp_c)
         stale = False
         dx_raw = 0.0
         if on.t is not None:
-            dt = t_s - on.t
-            if 0.0 < dt <= self.max_gap_s:
+            if valid:
                 dx_raw = 0.5 * (on.v + v) * dt
                 if abs(v) < HOLD_SPEED_MM_S:
                     self.hold_s += dt
             else:
                 stale = dt > 0.0
                 self.hold_s += max(dt, 0.0)
-        on.t, on.v, on.index = t_s, v, on.index + 1
+        on.t, on.v, on.n, on.index = t_s, v, speed_rpm, on.index + 1
         dx = self.gain.scale(dx_raw)
         before = self.position_mm
         self.position_mm = self._clip(before + dx)
@@ -210,9 +218,14 @@ class Estimator:
             raise RuntimeError("run() starts from a fresh estimator; use step() to continue")
         t = np.asarray(time_s, dtype=float)
         n = len(t)
-        v, clamped = self.model.velocity_many(speed_rpm, torque_nm, oil_temp_c)
         dt = np.diff(t)
         valid = (dt > 0.0) & (dt <= self.max_gap_s)
+        speed = np.asarray(speed_rpm, dtype=float)
+        pump_torque = np.array(torque_nm, dtype=float)
+        safe_dt = np.where(valid, dt, 1.0)
+        pump_torque[1:] -= np.where(valid, self.inertia_nm_per_rpm_s * np.diff(speed) / safe_dt,
+                                    0.0)
+        v, clamped = self.model.velocity_many(speed, pump_torque, oil_temp_c)
         dx_raw = np.zeros(n)
         dx_raw[1:] = np.where(valid, 0.5 * (v[:-1] + v[1:]) * dt, 0.0)
         hold_dt = np.zeros(n)
