@@ -166,7 +166,7 @@ class EstimatorConfig:
     debounce_s: float = field(metadata={"ge": 0.0})
     adaptation: bool
     adaptation_bound: float = field(metadata={"gt": 0.0, "lt": 0.5})
-    adaptation_forgetting: float = field(metadata={"gt": 0.5, "le": 1.0})
+    adaptation_step: float = field(metadata={"gt": 0.0, "le": 1.0})
     adaptation_min_travel_mm: float = field(metadata={"ge": 0.0})
     uncertainty_reference_mm: float = field(metadata={"ge": 0.0})
     uncertainty_per_travel: float = field(metadata={"ge": 0.0})

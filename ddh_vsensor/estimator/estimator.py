@@ -106,7 +106,7 @@ class Estimator:
                                      if ecfg.inertia_compensation else 0.0)
         self.debounce_s = ecfg.debounce_s
         self.switches: tuple[Switch, ...] = switches_from_config(ucfg) if references else ()
-        self.gain = DirectionalGain(ecfg.adaptation_bound, ecfg.adaptation_forgetting,
+        self.gain = DirectionalGain(ecfg.adaptation_bound, ecfg.adaptation_step,
                                     ecfg.adaptation_min_travel_mm,
                                     ecfg.adaptation if adaptation is None else adaptation)
         self.u_ref = ecfg.uncertainty_reference_mm
@@ -289,8 +289,7 @@ class Estimator:
         return EstimatorState(actuator=self.actuator, config_hash=self.cfg.physics_hash(),
                               position_mm=self.position_mm, uncertainty_mm=self.uncertainty_mm,
                               gain_up=float(self.gain.gain[0]),
-                              gain_down=float(self.gain.gain[1]),
-                              covariance=self.gain.cov.tolist())
+                              gain_down=float(self.gain.gain[1]))
 
     def restore(self, state: EstimatorState) -> None:
         """Carry on from a saved state: trusted for position, flagged until a reference."""
@@ -299,6 +298,4 @@ class Estimator:
         self.travel_mm = self.hold_s = 0.0
         self.gain.gain = np.clip([state.gain_up, state.gain_down], 1 - self.gain.bound,
                                  1 + self.gain.bound)
-        if np.shape(state.covariance) == (2, 2):
-            self.gain.cov = np.asarray(state.covariance, dtype=float)
         self.referenced = False

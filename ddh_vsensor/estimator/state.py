@@ -13,12 +13,12 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-STATE_FORMAT = 1
+STATE_FORMAT = 2
 
 
 @dataclass
@@ -29,7 +29,6 @@ class EstimatorState:
     uncertainty_mm: float
     gain_up: float = 1.0
     gain_down: float = 1.0
-    covariance: list[list[float]] = field(default_factory=list)
     saved_at: float = 0.0
     format: int = STATE_FORMAT
 

@@ -12,7 +12,7 @@ from ddh_vsensor.estimator.state import EstimatorState, load_state, save_state
 
 def _state(**kw):
     base = dict(actuator="boom", config_hash="abc", position_mm=123.4, uncertainty_mm=1.5,
-                gain_up=1.01, gain_down=0.99, covariance=[[1e-5, 0.0], [0.0, 1e-5]])
+                gain_up=1.01, gain_down=0.99)
     base.update(kw)
     return EstimatorState(**base)
 
