@@ -6,16 +6,13 @@ column-wise through numpy, so a million-row log loads in about a second.
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import os
-import uuid
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .errors import UserError
 
 REQUIRED = ("time_s", "speed_rpm", "torque_nm", "oil_temp_c", "position_mm")
@@ -188,22 +185,6 @@ def read_csv(path: str | Path, *, require_position: bool = False) -> Run:
 
 # --- writing --------------------------------------------------------------------------------
 
-@contextlib.contextmanager
-def atomic_output(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; it replaces ``path`` only if the block succeeds.
-
-    Readers (a running replay, a plot) never see a half-written file.
-    """
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
 def _cells(column: np.ndarray) -> list[str]:
     """Shortest round-trip text of each value; NaN (not sampled) becomes an empty cell."""
     return ["" if v != v else repr(v) for v in column.tolist()]
@@ -223,7 +204,7 @@ def write_csv(path: str | Path, run: Run, extra: dict[str, np.ndarray] | None = 
     comment_lines = [f"# {line}" for text in run.comments
                      for line in (text.splitlines() or [""])]
     try:
-        with atomic_output(path) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as f:
+        with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as f:
             f.writelines(line + "\n" for line in comment_lines)
             f.write(",".join(columns) + "\n")
             f.writelines(row + "\n" for row in map(",".join, zip(*columns.values())))

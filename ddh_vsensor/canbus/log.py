@@ -14,7 +14,8 @@ import cantools
 import numpy as np
 
 from ..config import Config, ConfigError
-from ..measured import MeasuredDataError, Run, atomic_output
+from ..atomic import atomic_path
+from ..measured import MeasuredDataError, Run
 from .dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
 
 # python-can's BLF header holds wall-clock start times only (from 1990 on); earlier, relative
@@ -107,7 +108,7 @@ def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
         return codec.encode_position(actuator, position_mm[i], speed_mm_s[i], 0, t)
 
     try:
-        with atomic_output(path) as tmp, can.BLFWriter(tmp) as writer:
+        with atomic_path(path) as tmp, can.BLFWriter(tmp) as writer:
             if io_time_s[0] < _BLF_WALL_CLOCK_MIN_S:
                 writer.start_timestamp = 0.0
             for t, k, a, i in zip(time_s[order].tolist(), kind[order].tolist(),

@@ -7,7 +7,6 @@ import json
 
 import numpy as np
 
-from ..errors import UserError
 from ..estimator.accuracy import accuracy
 from ..estimator.estimator import Estimator
 from ..measured import Run, write_csv
@@ -26,6 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-adaptation", action="store_true", help="do not learn at references")
     p.add_argument("--initial-position-mm", type=float, default=None,
                    help="start here (default: the run's first measured position)")
+    p.add_argument("--extension", metavar="FILE",
+                   help="extended model saved by 'ddh-vsensor analyze' (its extension.json)")
     p.add_argument("--out", metavar="EST.csv", help="write the estimate")
     p.add_argument("--plot", metavar="FILE.png", help="the paper's Figures 6/8")
     p.add_argument("--json", action="store_true", help="print the errors as JSON")
@@ -42,10 +43,17 @@ def initial_position(run: Run, given: float | None) -> float:
 def estimate_run(args: argparse.Namespace, run: Run, actuator: str):
     """Estimator and result for one run, as the CLI options say."""
     cfg = config_from(args)
-    tables = load_tables_for(args, cfg, actuator)
-    est = Estimator(cfg, actuator, tables, mode=args.mode, references=not args.no_references,
-                    adaptation=False if args.no_adaptation else None,
-                    initial_position_mm=initial_position(run, args.initial_position_mm))
+    extension = None
+    if getattr(args, "extension", None):
+        from ..diagnosis.extension import Extension
+        extension = Extension.load(args.extension, cfg, actuator)
+    tables = (load_tables_for(args, cfg, actuator)
+              if extension is None or not extension.changes_tables() else None)
+    options = dict(mode=args.mode, references=not args.no_references,
+                   adaptation=False if args.no_adaptation else None,
+                   initial_position_mm=initial_position(run, args.initial_position_mm))
+    est = (Estimator(cfg, actuator, tables, **options) if extension is None
+           else extension.estimator(cfg, tables, **options))
     refs = None if args.no_references else run.refs
     return est, est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, refs)
 

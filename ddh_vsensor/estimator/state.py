@@ -1,7 +1,7 @@
 """The estimate's persisted state: written atomically, read back only when it is sound.
 
-Write: temp file in the same directory, fsync, rename over the old file, fsync the directory.
-A power cut leaves either the old or the new file, never a torn one. On reading, anything
+Written atomically (``atomic_write``): a power cut leaves the old or the new file, never a torn
+one. On reading, anything
 corrupt or meant for another machine is reported and ignored, never trusted.
 """
 
@@ -10,11 +10,11 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+
+from ..atomic import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -34,24 +34,10 @@ class EstimatorState:
 
 
 def save_state(path: str | Path, state: EstimatorState) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     state.saved_at = time.time()
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(asdict(state), fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path) as fh:
+        json.dump(asdict(state), fh)
 
 
 def load_state(path: str | Path, actuator: str, config_hash: str) -> EstimatorState | None:

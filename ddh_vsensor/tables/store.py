@@ -7,12 +7,11 @@ for another config or format is refused with the command that rebuilds it.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_write
 from ..config import ACTUATORS, Config
 from ..errors import UserError
 from .build import FORMAT_VERSION
@@ -30,22 +29,13 @@ def table_path(directory: str | Path, actuator: str) -> Path:
 
 def save_unit_tables(directory: str | Path, tables: UnitTables) -> Path:
     """Write atomically: a crash mid-write leaves the previous file intact."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
+    Path(directory).mkdir(parents=True, exist_ok=True)
     path = table_path(directory, tables.actuator)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{tables.actuator}.", suffix=".npz")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, meta=np.array(json.dumps(tables.meta)),
-                     full_velocity_mm_s=tables.full.velocity_mm_s,
-                     paper_mm_per_rev=tables.paper.mm_per_rev,
-                     paper_range_edges_rpm=tables.paper.range_edges_rpm)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path, "wb") as fh:
+        np.savez(fh, meta=np.array(json.dumps(tables.meta)),
+                 full_velocity_mm_s=tables.full.velocity_mm_s,
+                 paper_mm_per_rev=tables.paper.mm_per_rev,
+                 paper_range_edges_rpm=tables.paper.range_edges_rpm)
     return path
 
 
