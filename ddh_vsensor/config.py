@@ -164,6 +164,9 @@ class EstimatorConfig:
     inertia_compensation: bool
     soft_limit_margin_mm: float = field(metadata={"ge": 0.0})
     debounce_s: float = field(metadata={"ge": 0.0})
+    resync_gain_moving: float = field(metadata={"gt": 0.0, "le": 1.0})
+    resync_slow_mm_s: float = field(metadata={"ge": 0.0})
+    resync_transient_mm: float = field(metadata={"ge": 0.0})
     adaptation: bool
     adaptation_bound: float = field(metadata={"gt": 0.0, "lt": 0.5})
     adaptation_step: float = field(metadata={"gt": 0.0, "le": 1.0})

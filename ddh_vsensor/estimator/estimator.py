@@ -105,6 +105,9 @@ class Estimator:
         self.inertia_nm_per_rpm_s = (ucfg.motor.inertia_kg_m2 * 2.0 * np.pi / 60.0
                                      if ecfg.inertia_compensation else 0.0)
         self.debounce_s = ecfg.debounce_s
+        self.resync_gain_moving = ecfg.resync_gain_moving
+        self.resync_slow_mm_s = ecfg.resync_slow_mm_s
+        self.resync_transient_mm = ecfg.resync_transient_mm
         self.switches: tuple[Switch, ...] = switches_from_config(ucfg) if references else ()
         self.gain = DirectionalGain(ecfg.adaptation_bound, ecfg.adaptation_step,
                                     ecfg.adaptation_min_travel_mm,
@@ -146,9 +149,17 @@ class Estimator:
         adapted = abs(error) > abs(snap.dx) and self.gain.update(
             error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1])
         self.s_ref = (snap.s_up, snap.s_down)
-        self.travel_mm, self.hold_s, self.u_base = 0.0, 0.0, self.u_ref
+        # An edge met at speed is exact, but the estimate then carries a transient offset (oil
+        # compression, not in the steady-state tables) that vanishes when the rod stops: take
+        # only part of an error of that size; all of it when the rod is nearly still, when the
+        # error is larger than such transients, or when the estimate was never referenced.
+        transient = (abs(snap.v) > self.resync_slow_mm_s
+                     and abs(error) <= self.resync_transient_mm and self.referenced)
+        k = self.resync_gain_moving if transient else 1.0
+        self.travel_mm, self.hold_s = 0.0, 0.0
+        self.u_base = self.u_ref + (1.0 - k) * abs(error)
         self.referenced = True
-        return self._clip(p + (x_now - snap.x)), ReferenceEvent(
+        return self._clip(x_now - k * error), ReferenceEvent(
             index, snap.index, sw.name, rising, p, error, adapted)
 
     # --- online face -----------------------------------------------------------------------
@@ -282,6 +293,18 @@ class Estimator:
                  | np.where(adapting, FLAG_ADAPTING, 0)
                  | np.where((x <= self.lower_mm) | (x >= self.upper_mm), FLAG_SOFT_LIMIT, 0))
         return RunEstimate(x, v, u, flags.astype(np.uint8), log)
+
+    def preset(self, position_mm: float, uncertainty_mm: float) -> None:
+        """A manual reference (CiA 406 preset): position and uncertainty are set, and travel
+        for the next adaptation counts from here."""
+        self.position_mm = self._clip(position_mm)
+        self.u_base, self.travel_mm, self.hold_s = uncertainty_mm, 0.0, 0.0
+        self.referenced = True
+        self.s_ref = (self._on.s_up, self._on.s_down)
+
+    def add_uncertainty(self, mm: float) -> None:
+        """Motion the estimator could not integrate (e.g. input lost): widen the bound."""
+        self.u_base += abs(mm)
 
     # --- persistence -----------------------------------------------------------------------
 
