@@ -1,0 +1,85 @@
+"""``ddh-vsensor run``: the service (systemd unit: systemd/ddh-vsensor.service)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..config import Config
+from ..errors import UserError
+from .common import add_config_arg, config_from, load_tables_for
+
+
+def add_bus_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--interface", metavar="I", help="python-can interface, overrides bus.interface "
+                   "(socketcan, virtual, remote, ...)")
+    p.add_argument("--channel", metavar="C", help="channel, overrides bus.channel (can0, "
+                   "ws://127.0.0.1:54701/, ...)")
+
+
+def bus_from_args(args: argparse.Namespace, cfg: Config) -> dict[str, Any]:
+    from ..service.bus import bus_settings
+    return bus_settings(cfg.bus, args.interface, args.channel)
+
+
+def default_state_dir() -> Path:
+    """systemd's StateDirectory= (``$STATE_DIRECTORY``), else the XDG state directory."""
+    if os.environ.get("STATE_DIRECTORY"):
+        return Path(os.environ["STATE_DIRECTORY"].split(":")[0])
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "ddh-vsensor"
+
+
+def setup_logging(level: str) -> None:
+    # Under systemd the journal stamps each line; elsewhere the time is useful.
+    fmt = "%(levelname)s %(name)s: %(message)s" if os.environ.get("JOURNAL_STREAM") \
+        else "%(asctime)s %(levelname)s %(name)s: %(message)s"
+    logging.basicConfig(level=getattr(logging, level.upper()), format=fmt, stream=sys.stderr)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="the service: Sevcon frames in, emulated position sensors out",
+                       description="Reads the Sevcon controllers' frames, estimates each "
+                       "cylinder's position and publishes it as a CiA 406 position sensor. "
+                       "Stops cleanly on SIGTERM/SIGINT (estimates saved, exit 0).")
+    add_config_arg(p)
+    add_bus_args(p)
+    p.add_argument("--tables", metavar="DIR", help="movement tables (default: built at start, "
+                   "well under a second)")
+    p.add_argument("--state-dir", metavar="DIR", help="where the estimates are persisted "
+                   "(default: $STATE_DIRECTORY, else $XDG_STATE_HOME/ddh-vsensor)")
+    p.add_argument("--no-state", action="store_true", help="neither restore nor save estimates")
+    p.add_argument("--heartbeat-timeout", type=float, default=None, metavar="S",
+                   help="Sevcon heartbeat consumer time (default 1.5 s)")
+    p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ..service import ServiceOptions
+    setup_logging(args.log_level)
+    cfg = config_from(args)
+    bus = bus_from_args(args, cfg)
+    tables = {a: load_tables_for(args, cfg, a) for a in cfg.can.units}
+    options = ServiceOptions(state_dir=None if args.no_state else
+                             Path(args.state_dir) if args.state_dir else default_state_dir())
+    if args.heartbeat_timeout is not None:
+        if not 0.01 <= args.heartbeat_timeout <= 600:
+            raise UserError(f"--heartbeat-timeout {args.heartbeat_timeout}: outside 0.01..600 s")
+        options.heartbeat_timeout_s = args.heartbeat_timeout
+    return asyncio.run(_serve(cfg, tables, bus, options))
+
+
+async def _serve(cfg: Config, tables: dict, bus: dict[str, Any], options: Any) -> int:
+    from ..service import Service
+    service = Service(cfg, tables, bus, options)
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, service.request_stop)
+    return await service.run()

@@ -1,0 +1,68 @@
+"""NMT heartbeat consumer for the Sevcon controllers, on canopen's ``RemoteNode`` NMT master.
+
+As in CiA 301 the consumer becomes active with the first heartbeat it receives: before that
+the controller's state is unknown and nothing is flagged (a bus without heartbeats, e.g. a
+replayed log, is not stale for that alone). Once active, the unit is stale while the last
+heartbeat is older than the consumer time or reports a state other than OPERATIONAL.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+import canopen
+from canopen.nmt import NMT_STATES
+from canopen.objectdictionary import ObjectDictionary
+
+log = logging.getLogger(__name__)
+
+OPERATIONAL = 5
+DEFAULT_CONSUMER_TIME_S = 1.5   # heartbeat producers ship 100..1000 ms; 1.5x the slowest
+
+
+class HeartbeatConsumer:
+    """One controller's heartbeat, consumed through ``network`` (a canopen.Network)."""
+
+    def __init__(self, network: canopen.Network, node_id: int, name: str,
+                 consumer_time_s: float = DEFAULT_CONSUMER_TIME_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.name, self.node_id = name, node_id
+        self.consumer_time_s = consumer_time_s
+        self.clock = clock
+        self.node = canopen.RemoteNode(node_id, ObjectDictionary())
+        network.add_node(self.node)
+        # Only the heartbeat is consumed: SDO responses and EMCY messages of this node would
+        # pile up in canopen's unbounded queues and logs, as nobody reads them here.
+        network.unsubscribe(self.node.sdo.tx_cobid, self.node.sdo.on_response)
+        network.unsubscribe(0x80 + node_id, self.node.emcy.on_emcy)
+        self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
+        self.last_rx_s: float | None = None
+        self.state: int | None = None
+        self.count = 0
+        self._reported = "unknown"
+
+    def _on_heartbeat(self, state: int) -> None:
+        self.last_rx_s = self.clock()
+        self.state = state & 0x7F
+        self.count += 1
+
+    def status(self, now_s: float | None = None) -> tuple[bool, str]:
+        """(usable, why): usable while unknown, or fresh and OPERATIONAL."""
+        if self.last_rx_s is None:
+            ok, why = True, "no heartbeat yet"
+        else:
+            now_s = self.clock() if now_s is None else now_s
+            if now_s - self.last_rx_s > self.consumer_time_s:
+                ok, why = False, f"heartbeat lost ({now_s - self.last_rx_s:.1f} s)"
+            elif self.state != OPERATIONAL:
+                ok, why = False, NMT_STATES.get(self.state or 0, f"state {self.state}").lower()
+            else:
+                ok, why = True, "operational"
+        key = why.split(" (")[0]
+        if key != self._reported:
+            level = logging.INFO if ok else logging.WARNING
+            log.log(level, "%s controller (node %d): %s", self.name, self.node_id, why)
+            self._reported = key
+        return ok, why

@@ -1,0 +1,241 @@
+"""The frames the service reads: routed by ID, decoded with the project's DBC, checked, counted.
+
+Nothing here raises on bad input. A frame with the wrong length, an implausible value or
+arriving faster than any controller sends is *rejected*: counted (per unit for the Sevcon
+frames, they go out in the diagnostic frame) and logged at a limited rate. Frames on IDs the
+service does not read are counted as unknown; frames on the service's own output IDs mean
+another node uses the emulated sensors' node IDs and are counted as ID clashes.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import can
+import cantools
+
+from ..canbus.dbc import IO_MODULE, OIL_TEMP, FrameCodec, load_dbc, message_name
+from ..config import Config
+
+log = logging.getLogger(__name__)
+
+# A Sevcon value beyond this multiple of the motor's limit is a broken frame, not motion.
+PLAUSIBLE_LIMIT_FACTOR = 2.0
+OIL_TEMP_RANGE_C = (-40.0, 150.0)
+# Flood guard per input ID: a token bucket refilled at this rate (frames/s) holding this many.
+# The fastest legitimate input is a 1 ms TPDO (1000 frames/s).
+FLOOD_RATE_HZ = 2500.0
+FLOOD_BURST = 50
+
+
+class RateLimitedLog:
+    """One log line per key and interval; the lines held back are counted into the next."""
+
+    def __init__(self, logger: logging.Logger, interval_s: float = 5.0) -> None:
+        self.logger, self.interval_s = logger, interval_s
+        self._last: dict[str, float] = {}
+        self._held: Counter[str] = Counter()
+
+    def warning(self, key: str, message: str, *args: object) -> None:
+        self.log(logging.WARNING, key, message, *args)
+
+    def info(self, key: str, message: str, *args: object) -> None:
+        self.log(logging.INFO, key, message, *args)
+
+    def log(self, level: int, key: str, message: str, *args: object) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, -math.inf) < self.interval_s:
+            self._held[key] += 1
+            return
+        self._last[key] = now
+        held = self._held.pop(key, 0)
+        suffix = f" (+{held} more since the last report)" if held else ""
+        self.logger.log(level, message + suffix, *args)
+
+
+@dataclass
+class TokenBucket:
+    rate_hz: float
+    burst: float
+    tokens: float = 0.0
+    last_s: float | None = None
+
+    def take(self, now_s: float) -> bool:
+        if self.last_s is None:
+            self.tokens = self.burst
+        else:
+            elapsed = max(now_s - self.last_s, 0.0)
+            self.tokens = min(self.burst, self.tokens + elapsed * self.rate_hz)
+        self.last_s = max(now_s, self.last_s if self.last_s is not None else now_s)
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+@dataclass
+class UnitCounters:
+    received: int = 0            # Sevcon frames on the unit's ID (diag InputFrames)
+    rejected: int = 0            # of which rejected (diag RejectedFrames)
+    reasons: Counter[str] = field(default_factory=Counter)
+
+
+@dataclass(frozen=True)
+class SevconSample:
+    t_s: float
+    speed_rpm: float
+    torque_nm: float
+
+
+class Inputs:
+    """Per-frame checks and the latest oil temperature and Hall input byte."""
+
+    def __init__(self, cfg: Config, codec: FrameCodec, *, log_interval_s: float = 5.0,
+                 flood_rate_hz: float = FLOOD_RATE_HZ, flood_burst: int = FLOOD_BURST) -> None:
+        self.cfg, self.codec = cfg, codec
+        self.log = RateLimitedLog(log, log_interval_s)
+        ids = codec.ids
+        self.sevcon_ids = {ids[message_name("sevcon", a)]: a for a in cfg.can.units}
+        self.oil_id, self.io_id = ids[OIL_TEMP], ids[IO_MODULE]
+        db = load_dbc()
+        self._lengths = {frame_id: db.get_message_by_name(name).length
+                         for name, frame_id in ids.items()}
+        self._limits = {a: (PLAUSIBLE_LIMIT_FACTOR * cfg.unit(a).motor.speed_limit_rpm,
+                            PLAUSIBLE_LIMIT_FACTOR * cfg.unit(a).motor.torque_limit_nm)
+                        for a in cfg.can.units}
+        self._buckets = {i: TokenBucket(flood_rate_hz, flood_burst)
+                         for i in (*self.sevcon_ids, self.oil_id, self.io_id)}
+        self._last_t: dict[int, float] = {}
+        self.units = {a: UnitCounters() for a in cfg.can.units}
+        self.counts: Counter[str] = Counter()     # everything else, by kind
+        self.unknown_ids: Counter[int] = Counter()
+        self.oil_temp_c: float | None = None
+        self.oil_rx_s: float | None = None        # monotonic receipt time of the last oil frame
+        self.io_data: bytes | None = None
+        self._refs_cache: dict[str, dict[str, bool]] = {}
+
+    # --- checks shared by all inputs ---------------------------------------------------
+
+    def _shape_ok(self, msg: can.Message, what: str) -> bool:
+        if msg.is_remote_frame or msg.is_extended_id or msg.is_fd:
+            self.log.warning(f"shape-{msg.arbitration_id}", "%s frame 0x%03X: remote, extended "
+                             "or FD frame on an input ID ignored", what, msg.arbitration_id)
+            return False
+        expected = self._lengths[msg.arbitration_id]
+        if msg.dlc != expected or len(msg.data) != expected:
+            self.log.warning(f"dlc-{msg.arbitration_id}", "%s frame 0x%03X with %d data bytes "
+                             "rejected (the DBC says %d)", what, msg.arbitration_id,
+                             len(msg.data), expected)
+            return False
+        return True
+
+    def _not_flooded(self, msg: can.Message, what: str) -> bool:
+        # Frame timestamps, not arrival times: a backlog of frames received in time but
+        # handled late is no flood.
+        if self._buckets[msg.arbitration_id].take(msg.timestamp):
+            return True
+        self.log.warning(f"flood-{msg.arbitration_id}", "%s frames on 0x%03X arrive faster "
+                         "than %.0f/s: the excess is rejected", what, msg.arbitration_id,
+                         self._buckets[msg.arbitration_id].rate_hz)
+        return False
+
+    def _check_time(self, msg: can.Message, what: str) -> None:
+        last = self._last_t.get(msg.arbitration_id)
+        if last is not None and msg.timestamp < last:
+            self.log.warning(f"time-{msg.arbitration_id}", "%s frame time went back by %.6f s "
+                             "(clock step?)", what, last - msg.timestamp)
+        self._last_t[msg.arbitration_id] = msg.timestamp
+
+    # --- per input -------------------------------------------------------------------------
+
+    def sevcon(self, actuator: str, msg: can.Message, now_s: float) -> SevconSample | None:
+        """The sample of a Sevcon TPDO, or None when rejected (counted)."""
+        counters = self.units[actuator]
+        counters.received += 1
+        what = f"{actuator} Sevcon"
+        reason = None
+        if not self._shape_ok(msg, what):
+            reason = "length"
+        elif not self._not_flooded(msg, what):
+            reason = "flood"
+        else:
+            try:
+                signals = self.codec.decode(msg)[1]  # type: ignore[index]
+            except (cantools.database.DecodeError, ValueError) as exc:
+                self.log.warning(f"decode-{msg.arbitration_id}", "%s frame undecodable: %s",
+                                 what, exc)
+                reason = "decode"
+            else:
+                speed, torque = float(signals["VelocityActual"]), float(signals["TorqueActual"])
+                speed_max, torque_max = self._limits[actuator]
+                if abs(speed) > speed_max or abs(torque) > torque_max:
+                    self.log.warning(f"range-{msg.arbitration_id}", "%s frame out of range "
+                                     "rejected: %.0f rpm, %.2f N*m (plausible: |speed| <= "
+                                     "%.0f, |torque| <= %.0f)", what, speed, torque, speed_max,
+                                     torque_max)
+                    reason = "range"
+                else:
+                    self._check_time(msg, what)
+                    return SevconSample(msg.timestamp, speed, torque)
+        counters.rejected += 1
+        counters.reasons[reason] += 1
+        return None
+
+    def oil(self, msg: can.Message, now_s: float) -> bool:
+        if not (self._shape_ok(msg, "oil temperature")
+                and self._not_flooded(msg, "oil temperature")):
+            self.counts["oil_rejected"] += 1
+            return False
+        value = float(self.codec.decode(msg)[1]["OilTemp"])  # type: ignore[index]
+        lo, hi = OIL_TEMP_RANGE_C
+        if not lo <= value <= hi:
+            self.log.warning("oil-range", "oil temperature %.1f degC outside %g..%g rejected",
+                             value, lo, hi)
+            self.counts["oil_rejected"] += 1
+            return False
+        self.oil_temp_c, self.oil_rx_s = value, now_s
+        self.counts["oil"] += 1
+        return True
+
+    def io(self, msg: can.Message, now_s: float) -> bool:
+        if not (self._shape_ok(msg, "I/O module") and self._not_flooded(msg, "I/O module")):
+            self.counts["io_rejected"] += 1
+            return False
+        data = bytes(msg.data)
+        if data != self.io_data:
+            self.io_data = data
+            self._refs_cache.clear()
+        self.counts["io"] += 1
+        return True
+
+    def refs(self, actuator: str) -> dict[str, bool] | None:
+        """Hall switch states of a unit from the latest I/O frame (None before the first)."""
+        if self.io_data is None:
+            return None
+        cached = self._refs_cache.get(actuator)
+        if cached is None:
+            cached = {name: bool(state)
+                      for name, state in self.codec.hall_states(actuator, self.io_data).items()}
+            self._refs_cache[actuator] = cached
+        return cached
+
+    def unknown(self, msg: can.Message) -> None:
+        self.counts["unknown"] += 1
+        self.unknown_ids[msg.arbitration_id] += 1
+        self.log.warning("unknown", "frames on IDs the service does not read are ignored "
+                         "(%d so far, latest 0x%03X)", self.counts["unknown"], msg.arbitration_id)
+
+    def clash(self, msg: can.Message) -> None:
+        self.counts["id_clash"] += 1
+        self.log.warning(f"clash-{msg.arbitration_id}", "another node transmits on 0x%03X, an "
+                         "ID of an emulated sensor: is the old sensor still connected, or a "
+                         "second ddh-vsensor running?", msg.arbitration_id)
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(u.rejected for u in self.units.values()) + self.counts["oil_rejected"] \
+            + self.counts["io_rejected"]

@@ -1,0 +1,147 @@
+"""The daemon's subcommands: replay, monitor, status, demo (run: see test_cross_process)."""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import threading
+from pathlib import Path
+
+import can
+import pytest
+
+from ddh_vsensor.canbus.dbc import FrameCodec, message_name
+from ddh_vsensor.cli.main import main
+from ddh_vsensor.service import Service, ServiceOptions
+
+from .conftest import channel_name
+
+
+def _write_log(path: Path, frames: list[can.Message]) -> None:
+    with can.BLFWriter(path) as writer:
+        writer.start_timestamp = 0.0     # relative times (as canbus.log.write_blf does)
+        for msg in frames:
+            writer.on_message_received(msg)
+
+
+def test_replay_sends_a_log_onto_a_bus(cfg, frames, tmp_path: Path, capsys) -> None:
+    log = tmp_path / "machine.blf"
+    part = [m for m in frames if m.timestamp <= 0.3]
+    _write_log(log, part)
+    channel = channel_name()
+    listener = can.Bus(interface="virtual", channel=channel)
+    try:
+        code = main(["replay", str(log), "--interface", "virtual", "--channel", channel,
+                     "--rate", "4", "--skip-id", "0x190"])
+        got = []
+        while (msg := listener.recv(0.0)) is not None:
+            got.append(msg)
+    finally:
+        listener.shutdown()
+    assert code == 0
+    expected = [m for m in part if m.arbitration_id != 0x190]
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == \
+        [(m.arbitration_id, bytes(m.data)) for m in expected]
+    assert "replayed" in capsys.readouterr().err
+
+
+def test_replay_inputs_only_drops_logged_positions(cfg, tmp_path: Path) -> None:
+    codec = FrameCodec(cfg)
+    log = tmp_path / "with_positions.blf"
+    _write_log(log, [codec.encode_sevcon("boom", 1.0, 100.0, 0.0),
+                     codec.encode_position("boom", 10.0, 0.0, 0, 0.0),
+                     codec.encode_oil_temp(20.0, 0.01)])
+    channel = channel_name()
+    listener = can.Bus(interface="virtual", channel=channel)
+    try:
+        assert main(["replay", str(log), "--interface", "virtual", "--channel", channel,
+                     "--rate", "0", "--inputs-only"]) == 0
+        ids = []
+        while (msg := listener.recv(0.0)) is not None:
+            ids.append(msg.arbitration_id)
+    finally:
+        listener.shutdown()
+    assert ids == [codec.ids[message_name("sevcon", "boom")], codec.ids["OIL_TEMP_TPDO1"]]
+
+
+def test_replay_of_a_missing_log_is_a_user_error(tmp_path: Path, capsys) -> None:
+    assert main(["replay", str(tmp_path / "none.blf"), "--interface", "virtual"]) == 2
+    assert "none.blf" in capsys.readouterr().err
+
+
+def test_monitor_shows_a_recorded_log(cfg, tmp_path: Path, capsys) -> None:
+    codec = FrameCodec(cfg)
+    log = tmp_path / "out.blf"
+    frames = []
+    for k in range(20):
+        t = k * 0.01
+        frames.append(codec.encode_position("boom", 100.0 + k, 100.0, 0x02, t))
+        frames.append(codec.encode_diag("boom", 0.75, 0x02, k, 0, t))
+    _write_log(log, frames)
+    assert main(["monitor", "--log", str(log), "--every", "0.1"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"boom\s+119\.00 mm\s+100\.0 mm/s\s+\+-\s+0\.75 mm.*not_referenced", out)
+    assert "bucket  (no position frame yet)" in out
+
+
+class ServiceThread:
+    """The service in a thread of its own (for CLI commands that block on the bus)."""
+
+    def __init__(self, cfg, tables, channel: str) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.service: Service | None = None
+        self._ready = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(cfg, tables, channel))
+        self._thread.start()
+        assert self._ready.wait(10)
+
+    def _run(self, cfg, tables, channel) -> None:
+        asyncio.set_event_loop(self.loop)
+
+        async def main_():
+            self.service = Service(cfg, tables, {"interface": "virtual", "channel": channel},
+                                   ServiceOptions())
+            await self.service.start()
+            self._ready.set()
+            await self.service._stop_event.wait()
+            await self.service.shutdown()
+
+        self.loop.run_until_complete(main_())
+        self.loop.close()
+
+    def stop(self) -> None:
+        self.loop.call_soon_threadsafe(self.service.request_stop)
+        self._thread.join(10)
+
+
+def test_status_reads_the_nodes_and_presets(cfg, unit_tables, capsys) -> None:
+    channel = channel_name()
+    runner = ServiceThread(cfg, unit_tables, channel)
+    try:
+        assert main(["status", "--interface", "virtual", "--channel", channel,
+                     "--preset", "boom=12.34"]) == 0
+        out = capsys.readouterr().out
+        assert main(["status", "--interface", "virtual", "--channel", channel,
+                     "--preset", "bucket=900"]) == 2
+        err = capsys.readouterr().err
+    finally:
+        runner.stop()
+    assert re.search(r"boom \(node 49.*\n\s+position\s+12\.34 mm", out)
+    assert "timers        TPDO1 10 ms, TPDO2 100 ms, heartbeat 1000 ms" in out
+    assert "refused" in err and "bucket" in err
+
+
+def test_status_without_a_service_says_so(cfg, capsys) -> None:
+    assert main(["status", "--interface", "virtual", "--channel", channel_name(),
+                 "--timeout", "0.2"]) == 2
+    assert "did not answer" in capsys.readouterr().err
+
+
+def test_demo_runs_and_ends_with_its_summary(capsys) -> None:
+    pytest.importorskip("ddh_vsensor.sim")
+    assert main(["demo", "--rate", "40"]) == 0
+    out = capsys.readouterr().out
+    assert "summary:" in out
+    rows = re.findall(r"^\s+(boom|bucket)\s+([\d.]+) mm\s+([\d.]+) mm", out, re.M)
+    assert {r[0] for r in rows} == {"boom", "bucket"}
+    assert all(float(r[1]) < 30.0 for r in rows)       # the paper's bar, by a wide margin

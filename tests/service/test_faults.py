@@ -1,0 +1,281 @@
+"""Fault injection: lost or non-operational controller, malformed frames, floods, bus errors,
+bad config, corrupt state file. The service counts, logs, keeps publishing."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import threading
+
+import can
+import pytest
+
+from ddh_vsensor.canbus.dbc import FrameCodec, message_name
+from ddh_vsensor.cli.main import main
+from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED, FLAG_STALE
+from ddh_vsensor.estimator.state import EstimatorState, save_state
+from ddh_vsensor.service import ServiceOptions
+
+from .conftest import Recorder, channel_name, running_service, settle
+
+
+async def _feed(bus, codec, t0: float, start: int, n: int, *, boom_rpm: float = 1500.0,
+                heartbeat: int | None = None, sleep_s: float = 0.01) -> None:
+    for k in range(start, start + n):
+        t = t0 + k * 0.01
+        bus.send(codec.encode_sevcon("boom", 4.0, boom_rpm, t))
+        bus.send(codec.encode_sevcon("bucket", 0.0, 0.0, t))
+        if heartbeat is not None and k % 5 == 0:
+            bus.send(codec.encode(message_name("heartbeat", "boom"), {"NmtState": heartbeat}, t))
+        await asyncio.sleep(sleep_s)
+
+
+def _boom(service):
+    return service.published(service.units["boom"])
+
+
+def test_lost_and_non_operational_controller_mark_the_unit_stale(cfg, unit_tables) -> None:
+    channel = channel_name()
+    codec = FrameCodec(cfg)
+
+    async def scenario():
+        options = ServiceOptions(heartbeat_timeout_s=0.3)
+        async with running_service(cfg, unit_tables, channel, options) as service:
+            feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            try:
+                t0 = 500.0
+                feeder.send(codec.encode_oil_temp(30.0, t0))
+                await _feed(feeder, codec, t0, 0, 15, heartbeat=5)
+                ok = _boom(service)
+                # pre-operational: frames keep coming, the unit is stale, position held
+                await _feed(feeder, codec, t0, 15, 15, heartbeat=127)
+                preop = _boom(service)
+                held = service.units["boom"].held
+                # heartbeat lost altogether (frames without heartbeats)
+                await _feed(feeder, codec, t0, 30, 10, heartbeat=5)
+                await _feed(feeder, codec, t0, 40, 50)
+                lost = _boom(service)
+                lost_why = service.stale(service.units["boom"])[1]
+                await _feed(feeder, codec, t0, 90, 10, heartbeat=5)
+                back = _boom(service)
+                bucket = service.published(service.units["bucket"])
+            finally:
+                feeder.shutdown()
+            return ok, preop, held, lost, lost_why, back, bucket
+
+    ok, preop, held, lost, lost_why, back, bucket = asyncio.run(scenario())
+    assert not ok.flags & FLAG_STALE
+    assert preop.flags & FLAG_STALE and held >= 10
+    assert lost.flags & FLAG_STALE and "heartbeat lost" in lost_why
+    assert not back.flags & FLAG_STALE and back.position_mm > ok.position_mm
+    assert not bucket.flags & FLAG_STALE           # its controller sent no heartbeat at all
+
+
+def test_malformed_frames_are_counted_and_ignored(cfg, unit_tables, caplog) -> None:
+    channel = channel_name()
+    codec = FrameCodec(cfg)
+    sevcon_id = codec.ids[message_name("sevcon", "boom")]
+
+    async def scenario():
+        async with running_service(cfg, unit_tables, channel) as service:
+            feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            try:
+                t0 = 700.0
+                feeder.send(codec.encode_oil_temp(30.0, t0))
+                await _feed(feeder, codec, t0, 0, 10)
+                before = _boom(service)
+                good = service.units["boom"].integrated
+                bad = [
+                    can.Message(timestamp=t0 + 0.105, arbitration_id=sevcon_id, data=b"\x01\x02",
+                                is_extended_id=False),                         # short
+                    can.Message(timestamp=t0 + 0.106, arbitration_id=sevcon_id,
+                                data=bytes(8), is_extended_id=False),           # long
+                    codec.encode_sevcon("boom", 5.0, 50000.0, t0 + 0.107),      # 50000 rpm
+                    codec.encode_sevcon("boom", 2000.0, 100.0, t0 + 0.108),     # 2000 N*m
+                    can.Message(timestamp=t0 + 0.109, arbitration_id=sevcon_id,
+                                is_remote_frame=True, dlc=6, is_extended_id=False),
+                    can.Message(timestamp=t0 + 0.11, arbitration_id=0x123, data=b"x",
+                                is_extended_id=False),                          # unknown
+                    can.Message(timestamp=t0 + 0.11, arbitration_id=sevcon_id, data=bytes(6),
+                                is_extended_id=True),                           # extended
+                    codec.encode_oil_temp(900.0, t0 + 0.11),                    # hot oil
+                    can.Message(timestamp=t0 + 0.11, arbitration_id=codec.ids["IO_MODULE_TPDO1"],
+                                data=b"", is_extended_id=False),                # empty I/O
+                    can.Message(timestamp=t0 + 0.11, is_error_frame=True, arbitration_id=0x4),
+                ]
+                for msg in bad:
+                    feeder.send(msg)
+                await settle(0.05)
+                after_bad = _boom(service)
+                ticks = service.ticks
+                await _feed(feeder, codec, t0, 12, 10)
+                after = _boom(service)
+            finally:
+                feeder.shutdown()
+            return service, before, good, after_bad, after, ticks
+
+    with caplog.at_level(logging.WARNING):
+        service, before, good, after_bad, after, ticks = asyncio.run(scenario())
+    counters = service.inputs.units["boom"]
+    assert counters.rejected == 5                       # short, long, 2 x range, remote
+    assert dict(counters.reasons) == {"length": 3, "range": 2}
+    assert after_bad.rejected_frames == 5
+    assert after_bad.position_mm == before.position_mm  # nothing of them was integrated
+    assert service.units["boom"].integrated == good + 10
+    assert service.inputs.counts["unknown"] == 2        # 0x123 and the extended frame
+    assert service.inputs.counts["oil_rejected"] == 1 and service.inputs.oil_temp_c == 30.0
+    assert service.inputs.counts["io_rejected"] == 1
+    assert service.ticks > ticks and after.position_mm > before.position_mm
+    assert "rejected" in caplog.text
+
+
+def test_a_flood_is_rejected_and_publishing_goes_on(cfg, unit_tables) -> None:
+    channel = channel_name()
+    codec = FrameCodec(cfg)
+    recorder = Recorder(channel)
+    pos_id = codec.ids[message_name("position", "boom")]
+    flood_frames = 20000
+
+    def flood(stop: threading.Event) -> None:
+        bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+        try:
+            t = 900.2
+            for k in range(flood_frames):
+                bus.send(codec.encode_sevcon("boom", 1.0, 100.0, t + k * 1e-5))
+                bus.send(can.Message(timestamp=t, arbitration_id=0x7A0, data=bytes(8),
+                                     is_extended_id=False))
+        finally:
+            bus.shutdown()
+            stop.set()
+
+    async def scenario():
+        async with running_service(cfg, unit_tables, channel) as service:
+            feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            try:
+                feeder.send(codec.encode_oil_temp(30.0, 900.0))
+                await _feed(feeder, codec, 900.0, 0, 10)
+                n0 = len(recorder.drain())
+                ticks0 = service.ticks
+                done = threading.Event()
+                thread = threading.Thread(target=flood, args=(done,))
+                thread.start()
+                while not done.is_set():
+                    await settle(0.01)
+                    recorder.drain()
+                during_ticks = service.ticks - ticks0
+                thread.join()
+                await settle(0.3)            # let the dispatcher work through the backlog
+                during = recorder.drain()[n0:]
+                await _feed(feeder, codec, 901.0, 0, 10)
+            finally:
+                feeder.shutdown()
+            return service, during, during_ticks
+
+    try:
+        service, during, during_ticks = asyncio.run(scenario())
+    finally:
+        recorder.close()
+    counters = service.inputs.units["boom"]
+    assert counters.received >= flood_frames
+    assert counters.reasons["flood"] > flood_frames * 0.9
+    assert service.inputs.counts["unknown"] == flood_frames
+    assert during_ticks > 0
+    assert [m for m in during if m.arbitration_id == pos_id]
+    assert service.units["boom"].integrated > 10          # integrating again afterwards
+
+
+class FlakyBus(can.BusABC):
+    """A virtual bus whose receive fails once after ``fail_after`` frames."""
+
+    def __init__(self, channel: str, fail_after: int, state: dict) -> None:
+        self._inner = can.Bus(interface="virtual", channel=channel)
+        self._fail_after, self._state = fail_after, state
+        self.channel_info = f"flaky {channel}"
+        super().__init__(channel=channel)
+
+    def _recv_internal(self, timeout):
+        msg = self._inner.recv(timeout)
+        if msg is not None:
+            self._state["received"] = self._state.get("received", 0) + 1
+            if not self._state.get("failed") and self._state["received"] >= self._fail_after:
+                self._state["failed"] = True
+                raise can.CanOperationError("simulated bus-off")
+        return msg, False
+
+    def send(self, msg, timeout=None):
+        self._inner.send(msg, timeout)
+
+    def shutdown(self):
+        self._inner.shutdown()
+        super().shutdown()
+
+
+def test_bus_errors_and_a_missing_bus_are_survived(cfg, unit_tables) -> None:
+    channel = channel_name()
+    codec = FrameCodec(cfg)
+    state: dict = {"opens": 0}
+
+    def opener(settings, filters):
+        state["opens"] += 1
+        if state["opens"] == 1:
+            raise OSError(19, "No such device")       # not there at start
+        return FlakyBus(channel, fail_after=8, state=state)
+
+    async def scenario():
+        async with running_service(cfg, unit_tables, channel, opener=opener) as service:
+            link_state_at_start = service.link.state
+            await settle(0.3)
+            feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            try:
+                feeder.send(codec.encode_oil_temp(30.0, 300.0))
+                await _feed(feeder, codec, 300.0, 0, 30)
+                await settle(0.5)
+                await _feed(feeder, codec, 300.0, 30, 10)
+                moved = _boom(service)
+            finally:
+                feeder.shutdown()
+            return service, link_state_at_start, moved
+
+    service, at_start, moved = asyncio.run(scenario())
+    assert at_start == "reconnecting"
+    assert state["failed"] and state["opens"] >= 3
+    assert service.link.reconnects >= 2 and service.link.bus_errors >= 2
+    assert service.units["boom"].integrated > 20          # the estimate carried on
+    assert moved.position_mm > 0.0
+
+
+def test_corrupt_state_file_is_ignored_the_other_restored(cfg, unit_tables, tmp_path,
+                                                           caplog) -> None:
+    (tmp_path / "boom.json").write_text("{not json")
+    save_state(tmp_path / "bucket.json",
+               EstimatorState("bucket", cfg.physics_hash(), 321.0, 1.5, 1.01, 0.99,
+                              [[1e-5, 0.0], [0.0, 1e-5]]))
+    channel = channel_name()
+
+    async def scenario():
+        async with running_service(cfg, unit_tables, channel,
+                                   ServiceOptions(state_dir=tmp_path)) as service:
+            await settle(0.05)
+            return {a: service.published(u) for a, u in service.units.items()}
+
+    with caplog.at_level(logging.WARNING):
+        published = asyncio.run(scenario())
+    assert "corrupt state file ignored" in caplog.text
+    assert published["boom"].position_mm == 0.0
+    assert published["boom"].uncertainty_mm >= cfg.unit("boom").stroke_mm
+    assert published["bucket"].position_mm == pytest.approx(321.0)
+    assert published["bucket"].flags & FLAG_NOT_REFERENCED
+    # the stop wrote both files again, sound
+    assert json.loads((tmp_path / "boom.json").read_text())["actuator"] == "boom"
+    assert json.loads((tmp_path / "bucket.json").read_text())["position_mm"] == \
+        pytest.approx(321.0)
+
+
+def test_bad_config_and_bad_bus_settings_exit_2(tmp_path, capsys) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("oil: {name: x}\n")
+    assert main(["run", "--config", str(bad), "--no-state"]) == 2
+    assert "bad.yaml" in capsys.readouterr().err
+    assert main(["run", "--interface", "no-such-interface", "--no-state"]) == 2
+    assert "no-such-interface" in capsys.readouterr().err

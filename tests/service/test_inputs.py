@@ -1,0 +1,41 @@
+"""Input checks without a bus: flood guard on frame time, rate-limited logging, Hall bits."""
+
+from __future__ import annotations
+
+import logging
+
+from ddh_vsensor.canbus.dbc import FrameCodec
+from ddh_vsensor.service.inputs import Inputs, RateLimitedLog, TokenBucket
+
+
+def test_token_bucket_counts_frame_time_not_arrival() -> None:
+    bucket = TokenBucket(rate_hz=1000.0, burst=5)
+    # a backlog of 1 kHz frames handled all at once is no flood: their own times are 1 ms apart
+    assert all(bucket.take(100.0 + k * 1e-3) for k in range(1000))
+    # 20 frames within 20 us are: the burst passes, the rest does not
+    passed = sum(bucket.take(200.0 + k * 1e-6) for k in range(20))
+    assert passed == 5
+    assert not bucket.take(199.0)                 # time going back earns no tokens
+
+
+def test_rate_limited_log_reports_what_it_held_back(caplog) -> None:
+    limited = RateLimitedLog(logging.getLogger("t"), interval_s=3600.0)
+    with caplog.at_level(logging.WARNING):
+        for _ in range(5):
+            limited.warning("k", "bad frame")
+        limited.warning("other", "another kind")
+    assert caplog.text.count("bad frame") == 1 and "another kind" in caplog.text
+    limited._last["k"] = -1e9                     # interval over
+    with caplog.at_level(logging.WARNING):
+        limited.warning("k", "bad frame")
+    assert "(+4 more since the last report)" in caplog.text
+
+
+def test_hall_states_follow_the_configured_bits(cfg) -> None:
+    codec = FrameCodec(cfg)
+    inputs = Inputs(cfg, codec)
+    assert inputs.refs("boom") is None
+    msg = codec.encode_inputs({"boom": {"mid": 1}, "bucket": {"top": 1}}, 1.0)
+    assert inputs.io(msg, 0.0)
+    assert inputs.refs("boom") == {"bottom": False, "mid": True, "top": False}
+    assert inputs.refs("bucket") == {"bottom": False, "mid": False, "top": True}

@@ -1,0 +1,86 @@
+"""The emulated CiA 406 node without a bus: what it sends at each tick, its SDO objects."""
+
+from __future__ import annotations
+
+import can
+import pytest
+from canopen.sdo import SdoAbortedError
+
+from ddh_vsensor.canbus.dbc import FrameCodec, message_name
+from ddh_vsensor.service.node import Published, SensorNode, ServiceNetwork
+
+
+@pytest.fixture
+def sent() -> list[can.Message]:
+    return []
+
+
+@pytest.fixture
+def node(cfg, sent) -> SensorNode:
+    network = ServiceNetwork(lambda m: sent.append(m) or True)
+    presets: list[float] = []
+    n = SensorNode(network, cfg, "boom",
+                   live=lambda: Published(123.456, -45.67, 1.25, 0x0A, 70000, 3),
+                   on_preset=presets.append)
+    n.presets_seen = presets
+    n.boot()
+    return n
+
+
+def test_boot_sends_boot_up_then_is_operational(node, sent) -> None:
+    assert [(m.arbitration_id, bytes(m.data)) for m in sent] == [(0x700 + 49, b"\x00")]
+    assert node.operational and node.heartbeat_period_s == 1.0
+
+
+def test_tpdo_schedule_follows_each_timer(cfg, node, sent) -> None:
+    codec = FrameCodec(cfg)
+    node.event_timer_ms, node.diag_timer_ms = 10.0, 100.0
+    node.set_tick(5.0)                              # another node ticks every 5 ms
+    sent.clear()
+    p = Published(10.0, 1.0, 0.5, 0, 5, 0)
+    for tick in range(40):
+        node.publish(p, tick)
+    pos = [i for i, m in enumerate(sent) if m.arbitration_id == 0x1B1]
+    diag = [i for i, m in enumerate(sent) if m.arbitration_id == 0x2B1]
+    assert len(pos) == 20 and len(diag) == 2        # every 2nd tick, every 20th tick
+    assert all(sent[i - 1].arbitration_id == 0x1B1 for i in diag)   # paired with a position
+    decoded = codec.decode(sent[diag[0]])[1]
+    assert decoded["Uncertainty"] == pytest.approx(0.5) and decoded["InputFrames"] == 5
+    assert codec.ids[message_name("position", "boom")] == 0x1B1
+
+
+def test_late_ticks_do_not_burst(node, sent) -> None:
+    node.set_tick(10.0)
+    sent.clear()
+    p = Published(10.0, 1.0, 0.5, 0, 5, 0)
+    for tick in (0, 1, 7, 8):                       # ticks 2..6 were missed
+        node.publish(p, tick)
+    assert sum(m.arbitration_id == 0x1B1 for m in sent) == 4
+
+
+def test_sdo_reads_are_live_and_saturate(node) -> None:
+    sdo = node.node.sdo
+    assert sdo[0x6020][1].raw == 12346              # 123.456 mm in 0.01 mm steps
+    assert sdo[0x6030][1].raw == -457               # 0.1 mm/s
+    assert sdo[0x2001].raw == 125 and sdo[0x2002].raw == 0x0A
+    assert sdo[0x2003].raw == 70000 % 65536 and sdo[0x2004].raw == 3
+    assert sdo[0x6005][1].raw == 10000
+
+
+def test_preset_within_the_stroke_only(node) -> None:
+    sdo = node.node.sdo
+    sdo[0x6010][1].raw = 31115                      # 311.15 mm: the top end, allowed
+    assert node.presets_seen == [pytest.approx(311.15)]
+    for counts in (31116, -1):
+        with pytest.raises(SdoAbortedError):
+            node.node.set_data(0x6010, 1, counts.to_bytes(4, "little", signed=True))
+    assert len(node.presets_seen) == 1
+
+
+def test_stopped_node_sends_nothing(node, sent) -> None:
+    node.node.nmt.on_command(0, bytes([0x02, 49]), 0.0)
+    node.after_nmt_command()
+    sent.clear()
+    assert node.publish(Published(1.0, 0.0, 0.0, 0, 0, 0), 0) == 0 and not sent
+    node.heartbeat_due(100.0)
+    assert [bytes(m.data) for m in sent] == [b"\x04"]   # heartbeat says STOPPED

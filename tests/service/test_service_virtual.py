@@ -1,0 +1,255 @@
+"""End to end in one process on python-can's virtual bus: simulated Sevcon frames in,
+positions out, equal to the offline estimator within one output step."""
+
+from __future__ import annotations
+
+import asyncio
+
+import can
+import canopen
+import pytest
+
+from ddh_vsensor.canbus.dbc import FrameCodec, message_name
+from ddh_vsensor.config import Config
+from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED, FLAG_STALE
+from ddh_vsensor.service.node import EDS_PATH
+from ddh_vsensor.service.replay import replay
+
+from .conftest import (START_MM, Recorder, channel_name, offline_estimate, paired_outputs,
+                       running_service, settle)
+
+
+def commission(channel: str, cfg: Config, presets: dict[str, float] | None = None,
+               diag_ms: int | None = 10) -> None:
+    """An SDO client on the bus (blocking: run it in a thread): presets, diag timer."""
+    bus = can.Bus(interface="virtual", channel=channel)
+    network = canopen.Network(bus)
+    notifier = can.Notifier(bus, network.listeners, 0.1)
+    try:
+        for actuator, unit in cfg.can.units.items():
+            node = network.add_node(unit.sensor_node_id, str(EDS_PATH))
+            node.sdo.RESPONSE_TIMEOUT = 2.0
+            if diag_ms is not None:
+                node.sdo[0x1801][5].raw = diag_ms
+            if presets and actuator in presets:
+                node.sdo[0x6010][1].raw = round(presets[actuator] / cfg.can.position_step_mm)
+    finally:
+        notifier.stop(1.0)
+        bus.shutdown()
+
+
+def test_positions_on_the_bus_equal_the_offline_estimate(cfg, unit_tables, frames) -> None:
+    channel = channel_name()
+    recorder = Recorder(channel)
+
+    async def scenario():
+        async with running_service(cfg, unit_tables, channel) as service:
+            await asyncio.get_running_loop().run_in_executor(
+                None, commission, channel, cfg, START_MM)
+            feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            try:
+                stats = await replay(frames, feeder.send, rate=8.0, stamp="log")
+            finally:
+                feeder.shutdown()
+            await settle(0.1)
+            return service, stats
+
+    try:
+        service, stats = asyncio.run(scenario())
+        seen = recorder.drain()
+    finally:
+        recorder.close()
+    assert stats.frames == len(frames)
+    step = cfg.can.position_step_mm
+    for actuator in cfg.can.units:
+        offline = offline_estimate(cfg, unit_tables, actuator, seen, preset_mm=START_MM[actuator])
+        pairs = [p for p in paired_outputs(cfg, seen, actuator) if p.input_frames > offline.held]
+        assert len(pairs) >= 20, actuator
+        for p in pairs:
+            expected = offline.position_mm[p.input_frames - 1 - offline.held]
+            assert p.position_mm == pytest.approx(expected, abs=step + 1e-9)
+            assert not p.status & FLAG_NOT_REFERENCED          # the SDO preset referenced it
+        positions = [p.position_mm for p in pairs]
+        assert max(positions) - min(positions) > 20.0          # the rod did move
+        unit = service.units[actuator]
+        assert unit.estimator.position_mm == pytest.approx(offline.position_mm[-1], abs=1e-9)
+        assert unit.references >= 1                            # crossed its mid switch
+        assert service.inputs.units[actuator].rejected == 0
+    assert service.inputs.counts["unknown"] == 0
+
+
+def test_input_stops_then_returns_stale_held_growing_then_clear(cfg, unit_tables) -> None:
+    channel = channel_name()
+    recorder = Recorder(channel)
+    codec = FrameCodec(cfg)
+    pos_id = codec.ids[message_name("position", "boom")]
+
+    async def feed(bus, t0: float, n: int, speed_rpm: float, start: int = 0) -> None:
+        for k in range(start, start + n):
+            t = t0 + k * 0.01
+            bus.send(codec.encode_sevcon("boom", 5.0, speed_rpm, t))
+            bus.send(codec.encode_sevcon("bucket", 0.0, 0.0, t))
+            await asyncio.sleep(0.01)
+
+    async def scenario():
+        async with running_service(cfg, unit_tables, channel) as service:
+            feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            try:
+                t0 = 1000.0
+                feeder.send(codec.encode_oil_temp(30.0, t0))
+                await feed(feeder, t0, 20, 2000.0)
+                moving = service.published(service.units["boom"])
+                n0 = len(recorder.drain())
+                await settle(0.3)                     # nothing: > 3 periods
+                stale1 = service.published(service.units["boom"])
+                await settle(0.2)
+                stale2 = service.published(service.units["boom"])
+                window = recorder.drain()[n0:]
+                await feed(feeder, t0, 5, 2000.0, start=60)
+                back = service.published(service.units["boom"])
+            finally:
+                feeder.shutdown()
+            return moving, stale1, stale2, back, window
+
+    try:
+        moving, stale1, stale2, back, window = asyncio.run(scenario())
+    finally:
+        recorder.close()
+    assert not moving.flags & FLAG_STALE and moving.speed_mm_s > 0
+    assert stale1.flags & FLAG_STALE and stale2.flags & FLAG_STALE
+    assert stale1.position_mm == stale2.position_mm == moving.position_mm   # held
+    assert stale1.speed_mm_s == 0.0
+    assert stale2.uncertainty_mm > stale1.uncertainty_mm > moving.uncertainty_mm
+    assert not back.flags & FLAG_STALE
+    # the gap (0.4 s > max_gap) was not integrated: its uncertainty stays until a reference
+    assert back.uncertainty_mm > moving.uncertainty_mm
+    published = [codec.decode(m)[1] for m in window if m.arbitration_id == pos_id]
+    assert len(published) > 10                   # kept publishing while stale
+    assert all(p["Status"] & FLAG_STALE and p["Speed"] == 0 for p in published[-5:])
+
+
+def test_sdo_reads_live_values_and_refuses_presets_outside_the_stroke(cfg, unit_tables) -> None:
+    channel = channel_name()
+
+    def client(service_node_ids: dict[str, int]) -> dict:
+        bus = can.Bus(interface="virtual", channel=channel)
+        network = canopen.Network(bus)
+        notifier = can.Notifier(bus, network.listeners, 0.1)
+        out = {}
+        try:
+            node = network.add_node(service_node_ids["boom"], str(EDS_PATH))
+            node.sdo.RESPONSE_TIMEOUT = 2.0
+            node.sdo[0x6010][1].raw = round(42.5 / cfg.can.position_step_mm)
+            out["position"] = node.sdo[0x6020][1].raw
+            out["step"] = node.sdo[0x6005][1].raw
+            out["flags"] = node.sdo[0x2002].raw
+            out["device"] = node.sdo[0x1000].raw
+            with pytest.raises(canopen.SdoAbortedError) as exc:
+                node.sdo[0x6010][1].raw = round(400.0 / cfg.can.position_step_mm)  # > 311 mm
+            out["abort"] = exc.value.code
+            with pytest.raises(canopen.SdoAbortedError):
+                node.sdo[0x6010][1].raw = -100
+            node.sdo[0x1800][5].raw = 5
+            out["timer"] = node.sdo[0x1800][5].raw
+        finally:
+            notifier.stop(1.0)
+            bus.shutdown()
+        return out
+
+    async def scenario():
+        async with running_service(cfg, unit_tables, channel) as service:
+            ids = {a: u.sensor_node_id for a, u in cfg.can.units.items()}
+            out = await asyncio.get_running_loop().run_in_executor(None, client, ids)
+            return service, out
+
+    service, out = asyncio.run(scenario())
+    assert out["position"] == 4250
+    assert out["step"] == 10000                       # nm: 0.01 mm
+    assert out["device"] == 0x00080196
+    assert not out["flags"] & FLAG_NOT_REFERENCED     # a preset is a reference
+    assert out["abort"] == 0x06090030                 # value range exceeded
+    assert service.units["boom"].estimator.position_mm == pytest.approx(42.5)
+    assert service.units["bucket"].estimator.position_mm == 0.0
+    assert out["timer"] == 5 and service.ticker.period_s == pytest.approx(0.005)
+
+
+def test_nmt_stop_silences_the_pdos_and_reset_reboots(cfg, unit_tables) -> None:
+    channel = channel_name()
+    recorder = Recorder(channel)
+    codec = FrameCodec(cfg)
+    node_id = cfg.can.units["boom"].sensor_node_id
+    pos_id = codec.ids[message_name("position", "boom")]
+
+    async def scenario():
+        async with running_service(cfg, unit_tables, channel):
+            master = can.Bus(interface="virtual", channel=channel)
+            try:
+                await settle(0.05)
+                master.send(can.Message(arbitration_id=0, data=[0x02, node_id],
+                                        is_extended_id=False))       # stop
+                await settle(0.05)
+                recorder.drain()
+                n_stopped = len(recorder.frames)
+                await settle(0.1)
+                during = recorder.drain()[n_stopped:]
+                master.send(can.Message(arbitration_id=0, data=[0x81, 0],
+                                        is_extended_id=False))       # reset all nodes
+                await settle(0.1)
+                after = recorder.drain()[n_stopped + len(during):]
+            finally:
+                master.shutdown()
+            return during, after
+
+    try:
+        during, after = asyncio.run(scenario())
+    finally:
+        recorder.close()
+    assert not [m for m in during if m.arbitration_id == pos_id]
+    assert [m for m in during if m.arbitration_id == codec.ids[message_name("position", "bucket")]]
+    boot = [m for m in after if m.arbitration_id == 0x700 + node_id and m.data[0] == 0]
+    assert boot, "a reset node sends its boot-up message"
+    assert [m for m in after if m.arbitration_id == pos_id], "auto start after the reset"
+
+
+def test_one_millisecond_inputs_and_event_timer(cfg, unit_tables) -> None:
+    """Sevcon TPDOs every 1 ms and the sensors' event timer at 1 ms work as well."""
+    import dataclasses
+
+    from ddh_vsensor.service.replay import machine_frames
+
+    from .conftest import synthetic_run
+
+    fast = dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, event_timer_ms=1.0))
+    runs = {a: synthetic_run(fast, a, seconds=1.0, period_s=0.001, cycle_s=1.0)
+            for a in fast.can.units}
+    fast_frames = machine_frames(fast, runs, heartbeat_period_s=0.1)
+    channel = channel_name()
+    recorder = Recorder(channel)
+
+    async def scenario():
+        async with running_service(fast, unit_tables, channel) as service:
+            await asyncio.get_running_loop().run_in_executor(
+                None, lambda: commission(channel, fast, START_MM, diag_ms=1))
+            feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            try:
+                await replay(fast_frames, feeder.send, rate=2.0, stamp="log")
+            finally:
+                feeder.shutdown()
+            await settle(0.05)
+            return service
+
+    try:
+        service = asyncio.run(scenario())
+        seen = recorder.drain()
+    finally:
+        recorder.close()
+    assert service.ticker.period_s == pytest.approx(0.001)
+    for actuator in fast.can.units:
+        offline = offline_estimate(fast, unit_tables, actuator, seen,
+                                   preset_mm=START_MM[actuator])
+        pairs = [p for p in paired_outputs(fast, seen, actuator) if p.input_frames > offline.held]
+        assert len(pairs) >= 100, actuator
+        for p in pairs:
+            expected = offline.position_mm[p.input_frames - 1 - offline.held]
+            assert p.position_mm == pytest.approx(expected, abs=fast.can.position_step_mm + 1e-9)
+        assert service.inputs.units[actuator].rejected == 0      # 1 kHz is no flood
