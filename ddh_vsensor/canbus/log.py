@@ -21,7 +21,9 @@ from .dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
 # python-can's BLF header holds wall-clock start times only (from 1990 on); earlier, relative
 # times would be shifted to the first frame, so the writer is pinned to a zero start instead.
 _BLF_WALL_CLOCK_MIN_S = 631152000.0
-_SEVCON, _OIL, _IO, _POSITION = range(4)   # frame order within one timestamp
+# Frame order within one timestamp: the oil temperature and Hall inputs of a sample come before
+# its Sevcon frame, so a reader integrating on Sevcon frames sees them in the same step.
+_OIL, _IO, _SEVCON, _POSITION = range(4)
 
 
 def _latest(event_time_s: np.ndarray, time_s: np.ndarray) -> np.ndarray:
