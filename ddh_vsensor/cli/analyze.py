@@ -1,0 +1,63 @@
+"""``ddh-vsensor analyze``: where the model fails on measured runs, why, and the extended model.
+
+Runs are CSVs of the measured-data format or CAN logs of one actuator. The report directory
+gets report.json, report.html (figures embedded), breakdown.json and extension.json (the
+extended model, for ``estimate --extension``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from .common import add_actuator_arg, add_config_arg, config_from
+from .progress import ProgressBar
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "analyze", help="diagnose the model on measured runs: what is wrong, why, the fix",
+        description="Compares the estimate with the reference position of each run, breaks "
+                    "the error down by motion phase, direction, load, speed and temperature, "
+                    "fits each candidate cause (a physical extension of the model), ranks "
+                    "them on runs left out of the fit, names one only if it explains "
+                    "significantly more than none, and saves the extended model.")
+    p.add_argument("runs", nargs="+", metavar="RUN",
+                   help="measured runs of one actuator: CSV (measured-data format) or CAN log; "
+                        "at least two")
+    add_config_arg(p)
+    add_actuator_arg(p)
+    p.add_argument("--mode", choices=("full", "paper"), default=None,
+                   help="estimator mode to diagnose (default: the config's)")
+    p.add_argument("--report", required=True, metavar="DIR", help="report directory")
+    p.add_argument("--json", action="store_true", help="print report.json to stdout")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ..diagnosis.analyze import diagnose
+    from ..diagnosis.report import prepare_report_dir, write_report
+    from ..diagnosis.runs import load_analysis_run
+
+    cfg = config_from(args)
+    mode = args.mode or cfg.estimator.mode
+    runs = [load_analysis_run(path, args.actuator, cfg) for path in args.runs]
+    prepare_report_dir(args.report)
+    bar = ProgressBar("analyze")
+    diag = diagnose(cfg, args.actuator, runs, mode,
+                    progress=lambda stage, f: bar.update(f, stage))
+    data = write_report(diag, args.report, cfg.physics_hash())
+    bar.close(f"cause: {diag.cause}")
+    if args.json:
+        print(json.dumps(data, indent=2))
+        return 0
+    b, e = data["baseline"], data["extended"]
+    print(f"{args.actuator} ({mode} mode), {len(runs)} runs: cause {diag.cause}")
+    print(f"  {diag.decision.reason}")
+    for item in data["ranking"]:
+        params = ", ".join(f"{k}={v:.4g}" for k, v in item["parameters"].items())
+        print(f"  {item['cause']:<18} score {item['score']:+.3f}  {params}")
+    print(f"  held-out max |error| {b['max_abs_error_mm']:.2f} -> {e['max_abs_error_mm']:.2f} mm,"
+          f" RMS {b['rms_error_mm']:.2f} -> {e['rms_error_mm']:.2f} mm")
+    print(f"  report: {args.report}/report.html; extension: {data['extension_file']}")
+    return 0

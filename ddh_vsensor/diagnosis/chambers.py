@@ -1,0 +1,231 @@
+"""The unit's chambers as compressible volumes, driven by the measured motor speed and torque.
+
+The movement tables hold steady states: they assume the chamber pressures have settled. This
+model drops that assumption. Per sample it solves, by backward Euler over the sample step h,
+
+    C_s (p_s - p_s') / h = q_s(n) - g_s(mu) p_s + q_valves,s(p_s) - sign_s A_s v    (s = A, B)
+    tau - J d(omega)/dt  = k_A p_A + k_B p_B                       (pump torque at the motor)
+
+for the rod velocity v and both gauge pressures, with C_s = V_s(x) / beta_eff(p) the chamber's
+compliance (oil-air mixture law, :mod:`.air`) and V_s the chamber plus dead volume. Every other
+element (pump flow and leakage, valve characteristics, torque gains with their efficiencies)
+is the one of ``physics/``, so with h -> infinity each step is exactly the tables' steady
+state. No load model is needed: the measured torque closes the system.
+
+Each step is piecewise linear in the pressures; the valve regimes of the previous step are
+tried first and every row that comes out inconsistent is solved by enumerating all sixteen
+(as ``physics.steady`` does). The compliance is taken as the secant over the step (two
+passes), so the compression is exact for the pressures found. Rows (runs, air fractions) are
+integrated in lockstep.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ..physics.steady import steady_state_at_torque
+from ..physics.unit import DDHUnit
+from .air import log_density_and_compliance
+
+RPM_RAD_S = 2.0 * np.pi / 60.0
+_P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valve regime
+SECANT_MIN_PA = 100.0                               # below: the tangent is the secant
+
+
+@dataclass(frozen=True)
+class ChamberRow:
+    """One run's measured inputs and the air fraction to integrate it with."""
+
+    time_s: np.ndarray
+    speed_rpm: np.ndarray
+    torque_nm: np.ndarray
+    oil_temp_c: np.ndarray
+    initial_position_mm: float
+    air_fraction: float = 0.0
+
+
+@dataclass(frozen=True)
+class ChamberTrack:
+    """Position (mm) and gauge chamber pressures (Pa) of one row, per sample."""
+
+    position_mm: np.ndarray
+    p_a_pa: np.ndarray
+    p_b_pa: np.ndarray
+
+
+class _Constants:
+    """Per-unit constants of the step, as arrays indexed by regime and direction."""
+
+    def __init__(self, unit: DDHUnit) -> None:
+        a, b, cyl = unit.a, unit.b, unit.cylinder
+        self.area_a, self.area_b, self.stroke = a.area_m2, b.area_m2, cyl.stroke_m
+        self.dead = unit.dead_volume_m3
+        self.q_a = float(a.pump.geometric_flow_m3_s(1.0))      # per motor rpm, into chamber
+        self.q_b = float(b.pump.geometric_flow_m3_s(1.0))
+        self.leak_a, self.leak_b = a.pump.leak_coeff_m3, b.pump.leak_coeff_m3
+        self.crack = a.anticav.cracking_pa
+        self.relief_a, self.relief_b = a.relief.setting_pa, b.relief.setting_pa
+
+        def valves(side):
+            g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
+            g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
+            return np.array([g_ac, 0.0, 0.0, g_rv]), np.array([g_ac * cr, 0.0, 0.0, g_rv * st])
+
+        self.g_a, self.ge_a = valves(a)
+        self.g_b, self.ge_b = valves(b)
+        # torque gain [direction (n<0, n=0, n>0), regime]
+        self.k_a = np.stack([a.pump.torque_gain_nm_per_pa(_P_SIGN, d) for d in (-1.0, 0.0, 1.0)])
+        self.k_b = np.stack([b.pump.torque_gain_nm_per_pa(_P_SIGN, d) for d in (-1.0, 0.0, 1.0)])
+        self.inertia = unit.motor.inertia_kg_m2
+        self.beta = unit.bulk_modulus_pa
+        self.reservoir = unit.reservoir_pa
+        # the sixteen regime pairs (A, B) and each regime's pressure range
+        self.all_a = np.repeat(np.arange(4), 4)[None, :]
+        self.all_b = np.tile(np.arange(4), 4)[None, :]
+        self.lo_a = np.array([-np.inf, self.crack, 0.0, self.relief_a])[self.all_a]
+        self.hi_a = np.array([self.crack, 0.0, self.relief_a, np.inf])[self.all_a]
+        self.lo_b = np.array([-np.inf, self.crack, 0.0, self.relief_b])[self.all_b]
+        self.hi_b = np.array([self.crack, 0.0, self.relief_b, np.inf])[self.all_b]
+
+    def regime(self, dp: np.ndarray, relief: float) -> np.ndarray:
+        """0 anti-cavitation open, 1 closed below reservoir, 2 closed above, 3 relief open."""
+        return (dp >= self.crack).astype(np.intp) + (dp >= 0.0) + (dp > relief)
+
+
+def _pad(arrays: Sequence[np.ndarray], length: int, fill_last: bool = True) -> np.ndarray:
+    out = np.empty((length, len(arrays)))
+    for i, a in enumerate(arrays):
+        out[:len(a), i] = a
+        out[len(a):, i] = a[-1] if fill_last else 0.0
+    return out
+
+
+class ChamberModel:
+    """The chamber model for a batch of rows, one sample at a time (the online face; the
+    offline :func:`track_chambers` drives it over whole runs)."""
+
+    def __init__(self, unit: DDHUnit, air_fraction: ArrayLike, speed_rpm: ArrayLike,
+                 torque_nm: ArrayLike, oil_temp_c: ArrayLike, position_mm: ArrayLike,
+                 inertia: bool = True, max_gap_s: float = math.inf) -> None:
+        """Start settled: the steady state at the first sample's speed and torque."""
+        self.unit, self.c = unit, _Constants(unit)
+        c = self.c
+        self.air = np.atleast_1d(np.asarray(air_fraction, dtype=float))
+        size = len(self.air)
+        n, tau, temp = (np.broadcast_to(np.asarray(a, dtype=float), (size,)).copy()
+                        for a in (speed_rpm, torque_nm, oil_temp_c))
+        st = steady_state_at_torque(unit, n, tau, temp)
+        self.p_a, self.p_b = st.p_a_pa - c.reservoir, st.p_b_pa - c.reservoir
+        self.x = np.broadcast_to(np.asarray(position_mm, dtype=float), (size,)) * 1e-3
+        self.v = st.velocity_m_s.copy()
+        self.n, self.tau = n, tau
+        self.regime_a = c.regime(self.p_a, c.relief_a)
+        self.regime_b = c.regime(self.p_b, c.relief_b)
+        self.has_air = bool(np.any(self.air > 0.0))
+        self.inertia, self.max_gap_s = inertia, max_gap_s
+
+    @property
+    def position_mm(self) -> np.ndarray:
+        return self.x * 1e3
+
+    def advance(self, h: ArrayLike, speed_rpm: ArrayLike, torque_nm: ArrayLike,
+                mu_pa_s: ArrayLike) -> None:
+        """One sample ``h`` seconds after the last (rows with h <= 0 keep their state)."""
+        c, air, pa, pb, x = self.c, self.air, self.p_a, self.p_b, self.x
+        h, nk, torque, mu_pa_s = (np.broadcast_to(np.asarray(a, dtype=float), x.shape)
+                                  for a in (h, speed_rpm, torque_nm, mu_pa_s))
+        raw_torque = torque
+        live = h > 0.0
+        hs = np.where(live, h, 1.0)
+        q_a, q_b = c.q_a * nk, c.q_b * nk
+        g_a, g_b = c.leak_a / mu_pa_s, c.leak_b / mu_pa_s
+        xv = np.clip(x, 0.0, c.stroke)
+        vol_a = c.dead + c.area_a * xv
+        vol_b = c.dead + c.area_b * (c.stroke - xv)
+        if self.inertia:
+            # The speed's backward difference is the rotor's mean acceleration over the step,
+            # so it pairs with the step's mean motor torque (not the torque at its end: in a
+            # sharp torque ramp that half-sample misalignment is worth many N*m).
+            torque = 0.5 * (torque + self.tau) - c.inertia * RPM_RAD_S * (nk - self.n) / hs
+        l_a, inv_a = log_density_and_compliance(pa, air, c.beta, c.reservoir)
+        l_b, inv_b = log_density_and_compliance(pb, air, c.beta, c.reservoir)
+        d = (np.sign(nk) + 1).astype(np.intp)
+        ca, cb = vol_a * inv_a / hs, vol_b * inv_b / hs        # tangent at the last pressure
+        new_pa, new_pb, new_v, ra, rb = _solve(c, q_a + ca * pa, q_b + cb * pb, ca + g_a,
+                                               cb + g_b, torque, d, self.regime_a,
+                                               self.regime_b)
+        if self.has_air:    # again with the secant compliance over the step: exact compression
+            l1_a, _ = log_density_and_compliance(new_pa, air, c.beta, c.reservoir)
+            l1_b, _ = log_density_and_compliance(new_pb, air, c.beta, c.reservoir)
+            dpa, dpb = new_pa - pa, new_pb - pb
+            ca = vol_a * np.where(np.abs(dpa) > SECANT_MIN_PA,
+                                  (l1_a - l_a) / np.where(dpa == 0.0, 1.0, dpa), inv_a) / hs
+            cb = vol_b * np.where(np.abs(dpb) > SECANT_MIN_PA,
+                                  (l1_b - l_b) / np.where(dpb == 0.0, 1.0, dpb), inv_b) / hs
+            new_pa, new_pb, new_v, ra, rb = _solve(c, q_a + ca * pa, q_b + cb * pb, ca + g_a,
+                                                   cb + g_b, torque, d, ra, rb)
+        self.p_a = np.where(live, new_pa, pa)
+        self.p_b = np.where(live, new_pb, pb)
+        # trapezoidal, as the estimator integrates its table velocities
+        self.x = np.where(live & (h <= self.max_gap_s), x + 0.5 * h * (self.v + new_v), x)
+        self.v = np.where(live, new_v, self.v)
+        self.n = np.where(live, nk, self.n)
+        self.tau = np.where(live, raw_torque, self.tau)
+        self.regime_a = np.where(live, ra, self.regime_a)
+        self.regime_b = np.where(live, rb, self.regime_b)
+
+
+def track_chambers(unit: DDHUnit, rows: Sequence[ChamberRow], inertia: bool = True,
+                   max_gap_s: float = math.inf) -> list[ChamberTrack]:
+    """Integrate every row; ``inertia`` subtracts the motor's J*d(omega)/dt from its torque.
+    Over a gap longer than ``max_gap_s`` the position is not advanced (as the estimator)."""
+    lengths = [len(r.time_s) for r in rows]
+    length, size = max(lengths), len(rows)
+    t = _pad([r.time_s for r in rows], length)
+    n = _pad([r.speed_rpm for r in rows], length)
+    tau = _pad([r.torque_nm for r in rows], length)
+    temp = _pad([r.oil_temp_c for r in rows], length)
+    mu = unit.oil.dynamic_viscosity_pa_s(temp)
+    model = ChamberModel(unit, [r.air_fraction for r in rows], n[0], tau[0], temp[0],
+                         [r.initial_position_mm for r in rows], inertia, max_gap_s)
+    out_x, out_pa, out_pb = (np.empty((length, size)) for _ in range(3))
+    out_x[0], out_pa[0], out_pb[0] = model.x, model.p_a, model.p_b
+    for k in range(1, length):
+        model.advance(t[k] - t[k - 1], n[k], tau[k], mu[k])
+        out_x[k], out_pa[k], out_pb[k] = model.x, model.p_a, model.p_b
+    return [ChamberTrack(out_x[:m, i] * 1e3, out_pa[:m, i], out_pb[:m, i])
+            for i, m in enumerate(lengths)]
+
+
+def _solve(c: _Constants, fa, fb, da, db, torque, d, ra, rb):
+    """One step for every row: pressures and velocity for inflows ``f`` at zero pressure and
+    conductances ``d`` (compliance over the step plus leakage), valves by regime."""
+    def attempt(ra_, rb_, fa_, fb_, da_, db_, torque_, d_):
+        den_a = da_ + c.g_a[ra_]
+        den_b = db_ + c.g_b[rb_]
+        al_a, be_a = (fa_ + c.ge_a[ra_]) / den_a, -c.area_a / den_a
+        al_b, be_b = (fb_ + c.ge_b[rb_]) / den_b, c.area_b / den_b
+        k_a, k_b = c.k_a[d_, ra_], c.k_b[d_, rb_]
+        v = (torque_ - k_a * al_a - k_b * al_b) / (k_a * be_a + k_b * be_b)
+        return al_a + be_a * v, al_b + be_b * v, v
+
+    pa, pb, v = attempt(ra, rb, fa, fb, da, db, torque, d)
+    na, nb = c.regime(pa, c.relief_a), c.regime(pb, c.relief_b)
+    bad = np.flatnonzero((na != ra) | (nb != rb))
+    if bad.size:
+        # enumerate all sixteen regime pairs for those rows; keep the self-consistent one
+        col = (slice(None), None)
+        ppa, ppb, vv = attempt(c.all_a, c.all_b, fa[bad][col], fb[bad][col], da[bad][col],
+                               db[bad][col], torque[bad][col], d[bad][col])
+        outside = (np.maximum(c.lo_a - ppa, 0.0) + np.maximum(ppa - c.hi_a, 0.0)
+                   + np.maximum(c.lo_b - ppb, 0.0) + np.maximum(ppb - c.hi_b, 0.0))
+        best = np.argmin(outside, axis=1)
+        pick = np.arange(bad.size)
+        pa[bad], pb[bad], v[bad] = ppa[pick, best], ppb[pick, best], vv[pick, best]
+        na[bad], nb[bad] = best // 4, best % 4
+    return pa, pb, v, na, nb

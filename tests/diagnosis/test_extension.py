@@ -1,0 +1,137 @@
+"""The saved extended model: the file, and the estimator that applies it (both faces)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from ddh_vsensor.cli.main import main
+from ddh_vsensor.diagnosis.extension import Extension, ExtensionError
+from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.measured import read_csv
+
+from .conftest import effect_seed
+
+
+def _ext(cfg, cause, **params) -> Extension:
+    return Extension(cause, params, "boom", cfg.physics_hash())
+
+
+def test_file_round_trip_and_refusals(cfg, tmp_path):
+    ext = _ext(cfg, "pump_leakage", leakage_factor=1.7)
+    path = ext.save(tmp_path / "ext.json")
+    back = Extension.load(path, cfg, "boom")
+    assert (back.cause, back.parameters, back.actuator) == ("pump_leakage",
+                                                            {"leakage_factor": 1.7}, "boom")
+    with pytest.raises(ExtensionError, match="fitted for the boom, not the bucket"):
+        Extension.load(path, cfg, "bucket")
+    other = dataclasses.replace(cfg, oil=dataclasses.replace(cfg.oil, bulk_modulus_pa=1.0e9))
+    with pytest.raises(ExtensionError, match="another configuration"):
+        Extension.load(path, other, "boom")
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ExtensionError, match="bad.json: not an extension file"):
+        Extension.load(tmp_path / "bad.json")
+    data = json.loads(path.read_text())
+    data["cause"] = "gremlins"
+    (tmp_path / "unknown.json").write_text(json.dumps(data))
+    with pytest.raises(ExtensionError, match="unknown cause 'gremlins'"):
+        Extension.load(tmp_path / "unknown.json")
+    del data["parameters"]
+    data["cause"] = "belt_slip"
+    (tmp_path / "noparam.json").write_text(json.dumps(data))
+    with pytest.raises(ExtensionError, match="malformed|needs parameter"):
+        Extension.load(tmp_path / "noparam.json")
+
+
+@pytest.fixture(scope="module")
+def nominal_run(campaigns):
+    _, paths = campaigns.get(effect_seed("none"), "none")
+    return read_csv(paths["boom"][-1])
+
+
+@pytest.mark.parametrize("cause, params", [
+    ("none", {}), ("low_speed_leakage", {}), ("pump_leakage", {"leakage_factor": 1.8}),
+    ("displacement", {"displacement_factor": 0.97}),
+    ("belt_slip", {"slip_percent_per_100nm": 8.0}), ("time_offset", {"time_offset_s": 0.05}),
+    ("time_offset", {"time_offset_s": -0.08}), ("compressibility", {"air_fraction": 0.03})])
+def test_online_face_follows_the_offline_one(cause, params, cfg, unit_tables, nominal_run):
+    run = nominal_run
+    ext = _ext(cfg, cause, **params)
+    mode = "paper" if cause == "low_speed_leakage" else "full"      # what it was fitted in
+    ext = dataclasses.replace(ext, mode=mode)
+    # (a time offset the data does not have makes references disagree by design)
+    kw = dict(references=cause != "time_offset", initial_position_mm=float(run.position_mm[0]))
+    offline = ext.estimator(cfg, unit_tables["boom"], **kw).run(
+        run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+    online_est = ext.estimator(cfg, unit_tables["boom"], **kw)
+    online = np.array([online_est.step(t, n, q, c, {k: bool(v[i]) for k, v in run.refs.items()})
+                       .position_mm for i, (t, n, q, c) in enumerate(zip(
+                           run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c))])
+    plain = Estimator(cfg, "boom", unit_tables["boom"], mode=mode, **kw).run(
+        run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs).position_mm
+    gap = np.max(np.abs(online - offline.position_mm))
+    if cause == "time_offset" and params["time_offset_s"] > 0:
+        assert gap < 0.6                # online: predicted ahead; offline: inputs shifted
+    elif cause in ("time_offset", "compressibility"):
+        assert gap < 0.05               # delayed inputs / the same chamber model, by step
+    else:
+        assert gap < 1e-6
+    if cause == "none":
+        assert np.array_equal(offline.position_mm, plain)
+    else:
+        assert np.max(np.abs(offline.position_mm - plain)) > 0.05     # it does something
+
+
+def test_online_time_offset_with_references_on_lagging_signals(cfg, unit_tables, campaigns):
+    trial, paths = campaigns.get(effect_seed("time_offset"), "time_offset")
+    run = read_csv(paths["boom"][-1])
+    ext = _ext(cfg, "time_offset", time_offset_s=trial.value)
+    kw = dict(initial_position_mm=float(run.position_mm[0]))
+    est = ext.estimator(cfg, unit_tables["boom"], **kw)
+    online = np.array([est.step(t, n, q, c, {k: bool(v[i]) for k, v in run.refs.items()})
+                       .position_mm for i, (t, n, q, c) in enumerate(zip(
+                           run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c))])
+    plain = Estimator(cfg, "boom", unit_tables["boom"], **kw).run(
+        run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs).position_mm
+    err = lambda x: np.nanmax(np.abs(x - run.position_mm))          # noqa: E731
+    assert err(online) < 0.5 * err(plain), trial
+
+
+def test_estimate_applies_the_extension_an_analysis_saved(campaigns, tmp_path, capsys):
+    trial, paths = campaigns.get(effect_seed("belt_slip"), "belt_slip")
+    runs = paths["boom"]
+    assert main(["analyze", *map(str, runs), "--actuator", "boom", "--report",
+                 str(tmp_path / "r")]) == 0
+    report = json.loads((tmp_path / "r" / "report.json").read_text())
+    capsys.readouterr()
+    for extra in ([], ["--extension", report["extension_file"]]):
+        assert main(["estimate", str(runs[0]), "--actuator", "boom", "--no-references",
+                     "--json", *extra]) == 0
+    plain, extended = (json.loads(line) for line in capsys.readouterr().out.splitlines())
+    assert extended["max_abs_error_mm"] < 0.5 * plain["max_abs_error_mm"], trial
+    assert extended["max_abs_error_mm"] <= report["extended"]["max_abs_error_mm"] + 0.2
+    assert main(["estimate", str(runs[0]), "--actuator", "bucket", "--extension",
+                 report["extension_file"]]) == 2
+    assert "fitted for the boom, not the bucket" in capsys.readouterr().err
+
+
+def test_the_wrapper_stands_in_for_an_estimator(cfg, unit_tables, nominal_run):
+    """What the service does with an Estimator: step, read and write its state, snapshot,
+    restore (a preset)."""
+    run = nominal_run
+    est = _ext(cfg, "time_offset", time_offset_s=0.05).estimator(
+        cfg, unit_tables["boom"], initial_position_mm=float(run.position_mm[0]))
+    for i in range(len(run.time_s) // 2):
+        step = est.step(run.time_s[i], run.speed_rpm[i], run.torque_nm[i], run.oil_temp_c[i])
+    assert est.position_mm == step.position_mm != est.estimator.position_mm
+    est.referenced = False                              # writes reach the estimator
+    assert est.estimator.referenced is False and est.referenced is False
+    state = est.snapshot()
+    assert state.position_mm == est.position_mm
+    state.position_mm = 123.0
+    est.restore(state)
+    assert est.position_mm == est.estimator.position_mm == 123.0
+    assert est.max_gap_s == cfg.estimator.max_gap_s     # reads too
