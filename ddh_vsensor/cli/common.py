@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 from ..config import ACTUATORS, Config, load_config
 
 if TYPE_CHECKING:
+    from ..diagnosis.extension import Extension
     from ..measured import Run
     from ..tables.lookup import UnitTables
 
@@ -44,3 +45,22 @@ def load_tables_for(args: argparse.Namespace, cfg: Config, actuator: str) -> "Un
     if getattr(args, "tables", None):
         return load_unit_tables(args.tables, actuator, cfg)
     return build_unit_tables(cfg, actuator)
+
+
+def add_extension_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--extension", action="append", default=[], metavar="FILE",
+                        help="extended model saved by 'ddh-vsensor analyze' (extension.json); "
+                             "repeat for the other actuator")
+
+
+def extensions_from(args: argparse.Namespace, cfg: Config) -> dict[str, "Extension"]:
+    """The ``--extension`` files by actuator (each file says which actuator it is for)."""
+    from ..diagnosis.extension import Extension
+    from ..errors import UserError
+    out: dict[str, Extension] = {}
+    for path in args.extension:
+        ext = Extension.load(path, cfg)
+        if ext.actuator in out:
+            raise UserError(f"{path}: a second extension for the {ext.actuator}")
+        out[ext.actuator] = Extension.load(path, cfg, ext.actuator)
+    return out

@@ -22,7 +22,7 @@ import sys
 import numpy as np
 
 from ..errors import UserError
-from .common import add_config_arg, config_from
+from .common import add_config_arg, add_extension_arg, config_from, extensions_from
 
 PAPER_MAX_ERROR_MM = 30.0     # the source paper: about 30 mm maximum error per work cycle
 HEARTBEAT_PERIOD_S = 0.1      # the simulated controllers' heartbeat
@@ -42,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cycles", type=int, default=1, help="work cycles (default 1)")
     p.add_argument("--payload-kg", type=float, default=0.0)
     p.add_argument("--oil-temp-c", type=float, default=27.0)
+    add_extension_arg(p)
     p.add_argument("--log-level", default="warning",
                    choices=("debug", "info", "warning", "error"),
                    help="service log level (default warning)")
@@ -88,6 +89,7 @@ def _run(args: argparse.Namespace) -> int:
         raise UserError(f"--cycles {args.cycles}: outside 1..100")
     setup_logging(args.log_level)
     cfg = config_from(args)
+    extensions = extensions_from(args, cfg)
     spec = RunSpec(speed=args.speed, cycles=args.cycles, payload_kg=args.payload_kg,
                    oil_temp_c=args.oil_temp_c)
     print(f"ddh-vsensor demo: the paper's work cycle at speed {args.speed} "
@@ -99,10 +101,10 @@ def _run(args: argparse.Namespace) -> int:
     runs = {a: run for a, (run, _) in result.items()}
     truths = {a: truth for a, (_, truth) in result.items()}
     frames = machine_frames(cfg, runs, HEARTBEAT_PERIOD_S)
-    return asyncio.run(_demo(cfg, frames, truths, args.rate))
+    return asyncio.run(_demo(cfg, frames, truths, args.rate, extensions))
 
 
-async def _demo(cfg, frames: list, truths: dict, rate: float) -> int:
+async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict) -> int:
     import can
     import canopen
 
@@ -116,7 +118,7 @@ async def _demo(cfg, frames: list, truths: dict, rate: float) -> int:
     channel = f"ddh-vsensor-demo-{os.getpid()}"
     tables = {a: build_unit_tables(cfg, a) for a in cfg.can.units}
     service = Service(cfg, tables, {"interface": "virtual", "channel": channel},
-                      ServiceOptions(state_dir=None))
+                      ServiceOptions(state_dir=None, extensions=extensions))
     machine = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
     listener = can.Bus(interface="virtual", channel=channel)
     master = can.Bus(interface="virtual", channel=channel)

@@ -13,7 +13,8 @@ from typing import Any
 
 from ..config import Config
 from ..errors import UserError
-from .common import add_config_arg, config_from, load_tables_for
+from .common import (add_config_arg, add_extension_arg, config_from, extensions_from,
+                     load_tables_for)
 
 
 def add_bus_args(p: argparse.ArgumentParser) -> None:
@@ -54,6 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "well under a second)")
     p.add_argument("--state-dir", metavar="DIR", help="where the estimates are persisted "
                    "(default: $STATE_DIRECTORY, else $XDG_STATE_HOME/ddh-vsensor)")
+    add_extension_arg(p)
     p.add_argument("--no-state", action="store_true", help="neither restore nor save estimates")
     p.add_argument("--heartbeat-timeout", type=float, default=None, metavar="S",
                    help="Sevcon heartbeat consumer time (default 1.5 s)")
@@ -68,7 +70,8 @@ def _run(args: argparse.Namespace) -> int:
     bus = bus_from_args(args, cfg)
     tables = {a: load_tables_for(args, cfg, a) for a in cfg.can.units}
     options = ServiceOptions(state_dir=None if args.no_state else
-                             Path(args.state_dir) if args.state_dir else default_state_dir())
+                             Path(args.state_dir) if args.state_dir else default_state_dir(),
+                             extensions=extensions_from(args, cfg))
     if args.heartbeat_timeout is not None:
         if not 0.01 <= args.heartbeat_timeout <= 600:
             raise UserError(f"--heartbeat-timeout {args.heartbeat_timeout}: outside 0.01..600 s")

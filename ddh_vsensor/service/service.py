@@ -31,7 +31,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +39,7 @@ import can
 
 from ..canbus.dbc import FrameCodec
 from ..config import Config
+from ..diagnosis.extension import Extension
 from ..estimator.estimator import (FLAG_ADAPTING, FLAG_CLAMPED, FLAG_NAMES, FLAG_NOT_REFERENCED,
                                    FLAG_SOFT_LIMIT, FLAG_STALE, Estimator, Step)
 from ..estimator.state import EstimatorState, load_state, save_state
@@ -69,6 +70,7 @@ class ServiceOptions:
     record_latency: bool = False             # keep frame-to-estimate delays (benchmark)
     fd_reader: bool | None = None            # None: event-loop fd reader on socketcan only
     coalesce_s: float | None = None          # fd reader pause after a wake (None: see below)
+    extensions: dict[str, Extension] = field(default_factory=dict)   # actuator -> from analyze
 
 
 @dataclass
@@ -123,7 +125,9 @@ class Service:
         self.network = ServiceNetwork(self._send)
         self.units: dict[str, Unit] = {}
         for actuator in cfg.can.units:
-            est = Estimator(cfg, actuator, tables[actuator])
+            ext = self.options.extensions.get(actuator)
+            est = (Estimator(cfg, actuator, tables[actuator]) if ext is None
+                   else ext.estimator(cfg, tables[actuator]))
             hb = HeartbeatConsumer(self.network, cfg.can.units[actuator].sevcon_node_id,
                                    actuator, self.options.heartbeat_timeout_s)
             unit = Unit(actuator, est, hb)
