@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from ddh_vsensor.physics.steady import holding_speed, steady_state
+from ddh_vsensor.sim.sensors import hall_switch
 
 
 @dataclass
@@ -18,17 +19,6 @@ class SyntheticRun:
     oil_temp_c: np.ndarray
     position_mm: np.ndarray
     refs: dict[str, np.ndarray]
-
-
-def hall(x: np.ndarray, centre: float, window: float, hyst: float) -> np.ndarray:
-    """A switch with hysteresis driven by the true position (as the simulator makes it)."""
-    out = np.zeros(len(x), dtype=bool)
-    on = False
-    for k, xk in enumerate(x):
-        d = abs(xk - centre)
-        on = d < window if not on else d <= window + hyst
-        out[k] = on
-    return out
 
 
 def synthetic_run(unit, *, seconds=60.0, amplitude_rpm=2600.0, period_s=12.0, x0=40.0,
@@ -46,7 +36,8 @@ def synthetic_run(unit, *, seconds=60.0, amplitude_rpm=2600.0, period_s=12.0, x0
     x = x0 + np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
     refs = {}
     if unit_cfg is not None:
-        refs = {name: hall(x, pos, unit_cfg.reference_window_mm, unit_cfg.reference_hysteresis_mm)
+        refs = {name: hall_switch(x, pos, unit_cfg.reference_window_mm,
+                                  unit_cfg.reference_hysteresis_mm).astype(bool)
                 for name, pos in unit_cfg.references_mm.items()}
     return SyntheticRun(t, n, st.torque_nm, np.full_like(t, temp_c), x, refs)
 

@@ -22,18 +22,9 @@ from ddh_vsensor.physics.steady import holding_speed, steady_state
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.service import Service, ServiceOptions
 from ddh_vsensor.service.replay import machine_frames
+from ddh_vsensor.sim.sensors import hall_switch
 
 START_MM = {"boom": 120.0, "bucket": 380.0}
-
-
-def hall(x: np.ndarray, centre: float, window: float, hyst: float) -> np.ndarray:
-    out = np.zeros(len(x), dtype=np.uint8)
-    on = False
-    for k, xk in enumerate(x):
-        d = abs(xk - centre)
-        on = d < window if not on else d <= window + hyst
-        out[k] = on
-    return out
 
 
 def synthetic_run(cfg: Config, actuator: str, seconds: float = 4.0, period_s: float = 0.01,
@@ -51,7 +42,7 @@ def synthetic_run(cfg: Config, actuator: str, seconds: float = 4.0, period_s: fl
     x0 = START_MM[actuator] if start_mm is None else start_mm
     x = x0 + np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
     ucfg = cfg.unit(actuator)
-    refs = {name: hall(x, pos, ucfg.reference_window_mm, ucfg.reference_hysteresis_mm)
+    refs = {name: hall_switch(x, pos, ucfg.reference_window_mm, ucfg.reference_hysteresis_mm)
             for name, pos in ucfg.references_mm.items()}
     return Run(time_s=t, speed_rpm=n, torque_nm=np.round(st.torque_nm * 16) / 16,
                oil_temp_c=np.full(len(t), temp_c), position_mm=x, refs=refs,
