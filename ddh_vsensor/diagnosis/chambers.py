@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike
 
 from ..physics.steady import steady_state_at_torque
 from ..physics.unit import DDHUnit
-from .air import log_density_and_compliance
+from ..physics.air import log_density_and_compliance
 
 RPM_RAD_S = 2.0 * np.pi / 60.0
 _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valve regime

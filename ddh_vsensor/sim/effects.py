@@ -10,7 +10,7 @@ every effect at its neutral value.
 ``compressibility`` (air volume fraction at atmospheric pressure, 0 <= X < 0.2, neutral 0)
     Entrained air. The effective bulk modulus follows the oil-air mixture law with adiabatic
     air (kappa = 1.4): 1/beta = [(1-X)/beta_oil + X (p0/p)^(1/k)/(k p)] / [(1-X) + X (p0/p)^(1/k)],
-    p absolute, p0 = 1.013 bar (see ``plant.inverse_bulk_modulus``); it collapses at low
+    p absolute, p0 = 1.013 bar (see ``physics.air.compliance``); it collapses at low
     pressure. The chamber balance uses it throughout, so oil is conserved; only the transient
     changes (steady states do not depend on the bulk modulus).
 ``belt_slip`` (% per 100 N*m, 0 <= s <= 20, neutral 0)

@@ -36,7 +36,7 @@ one needed to hold it.
 
 Effects that are plant changes enter per row: pump leakage and displacement through the
 ``DDHUnit`` (``unit.with_pumps``), entrained air through the effective bulk modulus
-(:func:`inverse_bulk_modulus`), belt slip as a speed-ratio drop proportional to |motor torque|
+(:func:`ddh_vsensor.physics.air.compliance`), belt slip as a speed-ratio drop proportional to |motor torque|
 (the torque of the previous step: slip is slow, this keeps the step linear).
 """
 
@@ -48,12 +48,10 @@ from typing import Sequence
 
 import numpy as np
 
+from ..physics.air import compliance, secant_compliance
 from ..physics.unit import DDHUnit
 
 RPM_RAD_S = 2.0 * math.pi / 60.0
-ATMOSPHERE_PA = 101325.0           # absolute pressure at which the air fraction is given
-POLYTROPIC_EXPONENT = 1.4          # adiabatic compression of the entrained air
-MIN_ABSOLUTE_PA = 1000.0           # floor of the absolute pressure in the air law
 
 # friction states
 F_UP, F_DOWN, F_STUCK, F_IMPACT = 1, -1, 0, 2
@@ -75,45 +73,6 @@ class RowSpec:
     payload_kg: float = 0.0
     air_fraction: float = 0.0       # entrained air volume fraction at atmospheric pressure
     belt_slip_per_nm: float = 0.0   # fractional speed-ratio drop per N*m of |motor torque|
-
-
-def mixture_log_volume(p_gauge_pa: np.ndarray, air_fraction: np.ndarray, beta_oil: np.ndarray,
-                       reservoir_pa: np.ndarray) -> np.ndarray:
-    """-ln of the specific volume of an oil-air mixture (relative to atmospheric pressure).
-
-    V(p) = (1-X) exp(-(p-p0)/beta_oil) + X (p0/p)^(1/kappa), p absolute, p0 atmospheric.
-    Its log-derivative is the effective bulk modulus (:func:`inverse_bulk_modulus`), so the
-    chamber balance V_ch * d(-ln V) = net inflow conserves the oil and air mass exactly.
-    """
-    p = np.maximum(p_gauge_pa + reservoir_pa + ATMOSPHERE_PA, MIN_ABSOLUTE_PA)
-    oil = (1.0 - air_fraction) * np.exp(-(p - ATMOSPHERE_PA) / beta_oil)
-    air = air_fraction * (ATMOSPHERE_PA / p) ** (1.0 / POLYTROPIC_EXPONENT)
-    return -np.log(oil + air)
-
-
-def inverse_bulk_modulus(p_gauge_pa: np.ndarray, air_fraction: np.ndarray,
-                         beta_oil: np.ndarray, reservoir_pa: np.ndarray) -> np.ndarray:
-    """1/beta_eff of the oil-air mixture at a gauge pressure (the standard mixture law).
-
-    1/beta = [(1-X') / beta_oil + X (p0/p)^(1/k) / (k p)] / [(1-X') + X (p0/p)^(1/k)],
-    with X' = X at atmospheric pressure and the oil's own compression kept in its volume
-    share ((1-X') = (1-X) exp(-(p-p0)/beta_oil); below 1e-2 of a difference at 270 bar).
-    """
-    p = np.maximum(p_gauge_pa + reservoir_pa + ATMOSPHERE_PA, MIN_ABSOLUTE_PA)
-    oil = (1.0 - air_fraction) * np.exp(-(p - ATMOSPHERE_PA) / beta_oil)
-    air = air_fraction * (ATMOSPHERE_PA / p) ** (1.0 / POLYTROPIC_EXPONENT)
-    return (oil / beta_oil + air / (POLYTROPIC_EXPONENT * p)) / (oil + air)
-
-
-def secant_inverse_bulk_modulus(p0: np.ndarray, p1: np.ndarray, air_fraction: np.ndarray,
-                                beta_oil: np.ndarray, reservoir_pa: np.ndarray) -> np.ndarray:
-    """Mean 1/beta over [p0, p1]: exactly the compression between the two pressures."""
-    dp = p1 - p0
-    small = np.abs(dp) < 100.0
-    phi = (mixture_log_volume(p1, air_fraction, beta_oil, reservoir_pa)
-           - mixture_log_volume(p0, air_fraction, beta_oil, reservoir_pa))
-    tangent = inverse_bulk_modulus(0.5 * (p0 + p1), air_fraction, beta_oil, reservoir_pa)
-    return np.where(small, tangent, phi / np.where(small, 1.0, dp))
 
 
 class Plant:
@@ -294,9 +253,9 @@ class Plant:
             ratio = np.maximum(1.0 - self.slip * np.abs(self.torque), 0.0)
             qa, qb = qa * ratio, qb * ratio
         if self.has_air:
-            inv_ba = self._air_only(inverse_bulk_modulus(pa0, self.air, self.beta_oil,
+            inv_ba = self._air_only(compliance(pa0, self.air, self.beta_oil,
                                                          self.reservoir))
-            inv_bb = self._air_only(inverse_bulk_modulus(pb0, self.air, self.beta_oil,
+            inv_bb = self._air_only(compliance(pb0, self.air, self.beta_oil,
                                                          self.reservoir))
         else:
             inv_ba = inv_bb = self._inv_beta
@@ -386,9 +345,9 @@ class Plant:
                          max(np.max(np.abs(pa - p_prev[0])), np.max(np.abs(pb - p_prev[1]))))
                 if moved > AIR_TOLERANCE_PA:
                     p_prev = (pa, pb)
-                    inv_ba = self._air_only(secant_inverse_bulk_modulus(
+                    inv_ba = self._air_only(secant_compliance(
                         pa0, pa, self.air, self.beta_oil, self.reservoir))
-                    inv_bb = self._air_only(secant_inverse_bulk_modulus(
+                    inv_bb = self._air_only(secant_compliance(
                         pb0, pb, self.air, self.beta_oil, self.reservoir))
                     ca, cb = va * inv_ba, vb * inv_bb
                     gca, gcb = ca + ga, cb + gb

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ddh_vsensor.diagnosis.air import compliance, log_density, secant_compliance
+from ddh_vsensor.physics.air import compliance, log_density, secant_compliance
 from ddh_vsensor.diagnosis.breakdown import breakdown, classify
 from ddh_vsensor.diagnosis.causes import Cause
 from ddh_vsensor.diagnosis.chambers import ChamberRow, track_chambers

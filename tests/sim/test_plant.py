@@ -8,7 +8,8 @@ import pytest
 from ddh_vsensor.physics.steady import steady_state
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.sim import RunSpec, simulate_with_truth
-from ddh_vsensor.sim.plant import Plant, RowSpec, inverse_bulk_modulus, mixture_log_volume
+from ddh_vsensor.physics.air import compliance, log_density
+from ddh_vsensor.sim.plant import Plant, RowSpec
 from ddh_vsensor.sim.sensors import SensorSettings
 
 T = 27.0
@@ -109,7 +110,7 @@ def _volume_residuals(cfg, run_truth, unit, air=0.0):
                                      else s.area_m2 * (cyl.stroke_m - tr.x_m[:-1]))
         beta = np.full_like(dp, unit.bulk_modulus_pa)
         if air:
-            phi = mixture_log_volume(dp, np.full_like(dp, air), beta, np.zeros_like(dp))
+            phi = log_density(dp, np.full_like(dp, air), beta, np.zeros_like(dp))
         else:
             phi = dp / beta
         compression = vol * np.diff(phi)
@@ -141,9 +142,9 @@ def test_air_law_limits():
     p = np.array([0.0, 1e5, 100e5, 250e5])
     beta = np.full(4, 1.4e9)
     res = np.zeros(4)
-    clean = 1.0 / inverse_bulk_modulus(p, np.zeros(4), beta, res)
+    clean = 1.0 / compliance(p, np.zeros(4), beta, res)
     np.testing.assert_allclose(clean, 1.4e9, rtol=1e-12)
-    airy = 1.0 / inverse_bulk_modulus(p, np.full(4, 0.01), beta, res)
+    airy = 1.0 / compliance(p, np.full(4, 0.01), beta, res)
     assert np.all(np.diff(airy) > 0)             # stiffer as the air is compressed
     assert airy[0] < 0.02e9 and airy[-1] > 0.8e9
 
