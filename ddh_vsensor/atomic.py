@@ -1,5 +1,6 @@
-"""Files that are either wholly old or wholly new: write a temp file beside the target, fsync,
-rename over it, fsync the directory. A crash or power cut mid-write leaves the old file."""
+"""Output files that are either wholly old or wholly new: write a temp file beside the target,
+fsync, rename over it, fsync the directory. A crash or power cut mid-write leaves the old
+file. Also the output directories they go into."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
+
+from .errors import UserError
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -44,3 +47,13 @@ def atomic_write(path: str | Path, mode: str = "w") -> Iterator[IO]:
         encoding = None if "b" in mode else "utf-8"
         with open(tmp, mode, encoding=encoding, newline=None if encoding is None else "\n") as fh:
             yield fh
+
+
+def output_dir(path: str | Path, what: str = "output directory") -> Path:
+    """Create a directory for output (early, so a bad path fails before long work)."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{out}: cannot create the {what}: {exc.strerror or exc}") from None
+    return out

@@ -62,5 +62,5 @@ def extensions_from(args: argparse.Namespace, cfg: Config) -> dict[str, "Extensi
         ext = Extension.load(path, cfg)
         if ext.actuator in out:
             raise UserError(f"{path}: a second extension for the {ext.actuator}")
-        out[ext.actuator] = Extension.load(path, cfg, ext.actuator)
+        out[ext.actuator] = ext
     return out

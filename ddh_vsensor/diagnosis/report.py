@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import UserError
+from ..atomic import output_dir
 from .analyze import Diagnosis
 from .breakdown import breakdown
 from .causes import ALL_CAUSES
@@ -66,13 +66,7 @@ def report_data(diag: Diagnosis, extension_file: Path) -> dict[str, Any]:
 
 def prepare_report_dir(out_dir: str | Path) -> Path:
     """Create the report directory (before a long analysis, so a bad path fails at once)."""
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"{out}: cannot create the report directory: "
-                        f"{exc.strerror or exc}") from None
-    return out
+    return output_dir(out_dir, "report directory")
 
 
 def write_report(diag: Diagnosis, out_dir: str | Path, cfg_hash: str) -> dict[str, Any]:

@@ -11,7 +11,7 @@ so a bad reference cannot wreck the model.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,13 +22,29 @@ class DirectionalGain:
     step: float                 # NLMS step size in (0, 1]: share of the error removed
     min_travel_mm: float
     enabled: bool = True
-    gain: np.ndarray = field(default_factory=lambda: np.ones(2))        # [up, down]
+
+    def __post_init__(self) -> None:
+        self.gain = np.ones(2)
+
+    @property
+    def gain(self) -> np.ndarray:
+        """[up, down]; kept as two Python floats, which the per-sample path reads."""
+        return np.array([self._up, self._down])
+
+    @gain.setter
+    def gain(self, value: np.ndarray) -> None:
+        self._up, self._down = float(value[0]), float(value[1])
+
+    @property
+    def active(self) -> bool:
+        """Learning is on and has moved the gains off 1."""
+        return self.enabled and (self._up != 1.0 or self._down != 1.0)
 
     def scale(self, dx_raw: float) -> float:
-        return dx_raw * (self.gain[0] if dx_raw > 0.0 else self.gain[1])
+        return dx_raw * (self._up if dx_raw > 0.0 else self._down)
 
     def scale_many(self, dx_raw: np.ndarray) -> np.ndarray:
-        return dx_raw * np.where(dx_raw > 0.0, self.gain[0], self.gain[1])
+        return dx_raw * np.where(dx_raw > 0.0, self._up, self._down)
 
     def update(self, error_mm: float, travel_up_mm: float, travel_down_mm: float) -> bool:
         """One reference's equation; returns whether the gains were updated."""

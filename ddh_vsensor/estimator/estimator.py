@@ -133,10 +133,13 @@ class Estimator:
     def _clip(self, x: float) -> float:
         return min(max(x, self.lower_mm), self.upper_mm)
 
-    def _base_flags(self) -> int:
+    def state_flags(self) -> int:
+        """The flags that follow from the estimator's state alone (not from one input)."""
         flags = 0 if self.referenced else FLAG_NOT_REFERENCED
-        if self.gain.enabled and np.any(self.gain.gain != 1.0):
+        if self.gain.active:
             flags |= FLAG_ADAPTING
+        if self.position_mm <= self.lower_mm or self.position_mm >= self.upper_mm:
+            flags |= FLAG_SOFT_LIMIT
         return flags
 
     def _reference(self, sw: Switch, rising: bool, snap: _Snapshot, x_now: float,
@@ -210,13 +213,11 @@ class Estimator:
             for sw, rising, snap in accepted:
                 self.position_mm, _ = self._reference(sw, rising, snap, self.position_mm,
                                                       on.index)
-        flags = self._base_flags()
+        flags = self.state_flags()
         if stale:
             flags |= FLAG_STALE
         if clamped:
             flags |= FLAG_CLAMPED
-        if self.position_mm <= self.lower_mm or self.position_mm >= self.upper_mm:
-            flags |= FLAG_SOFT_LIMIT
         return Step(self.position_mm, v, self.uncertainty_mm, flags)
 
     # --- offline face ----------------------------------------------------------------------
@@ -272,7 +273,7 @@ class Estimator:
                 u[i:k + 1] = self.u_base + self.per_travel * travel + self.hold_rate * hold
                 self.travel_mm, self.hold_s = float(travel[-1]), float(hold[-1])
                 not_ref[i:k + 1] = not self.referenced
-                adapting[i:k + 1] = self._base_flags() & FLAG_ADAPTING != 0
+                adapting[i:k + 1] = self.gain.active
                 i = k + 1
             if sw is None:
                 break
@@ -284,7 +285,7 @@ class Estimator:
             x[k], event = self._reference(sw, rising, snap, float(x[k]), k)
             u[k] = self.uncertainty_mm
             not_ref[k] = False
-            adapting[k] = self._base_flags() & FLAG_ADAPTING != 0
+            adapting[k] = self.gain.active
             log.append(event)
             start = float(x[k])
         self.position_mm = float(x[-1]) if n else self.position_mm

@@ -57,7 +57,21 @@ class Tick:
     missed: int          # ticks skipped just before this one (the loop was late)
 
 
-class Ticker:
+class _TimerFdUser:
+    """Owns a timerfd registered with the event loop (or none, on asyncio timers)."""
+
+    _fd: int | None = None
+    _loop: asyncio.AbstractEventLoop | None = None
+
+    def close(self) -> None:
+        if self._fd is not None:
+            if self._loop is not None and not self._loop.is_closed():
+                self._loop.remove_reader(self._fd)
+            os.close(self._fd)
+            self._fd = None
+
+
+class Ticker(_TimerFdUser):
     """``await ticker.wait()`` returns at each deadline start + k * period."""
 
     def __init__(self, period_s: float, *, use_timerfd: bool | None = None) -> None:
@@ -151,15 +165,9 @@ class Ticker:
         self.missed_total += missed
         return Tick(self._anchor + (self._count - 1) * self.period_s, missed)
 
-    def close(self) -> None:
-        if self._fd is not None:
-            if self._loop is not None and not self._loop.is_closed():
-                self._loop.remove_reader(self._fd)
-            os.close(self._fd)
-            self._fd = None
 
 
-class Sleeper:
+class Sleeper(_TimerFdUser):
     """``await sleeper.until(deadline)`` (time.monotonic()): a one-shot timerfd where
     available, so consecutive waits do not each lose up to a millisecond to asyncio's
     rounding; asyncio timers otherwise."""
@@ -202,9 +210,3 @@ class Sleeper:
                 pass
             await self._event.wait()
 
-    def close(self) -> None:
-        if self._fd is not None:
-            if self._loop is not None and not self._loop.is_closed():
-                self._loop.remove_reader(self._fd)
-            os.close(self._fd)
-            self._fd = None

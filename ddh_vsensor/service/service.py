@@ -40,8 +40,7 @@ import can
 from ..canbus.dbc import FrameCodec
 from ..config import Config
 from ..diagnosis.extension import Extension
-from ..estimator.estimator import (FLAG_ADAPTING, FLAG_CLAMPED, FLAG_NAMES, FLAG_NOT_REFERENCED,
-                                   FLAG_SOFT_LIMIT, FLAG_STALE, Estimator, Step)
+from ..estimator.estimator import FLAG_CLAMPED, FLAG_NAMES, FLAG_STALE, Estimator, Step
 from ..estimator.state import EstimatorState, load_state, save_state
 from ..tables.lookup import UnitTables
 from .bus import BusLink, exact_filters
@@ -99,12 +98,7 @@ class Unit:
 
 def estimator_flags(est: Estimator, clamped: bool = False) -> int:
     """The estimator's flags for its current state (as its step() would report them)."""
-    flags = 0 if est.referenced else FLAG_NOT_REFERENCED
-    if est.gain.enabled and any(g != 1.0 for g in est.gain.gain):
-        flags |= FLAG_ADAPTING
-    if est.position_mm <= est.lower_mm or est.position_mm >= est.upper_mm:
-        flags |= FLAG_SOFT_LIMIT
-    return flags | (FLAG_CLAMPED if clamped else 0)
+    return est.state_flags() | (FLAG_CLAMPED if clamped else 0)
 
 
 def flag_names(flags: int) -> str:

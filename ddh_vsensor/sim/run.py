@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import output_dir
 from ..config import ACTUATORS, Config
 from ..errors import UserError
 from ..measured import Run, write_csv
@@ -269,12 +270,7 @@ def _comments(cfg: Config, p: _Prepared, actuator: str) -> list[str]:
 def write_run_dir(cfg: Config, runs: Mapping[str, Run], out_dir: str | Path,
                   blf: bool = True) -> list[Path]:
     """Write ``boom.csv``, ``bucket.csv`` and (``blf``) ``run.blf`` into ``out_dir``."""
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"{out}: cannot create the output directory: "
-                        f"{exc.strerror or exc}") from None
+    out = output_dir(out_dir)
     written = []
     for a, run in runs.items():
         path = out / f"{a}.csv"

@@ -22,10 +22,9 @@ import pytest
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED
 from ddh_vsensor.estimator.state import load_state
-from ddh_vsensor.service.node import EDS_PATH
 from ddh_vsensor.service.replay import replay
 
-from .conftest import START_MM, offline_estimate, paired_outputs
+from .conftest import START_MM, commission, offline_estimate, paired_outputs
 
 pytest.importorskip("can_remote", reason="python-can-remote is not installed")
 
@@ -155,21 +154,6 @@ class RemoteRecorder:
         self.bus.shutdown()
 
 
-def _sdo_commission(url: str, cfg, presets: dict[str, float]) -> None:
-    import canopen
-    bus = can.Bus(interface="remote", channel=url)
-    network = canopen.Network(bus)
-    notifier = can.Notifier(bus, network.listeners, 0.1)
-    try:
-        for actuator, unit in cfg.can.units.items():
-            node = network.add_node(unit.sensor_node_id, str(EDS_PATH))
-            node.sdo.RESPONSE_TIMEOUT = 3.0
-            node.sdo[0x6010][1].raw = round(presets[actuator] / cfg.can.position_step_mm)
-    finally:
-        notifier.stop(1.0)
-        bus.shutdown()
-
-
 def _feed(url: str, frames: list[can.Message]) -> None:
     bus = can.Bus(interface="remote", channel=url)
     try:
@@ -199,7 +183,8 @@ def test_daemon_process_sigterm_and_restart(cfg, unit_tables, frames, remote_url
     first = Daemon(remote_url, state_dir, tmp_path, "first")
     try:
         first.wait_for("READY=1", STARTUP_TIMEOUT_S)
-        _sdo_commission(remote_url, cfg, START_MM)
+        commission({"interface": "remote", "channel": remote_url}, cfg, START_MM,
+                   timeout_s=3.0)
         m0 = recorder.mark()
         _feed(remote_url, segment)
         time.sleep(0.3)

@@ -10,32 +10,12 @@ import canopen
 import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
-from ddh_vsensor.config import Config
 from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED, FLAG_STALE
 from ddh_vsensor.service.node import EDS_PATH
 from ddh_vsensor.service.replay import replay
 
-from .conftest import (START_MM, Recorder, channel_name, offline_estimate, paired_outputs,
-                       running_service, settle)
-
-
-def commission(channel: str, cfg: Config, presets: dict[str, float] | None = None,
-               diag_ms: int | None = 10) -> None:
-    """An SDO client on the bus (blocking: run it in a thread): presets, diag timer."""
-    bus = can.Bus(interface="virtual", channel=channel)
-    network = canopen.Network(bus)
-    notifier = can.Notifier(bus, network.listeners, 0.1)
-    try:
-        for actuator, unit in cfg.can.units.items():
-            node = network.add_node(unit.sensor_node_id, str(EDS_PATH))
-            node.sdo.RESPONSE_TIMEOUT = 2.0
-            if diag_ms is not None:
-                node.sdo[0x1801][5].raw = diag_ms
-            if presets and actuator in presets:
-                node.sdo[0x6010][1].raw = round(presets[actuator] / cfg.can.position_step_mm)
-    finally:
-        notifier.stop(1.0)
-        bus.shutdown()
+from .conftest import (START_MM, Recorder, channel_name, commission, offline_estimate,
+                       paired_outputs, running_service, settle)
 
 
 def test_positions_on_the_bus_equal_the_offline_estimate(cfg, unit_tables, frames) -> None:
@@ -45,7 +25,8 @@ def test_positions_on_the_bus_equal_the_offline_estimate(cfg, unit_tables, frame
     async def scenario():
         async with running_service(cfg, unit_tables, channel) as service:
             await asyncio.get_running_loop().run_in_executor(
-                None, commission, channel, cfg, START_MM)
+                None, lambda: commission({"interface": "virtual", "channel": channel}, cfg,
+                                         START_MM, diag_ms=10))
             feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
             try:
                 stats = await replay(frames, feeder.send, rate=8.0, stamp="log")
@@ -229,7 +210,8 @@ def test_one_millisecond_inputs_and_event_timer(cfg, unit_tables) -> None:
     async def scenario():
         async with running_service(fast, unit_tables, channel) as service:
             await asyncio.get_running_loop().run_in_executor(
-                None, lambda: commission(channel, fast, START_MM, diag_ms=1))
+                None, lambda: commission({"interface": "virtual", "channel": channel}, fast, START_MM,
+                                           diag_ms=1))
             feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
             try:
                 await replay(fast_frames, feeder.send, rate=2.0, stamp="log")
