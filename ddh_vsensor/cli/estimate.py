@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 
+from ..config import Config
 from ..estimator.accuracy import accuracy
 from ..estimator.estimator import Estimator
 from ..measured import Run, write_csv
@@ -40,9 +41,8 @@ def initial_position(run: Run, given: float | None) -> float:
     return float(known[0]) if known.size else 0.0
 
 
-def estimate_run(args: argparse.Namespace, run: Run, actuator: str):
+def estimate_run(args: argparse.Namespace, cfg: Config, run: Run, actuator: str):
     """Estimator and result for one run, as the CLI options say."""
-    cfg = config_from(args)
     extension = None
     if getattr(args, "extension", None):
         from ..diagnosis.extension import Extension
@@ -61,7 +61,7 @@ def estimate_run(args: argparse.Namespace, run: Run, actuator: str):
 def _run(args: argparse.Namespace) -> int:
     cfg = config_from(args)
     run = load_run(args.run, args.actuator, cfg)
-    est, res = estimate_run(args, run, args.actuator)
+    est, res = estimate_run(args, cfg, run, args.actuator)
     score = accuracy(res.position_mm, run.position_mm)
     if args.out:
         write_csv(args.out, Run(
