@@ -148,9 +148,11 @@ class Estimator:
         p = sw.edge_position_mm(rising, snap.v, snap.x)
         error = snap.x - p
         # The edge happened somewhere within the last sample's travel: a smaller error is no
-        # evidence against the model, and learning from it only fits sampling noise.
-        adapted = abs(error) > abs(snap.dx) and self.gain.update(
-            error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1])
+        # evidence against the model, and learning from it only fits sampling noise. An
+        # estimate that was not referenced (cold start, restore) carries an unknown offset,
+        # not the model's travel error: its first edge only sets the position.
+        adapted = (self.referenced and abs(error) > abs(snap.dx) and self.gain.update(
+            error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1]))
         self.s_ref = (snap.s_up, snap.s_down)
         # An edge met at speed is exact, but the estimate then carries a transient offset (oil
         # compression, not in the steady-state tables) that vanishes when the rod stops: take

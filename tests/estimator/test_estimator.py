@@ -6,6 +6,7 @@ import pytest
 from ddh_vsensor.estimator.bounded import bounded_cumsum
 from ddh_vsensor.estimator.estimator import (FLAG_NOT_REFERENCED, FLAG_SOFT_LIMIT, FLAG_STALE,
                                              Estimator)
+from ddh_vsensor.estimator.state import EstimatorState
 from ddh_vsensor.physics.steady import holding_speed, steady_state
 
 
@@ -136,3 +137,17 @@ def test_restored_estimate_is_flagged_until_a_reference(cfg, boom, unit_tables, 
         flags.append(second.step(run.time_s[k], run.speed_rpm[k], float(run.torque_nm[k]),
                                  27.0, refs).flags)
     assert flags[0] & FLAG_NOT_REFERENCED and not flags[-1] & FLAG_NOT_REFERENCED
+
+
+def test_a_cold_start_does_not_learn_from_its_first_reference(cfg, boom, unit_tables, make_run):
+    """No state, no preset: the first edge corrects hundreds of mm of unknown offset, which
+    says nothing about the model's travel gain; the next edges (referenced) may adapt."""
+    run = make_run(boom, seconds=60, leakage=1.3, unit_cfg=cfg.unit("boom"))
+    stroke = cfg.unit("boom").stroke_mm
+    cold = Estimator(cfg, "boom", unit_tables["boom"])
+    cold.restore(EstimatorState("boom", cfg.physics_hash(), 0.0, stroke))
+    res = cold.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+    assert len(res.events) >= 3
+    assert abs(res.events[0].error_mm) > 20.0 and not res.events[0].adapted
+    assert any(e.adapted for e in res.events[1:])
+    assert np.all(np.abs(cold.gain.gain - 1.0) < cold.gain.bound)
