@@ -28,9 +28,12 @@ FLAG_NOT_REFERENCED = 0x02
 FLAG_SOFT_LIMIT = 0x04
 FLAG_ADAPTING = 0x08
 FLAG_CLAMPED = 0x10
+FLAG_PRESET = 0x20          # position set by a preset, not yet confirmed by a reference
+FLAG_CONTROLLER = 0x40      # the motor controller's heartbeat says it is not operational
 FLAG_NAMES = {FLAG_STALE: "stale", FLAG_NOT_REFERENCED: "not_referenced",
               FLAG_SOFT_LIMIT: "soft_limit", FLAG_ADAPTING: "adapting",
-              FLAG_CLAMPED: "table_clamped"}
+              FLAG_CLAMPED: "table_clamped", FLAG_PRESET: "preset_unconfirmed",
+              FLAG_CONTROLLER: "controller_not_operational"}
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
 
