@@ -67,7 +67,8 @@ ERROR_FIELD_SIZE = 8                # sub-indices of the pre-defined error field
 COMM_AREA = range(0x1000, 0x2000)   # what NMT reset communication restores
 
 # Fault flag -> (EMCY error code, error register 0x1001 bits). Register bit 0 (generic) is
-# set with any fault; bit 4 communication (inputs), bit 7 manufacturer-specific.
+# set with any fault; bit 4 communication (inputs), bit 7 manufacturer-specific. An EMCY's
+# manufacturer bytes: the flag set or cleared, then the fault flags active after it.
 EMCY_FAULTS: dict[int, tuple[int, int]] = {
     FLAG_STALE: (0x8100, 0x11),             # communication: input frames missing
     FLAG_NOT_REFERENCED: (0xFF02, 0x81),    # device specific: position not referenced
@@ -195,6 +196,7 @@ class SensorNode:
         network.subscribe(node.sdo.rx_cobid, self._on_sdo_request)
         self._download_limit: int | None = None    # bytes, while a segmented download runs
         self._reported_faults = 0                  # fault flags the master has been told of
+        self._active_faults = 0                    # fault flags in the error field already
         self._errors: list[int] = []               # 0x1003: newest first
         self.presets = 0
         self.emcy_sent = 0
@@ -246,6 +248,7 @@ class SensorNode:
         for pdo in (self.tpdo1, self.tpdo2):
             self._load_pdo(pdo)
         self._errors.clear()
+        self._active_faults = 0                    # active faults enter the field again
         for index, before in timers.items():  # a changed timer: the path of an SDO write
             data = self.node.get_data(index, 5)
             if data != before:
@@ -554,37 +557,33 @@ class SensorNode:
     # --- EMCY --------------------------------------------------------------------------------
 
     def report_faults(self, p: Published) -> int:
-        """Called every tick: an EMCY for each fault flag that appeared, an error reset for
-        each that cleared (not while STOPPED: reported when the node leaves it). Returns the
-        number of EMCY frames sent."""
+        """Called every tick: a fault flag that appeared enters the error field 0x1003; the
+        master gets an EMCY for each fault that appeared and an error reset for each that
+        cleared since it was last told (not while STOPPED or with the EMCY COB-ID invalid:
+        then when that ends). Returns the number of EMCY frames sent."""
         faults = p.flags & FAULT_FLAGS
+        for bit, (code, _) in EMCY_FAULTS.items():
+            if faults & bit and not self._active_faults & bit:
+                self._errors.insert(0, code | bit << 16)
+                del self._errors[ERROR_FIELD_SIZE:]
+        self._active_faults = faults
         if faults == self._reported_faults or self.node.nmt.state in ("STOPPED",
                                                                       "INITIALISING"):
             return 0
-        sent = 0
+        cob_id = value_of(self.node.get_data(0x1014, 0))
+        if cob_id & PDO_INVALID:
+            return 0
         changed = faults ^ self._reported_faults
         for bit, (code, _) in EMCY_FAULTS.items():
             if changed & bit:
                 appeared = bool(faults & bit)
-                if appeared:
-                    self._errors.insert(0, code | bit << 16)
-                    del self._errors[ERROR_FIELD_SIZE:]
-                sent += self._send_emcy(code if appeared else 0x0000, bit, faults)
-                log.info("%s: EMCY %04X (%s flag 0x%02X)", self.actuator,
-                         code if appeared else 0, "set" if appeared else "cleared", bit)
+                self.network.send_message(cob_id & 0x7FF, struct.pack(
+                    "<HBBB3x", code if appeared else 0x0000, error_register(faults), bit, faults))
+                log.info("%s: EMCY %04X (flag 0x%02X %s)", self.actuator,
+                         code if appeared else 0, bit, "set" if appeared else "cleared")
         self._reported_faults = faults
-        return sent
-
-    def _send_emcy(self, code: int, bit: int, faults: int) -> int:
-        """EMCY write: error code, error register, manufacturer field = the flag concerned
-        and the fault flags still active (CiA 301 7.2.7)."""
-        cob_id = value_of(self.node.get_data(0x1014, 0))
-        if cob_id & PDO_INVALID:
-            return 0
-        self.network.send_message(cob_id & 0x7FF, struct.pack(
-            "<HBBB3x", code, error_register(faults), bit, faults))
-        self.emcy_sent += 1
-        return 1
+        self.emcy_sent += bin(changed).count("1")
+        return bin(changed).count("1")
 
 
 def sdo_preset(network: canopen.Network, node_id: int, position_mm: float,
