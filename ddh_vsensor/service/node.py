@@ -195,6 +195,7 @@ class SensorNode:
         network.unsubscribe(node.sdo.rx_cobid, node.sdo.on_request)
         network.subscribe(node.sdo.rx_cobid, self._on_sdo_request)
         self._download_limit: int | None = None    # bytes, while a segmented download runs
+        self._pdo_written: set[canopen.pdo.PdoMap] = set()   # configured over SDO since boot
         self._reported_faults = 0                  # fault flags the master has been told of
         self._active_faults = 0                    # fault flags in the error field already
         self._errors: list[int] = []               # 0x1003: newest first
@@ -245,8 +246,9 @@ class SensorNode:
         for (index, subindex), data in self._configured.items():
             if not communication_only or index in COMM_AREA:
                 store.setdefault(index, {})[subindex] = data
-        for pdo in (self.tpdo1, self.tpdo2):
+        for pdo in self._pdo_written:          # rebuilt only if a master changed it
             self._load_pdo(pdo)
+        self._pdo_written.clear()
         self._errors.clear()
         self._active_faults = 0                    # active faults enter the field again
         for index, before in timers.items():  # a changed timer: the path of an SDO write
@@ -444,6 +446,8 @@ class SensorNode:
     def _on_write_pdo(self, index: int, subindex: int, od: object, data: bytes) -> None:
         """TPDO communication (0x1800/0x1801 sub 1..3) and mapping (0x1A00/0x1A01) writes;
         the event timer (sub 5) is handled by :meth:`_on_write`."""
+        if index in (0x1800, 0x1801, 0x1A00, 0x1A01):
+            self._pdo_written.add(self.tpdo1 if index in (0x1800, 0x1A00) else self.tpdo2)
         if index in (0x1800, 0x1801):
             pdo = self.tpdo1 if index == 0x1800 else self.tpdo2
             value = value_of(data)
