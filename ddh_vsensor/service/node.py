@@ -61,7 +61,7 @@ ABORT_LENGTH_TOO_HIGH = 0x06070012
 ABORT_COMMAND = 0x05040001          # command specifier not valid or unknown
 ABORT_NO_DATA = 0x08000024
 TEXT_OBJECT_MAX_BYTES = 256         # download bound of an object without a fixed size
-PDO_INVALID, PDO_NO_RTR, PDO_EXTENDED = 1 << 31, 1 << 30, 1 << 29
+PDO_INVALID, PDO_NO_RTR = 1 << 31, 1 << 30     # COB-ID bits: not valid, no RTR
 PDO_MAX_BITS = 64
 ERROR_FIELD_SIZE = 8                # sub-indices of the pre-defined error field 0x1003
 COMM_AREA = range(0x1000, 0x2000)   # what NMT reset communication restores
@@ -187,7 +187,7 @@ class SensorNode:
         node.nmt.update_heartbeat = lambda: None                  # type: ignore[method-assign]
         node.add_read_callback(self._on_read)
         node.add_write_callback(self._on_write)
-        node.add_write_callback(self._on_write_pdo)
+        node.add_write_callback(self._on_write_comm)
         node.add_write_callback(self._on_write_profile)
         # NMT commands are seen here too (which reset?), SDO requests pass a gate first.
         self._nmt_command: int | None = None
@@ -200,7 +200,6 @@ class SensorNode:
         self._active_faults = 0                    # fault flags in the error field already
         self._errors: list[int] = []               # 0x1003: newest first
         self.presets = 0
-        self.emcy_sent = 0
 
     # --- NMT and heartbeat ---------------------------------------------------------------
 
@@ -399,7 +398,6 @@ class SensorNode:
             if self.on_timer_change is not None:
                 self.on_timer_change()
 
-
     # --- configuration defaults and PDO configuration ---------------------------------------
 
     def _configure(self, index: int, subindex: int, data: bytes) -> None:
@@ -443,9 +441,10 @@ class SensorNode:
             raise SdoAbortedError(ABORT_NOT_MAPPABLE)
         return bits
 
-    def _on_write_pdo(self, index: int, subindex: int, od: object, data: bytes) -> None:
-        """TPDO communication (0x1800/0x1801 sub 1..3) and mapping (0x1A00/0x1A01) writes;
-        the event timer (sub 5) is handled by :meth:`_on_write`."""
+    def _on_write_comm(self, index: int, subindex: int, od: object, data: bytes) -> None:
+        """Communication-area writes: TPDO communication (0x1800/0x1801 sub 1..3; the event
+        timer, sub 5, is :meth:`_on_write`'s) and mapping (0x1A00/0x1A01), the EMCY COB-ID
+        0x1014, clearing the error field 0x1003."""
         if index in (0x1800, 0x1801, 0x1A00, 0x1A01):
             self._pdo_written.add(self.tpdo1 if index in (0x1800, 0x1A00) else self.tpdo2)
         if index in (0x1800, 0x1801):
@@ -586,7 +585,6 @@ class SensorNode:
                 log.info("%s: EMCY %04X (flag 0x%02X %s)", self.actuator,
                          code if appeared else 0, bit, "set" if appeared else "cleared")
         self._reported_faults = faults
-        self.emcy_sent += bin(changed).count("1")
         return bin(changed).count("1")
 
 
