@@ -18,7 +18,8 @@ EDS shipped in the package, behaving as CiA 301 / CiA 406 describe for a generic
 - Heartbeat producer 0x1017 (EDS default 1000 ms).
 - EMCY producer (0x1014, 0x80 + node): each fault flag of ``Published.flags`` sends its
   emergency when it appears and an error reset (code 0000, remaining error register) when it
-  clears; error register 0x1001 and the pre-defined error field 0x1003 follow.
+  clears, one per inhibit time 0x1015 at most; error register 0x1001 and the pre-defined
+  error field 0x1003 follow.
 - SDO server: reads return the live values; writing the preset 0x6010 sub 1 (in measuring
   steps) sets the estimate, refused with abort 0609 0030 outside the stroke; event timers and
   the heartbeat time may be written too. A segmented download is bounded by the size of its
@@ -34,6 +35,7 @@ from __future__ import annotations
 
 import logging
 import struct
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -198,6 +200,7 @@ class SensorNode:
         self._pdo_written: set[canopen.pdo.PdoMap] = set()   # configured over SDO since boot
         self._reported_faults = 0                  # fault flags the master has been told of
         self._active_faults = 0                    # fault flags in the error field already
+        self._next_emcy_s = 0.0                    # monotonic time the inhibit time ends
         self._errors: list[int] = []               # 0x1003: newest first
         self.presets = 0
 
@@ -472,6 +475,8 @@ class SensorNode:
             bits = sum(self._mapped_object(self._raw(index, sub)) for sub in range(1, value + 1))
             if bits > PDO_MAX_BITS:
                 raise SdoAbortedError(ABORT_MAP_LENGTH)
+        elif index == 0x1015:
+            self._next_emcy_s = 0.0                               # takes effect at once
         elif index == 0x1014:
             if value_of(data) & ~PDO_INVALID != self.cob_ids["emcy"]:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)          # the pre-defined COB-ID
@@ -559,11 +564,12 @@ class SensorNode:
 
     # --- EMCY --------------------------------------------------------------------------------
 
-    def report_faults(self, p: Published) -> int:
+    def report_faults(self, p: Published, now_s: float | None = None) -> int:
         """Called every tick: a fault flag that appeared enters the error field 0x1003; the
         master gets an EMCY for each fault that appeared and an error reset for each that
         cleared since it was last told (not while STOPPED or with the EMCY COB-ID invalid:
-        then when that ends). Returns the number of EMCY frames sent."""
+        then when that ends), at most one EMCY per inhibit time 0x1015 (a flapping flag
+        cannot flood the bus). Returns the number of EMCY frames sent."""
         faults = p.flags & FAULT_FLAGS
         for bit, (code, _) in EMCY_FAULTS.items():
             if faults & bit and not self._active_faults & bit:
@@ -574,19 +580,24 @@ class SensorNode:
                                                                       "INITIALISING"):
             return 0
         cob_id = value_of(self.node.get_data(0x1014, 0))
-        if cob_id & PDO_INVALID:
+        now_s = time.monotonic() if now_s is None else now_s
+        if cob_id & PDO_INVALID or now_s < self._next_emcy_s:
             return 0
-        changed = faults ^ self._reported_faults
+        inhibit_s = value_of(self.node.get_data(0x1015, 0)) * 1e-4     # 100 us units
+        sent = 0
         for bit, (code, _) in EMCY_FAULTS.items():
-            if changed & bit:
+            if (faults ^ self._reported_faults) & bit:
                 appeared = bool(faults & bit)
                 self.network.send_message(cob_id & 0x7FF, struct.pack(
                     "<HBBB3x", code if appeared else 0x0000, error_register(faults), bit, faults))
                 log.info("%s: EMCY %04X (flag 0x%02X %s)", self.actuator,
                          code if appeared else 0, bit, "set" if appeared else "cleared")
-        self._reported_faults = faults
-        return bin(changed).count("1")
-
+                self._reported_faults ^= bit
+                sent += 1
+                if inhibit_s > 0.0:
+                    self._next_emcy_s = now_s + inhibit_s
+                    break
+        return sent
 
 def sdo_preset(network: canopen.Network, node_id: int, position_mm: float,
                step_mm: float, eds: str | Path = EDS_PATH) -> None:

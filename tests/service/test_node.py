@@ -97,6 +97,7 @@ def test_auto_start_off_stays_pre_operational(cfg, sent) -> None:
 
 
 def test_emcy_per_fault_flag_and_error_reset(node, sent) -> None:
+    node.node.sdo[0x1015].raw = 0                                   # no inhibit time
     sent.clear()
     p = Published(1.0, 0.0, 0.1, 0x01 | 0x02 | 0x04 | 0x08, 0, 0)   # soft limit, adapting:
     assert node.report_faults(p) == 2                               # not faults
@@ -125,3 +126,20 @@ def test_reset_communication_keeps_the_application_area(node, sent) -> None:
     node.network.notify(0, bytes([0x81, 0]), 0.0)                  # reset node, broadcast
     node.after_nmt_command()
     assert sdo[0x6401][1].raw == -2 ** 31
+
+
+def test_emcy_inhibit_time_bounds_a_flapping_flag(node, sent) -> None:
+    assert node.node.sdo[0x1015].raw == 100                         # 10 ms, EDS default
+    sent.clear()
+    flapping = [Published(1.0, 0.0, 0.1, 0x40 * (k % 2), 0, 0) for k in range(100)]
+    sent_at_ms = [k for k, p in enumerate(flapping)                 # a change every 1 ms
+                  if node.report_faults(p, now_s=k * 0.001)]
+    gaps = [b - a for a, b in zip(sent_at_ms, sent_at_ms[1:])]
+    assert len(sent) == len(sent_at_ms) >= 8 and min(gaps) >= 10    # one per 10 ms at most
+    both = Published(1.0, 0.0, 0.1, 0x01 | 0x02, 0, 0)              # two at once
+    first = len(sent)
+    assert node.report_faults(both, now_s=1.0) == 1
+    assert node.report_faults(both, now_s=1.005) == 0                # the second waits
+    assert node.report_faults(both, now_s=1.010) == 1
+    assert [int.from_bytes(m.data[:2], "little") for m in sent[first:]] == [0x8100, 0xFF02]
+    assert node.node.sdo[0x1003][1].raw & 0xFFFF == 0xFF02           # the field: at once
