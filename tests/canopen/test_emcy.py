@@ -17,7 +17,12 @@ OPTIONS = ServiceOptions(stale_periods=50.0)
 
 
 def _all_clear(emcy) -> bool:
-    return bool(emcy.log) and emcy.log[-1].code == 0 and emcy.log[-1].register == 0
+    """Every flag an EMCY set has had its error reset, and the register says 0."""
+    last: dict[int, int] = {}
+    for e in emcy.log:
+        last[e.data[0]] = e.code
+    return bool(last) and all(code == 0 for code in last.values()) and \
+        emcy.log[-1].register == 0
 
 
 def _codes(emcy, start: int = 0) -> list[int]:
