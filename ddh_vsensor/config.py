@@ -201,6 +201,9 @@ class CanConfig:
     position_step_mm: float = field(metadata=_positive())
     event_timer_ms: float = field(metadata={"ge": 1.0, "le": 65535.0})
     units: dict[Literal["boom", "bucket"], CanUnitConfig]
+    # CiA 301 behaviour of the emulated sensor nodes
+    nmt_auto_start: bool = True     # boot to OPERATIONAL; False: PRE-OPERATIONAL, master starts
+    emcy_enabled: bool = True       # EMCY producer valid at boot (0x1014 bit 31 clear)
 
 
 @dataclass(frozen=True)

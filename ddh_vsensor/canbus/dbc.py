@@ -2,7 +2,12 @@
 
 cantools does all bit work. The DBC holds the CANopen default frame IDs for the node IDs of
 config/loader.yaml; a config with other node IDs keeps each frame's function code
-(0x180 TPDO1, 0x280 TPDO2, 0x700 heartbeat) and adds its own node ID, as CANopen does.
+(0x080 EMCY, 0x180 TPDO1, 0x280 TPDO2, 0x580/0x600 SDO, 0x700 heartbeat) and adds its own
+node ID, as CANopen does.
+
+The status byte of a position frame and the flags byte of a diagnostic frame are one bit
+signal per flag in the DBC (with value tables, for tools); :class:`FrameCodec` takes and
+returns them whole as ``Status`` and ``Flags`` as well, the way the service uses them.
 """
 
 from __future__ import annotations
@@ -24,12 +29,19 @@ DEFAULT_DBC = Path(__file__).parent.parent / "data" / "ddh_vsensor.dbc"
 
 OIL_TEMP = "OIL_TEMP_TPDO1"
 IO_MODULE = "IO_MODULE_TPDO1"
+NMT_COMMAND = "NMT_COMMAND"
 _PER_ACTUATOR = {
     "sevcon": "SEVCON_{}_TPDO1",
     "heartbeat": "SEVCON_{}_HEARTBEAT",
     "position": "POSITION_{}_TPDO1",
     "diag": "DIAG_{}_TPDO2",
+    "sensor_heartbeat": "SENSOR_{}_HEARTBEAT",
+    "emcy": "SENSOR_{}_EMCY",
+    "sdo_tx": "SENSOR_{}_SDO_TX",
+    "sdo_rx": "SENSOR_{}_SDO_RX",
 }
+_SENSOR_KINDS = ("position", "diag", "sensor_heartbeat", "emcy", "sdo_tx", "sdo_rx")
+_FIXED_IDS = {NMT_COMMAND: 0x000}
 _NODE_ID_MASK = 0x7F    # CANopen COB-ID = function code (upper 4 bits) + node ID (lower 7)
 
 
@@ -41,6 +53,19 @@ class DiagFlags(enum.IntFlag):
     AT_SOFT_LIMIT = 0x04
     ADAPTING = 0x08
     TABLE_CLAMPED = 0x10
+    PRESET_UNCONFIRMED = 0x20
+    CONTROLLER_NOT_OPERATIONAL = 0x40
+
+
+def _bit_signal(flag: DiagFlags) -> str:
+    """STALE_INPUT -> StaleInput: the DBC's name for one flag bit (after its prefix)."""
+    return "".join(word.capitalize() for word in (flag.name or "").split("_"))
+
+
+# Whole byte -> ((bit signal, flag value) per flag, reserved bit 7's signal)
+_FLAG_BYTES = {whole: (tuple((prefix + _bit_signal(f), int(f)) for f in DiagFlags),
+                       prefix + "Reserved")
+               for whole, prefix in (("Status", "Status"), ("Flags", "Flag"))}
 
 
 def message_name(kind: str, actuator: str) -> str:
@@ -55,7 +80,7 @@ def message_name(kind: str, actuator: str) -> str:
 def all_message_names() -> list[str]:
     """Every message the project needs from a DBC."""
     return [message_name(kind, a) for a in ACTUATORS for kind in _PER_ACTUATOR] + [
-        OIL_TEMP, IO_MODULE]
+        OIL_TEMP, IO_MODULE, NMT_COMMAND]
 
 
 def load_dbc(path: str | Path | None = None) -> Database:
@@ -83,7 +108,7 @@ def _node_settings(cfg: Config) -> dict[str, tuple[int, str]]:
         key = f"can.units.{actuator}"
         for kind in ("sevcon", "heartbeat"):
             nodes[message_name(kind, actuator)] = (unit.sevcon_node_id, f"{key}.sevcon_node_id")
-        for kind in ("position", "diag"):
+        for kind in _SENSOR_KINDS:
             nodes[message_name(kind, actuator)] = (unit.sensor_node_id, f"{key}.sensor_node_id")
     return nodes
 
@@ -91,8 +116,8 @@ def _node_settings(cfg: Config) -> dict[str, tuple[int, str]]:
 def frame_ids(cfg: Config, db: Database | None = None) -> dict[str, int]:
     """Message name -> frame ID for the configured node IDs; clashing IDs are a config error."""
     db = db or load_dbc()
-    ids: dict[str, int] = {}
-    owner: dict[int, str] = {}
+    ids: dict[str, int] = dict(_FIXED_IDS)
+    owner: dict[int, str] = {frame_id: name for name, frame_id in _FIXED_IDS.items()}
     for name, (node_id, key) in _node_settings(cfg).items():
         frame_id = (db.get_message_by_name(name).frame_id & ~_NODE_ID_MASK) | node_id
         if frame_id in owner:
@@ -115,6 +140,10 @@ class FrameCodec:
             self._messages[name] = self._with_position_step(self._messages[name],
                                                             cfg.can.position_step_mm)
         self._names = {frame_id: name for name, frame_id in self.ids.items()}
+        # messages with flag bytes split into bit signals -> those bytes' names
+        self._flag_bytes = {name: [w for w, (_, reserved) in _FLAG_BYTES.items()
+                                   if any(s.name == reserved for s in m.signals)]
+                            for name, m in self._messages.items()}
 
     @staticmethod
     def _with_position_step(message: DbcMessage, step_mm: float) -> DbcMessage:
@@ -132,7 +161,15 @@ class FrameCodec:
     def encode(self, name: str, signals: Mapping[str, float],
                timestamp_s: float = 0.0) -> can.Message:
         """Frame with all signals of a message (cantools checks names and ranges)."""
-        data = self._messages[name].encode(dict(signals))
+        message = self._messages[name]
+        signals = dict(signals)
+        for whole in self._flag_bytes[name]:
+            bits, reserved = _FLAG_BYTES[whole]
+            if whole in signals:
+                byte = int(signals.pop(whole))
+                signals.update({signal: int(bool(byte & value)) for signal, value in bits})
+                signals[reserved] = (byte >> 7) & 1
+        data = message.encode(signals)
         return can.Message(timestamp=timestamp_s, arbitration_id=self.ids[name],
                            is_extended_id=False, data=data)
 
@@ -143,7 +180,13 @@ class FrameCodec:
         name = self._names.get(msg.arbitration_id)
         if name is None:
             return None
-        return name, self._messages[name].decode(bytes(msg.data), decode_choices=False)
+        message = self._messages[name]
+        signals = message.decode(bytes(msg.data), decode_choices=False)
+        for whole in self._flag_bytes[name]:
+            bits, reserved = _FLAG_BYTES[whole]
+            signals[whole] = sum(value for signal, value in bits if signals[signal]) + \
+                (int(signals[reserved]) << 7)
+        return name, signals
 
     def encode_sevcon(self, actuator: str, torque_nm: float, speed_rpm: float,
                       timestamp_s: float = 0.0) -> can.Message:
@@ -166,12 +209,12 @@ class FrameCodec:
 
     def encode_diag(self, actuator: str, uncertainty_mm: float, flags: int, input_frames: int,
                     rejected_frames: int, timestamp_s: float = 0.0) -> can.Message:
-        """Diagnostic TPDO2; counters wrap at 16 bits, uncertainty saturates at 655.35 mm."""
+        """Diagnostic TPDO2; counters wrap at 16 bits, uncertainty saturates at 167772.15 mm."""
         name = message_name("diag", actuator)
         limit = self._messages[name].get_signal_by_name("Uncertainty").maximum
         return self.encode(name, {"Uncertainty": min(max(uncertainty_mm, 0.0), limit),
                                   "Flags": int(flags), "InputFrames": input_frames % 0x10000,
-                                  "RejectedFrames": rejected_frames % 0x10000, "Reserved": 0},
+                                  "RejectedFrames": rejected_frames % 0x10000},
                            timestamp_s)
 
     def encode_inputs(self, states: Mapping[str, Mapping[str, int]],

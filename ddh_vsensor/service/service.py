@@ -484,6 +484,7 @@ class Service:
             p = self.published(unit, now)
             self.frames_published += unit.node.publish(p, self._tick_index)
             unit.node.heartbeat_due(now)
+            unit.node.report_faults(p)
             for observer in self.observers:
                 observer(unit.actuator, p, unit.last_frame_t)
         if self.notifier.watchdog_interval_s and now >= self._next_watchdog_s \

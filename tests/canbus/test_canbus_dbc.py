@@ -58,8 +58,8 @@ def test_documented_layout(cfg: Config) -> None:
     msg = codec.encode_diag("bucket", uncertainty_mm=1.5, flags=DiagFlags.ADAPTING,
                             input_frames=70000, rejected_frames=2)
     assert msg.arbitration_id == 0x2B2
-    assert bytes(msg.data) == bytes([150, 0, 8]) + (70000 - 65536).to_bytes(2, "little") + \
-        bytes([2, 0, 0])
+    assert bytes(msg.data) == bytes([150, 0, 0, 8]) + (70000 - 65536).to_bytes(2, "little") + \
+        bytes([2, 0])
     assert bytes(codec.encode_oil_temp(-4.5).data) == (-45).to_bytes(2, "little", signed=True)
 
 
@@ -76,8 +76,73 @@ def test_sensor_output_saturates_like_a_sensor(cfg: Config) -> None:
     codec = FrameCodec(cfg)
     pos = codec.decode(codec.encode_position("boom", 10.0, speed_mm_s=1e6, status=0))[1]
     assert pos["Speed"] == pytest.approx(3276.7)
-    diag = codec.decode(codec.encode_diag("boom", 1e4, 0, 0, 0))[1]
-    assert diag["Uncertainty"] == pytest.approx(655.35)
+    diag = codec.decode(codec.encode_diag("boom", 1e6, 0, 0, 0))[1]
+    assert diag["Uncertainty"] == pytest.approx(167772.15)
+
+
+def test_uncertainty_range_covers_every_stroke(cfg: Config) -> None:
+    """A cold start publishes the whole stroke as uncertainty: it must not saturate."""
+    codec = FrameCodec(cfg)
+    for actuator in cfg.can.units:
+        stroke = cfg.unit(actuator).stroke_mm
+        diag = codec.decode(codec.encode_diag(actuator, 2 * stroke, 0, 0, 0))[1]
+        assert diag["Uncertainty"] == pytest.approx(2 * stroke, abs=0.005)
+
+
+def test_flag_bytes_are_bit_signals_with_value_tables(cfg: Config) -> None:
+    db = load_dbc()
+    codec = FrameCodec(cfg)
+    for actuator in cfg.can.units:
+        for kind, prefix in (("position", "Status"), ("diag", "Flag")):
+            message = db.get_message_by_name(message_name(kind, actuator))
+            for flag in DiagFlags:
+                bit = flag.bit_length() - 1
+                name = prefix + "".join(w.capitalize() for w in flag.name.split("_"))
+                signal = message.get_signal_by_name(name)
+                assert signal.length == 1 and signal.start % 8 == bit, name
+                assert set(signal.choices) == {0, 1}, name
+        for flags in (0x20, 0x40, 0x7F, 0x15):
+            pos = codec.decode(codec.encode_position(actuator, 1.0, 0.0, flags))[1]
+            diag = codec.decode(codec.encode_diag(actuator, 1.0, flags, 0, 0))[1]
+            assert pos["Status"] == diag["Flags"] == flags
+    pos = codec.decode(codec.encode_position("boom", 1.0, 0.0, DiagFlags.PRESET_UNCONFIRMED))[1]
+    assert pos["StatusPresetUnconfirmed"] == 1 and pos["StatusStaleInput"] == 0
+    decoded = db.decode_message(0x1B1, bytes(codec.encode_position("boom", 1, 0, 0x40).data))
+    assert str(decoded["StatusControllerNotOperational"]) == "NotOperational"
+
+
+def test_cycle_times_and_send_types() -> None:
+    db = load_dbc()
+    expected = {"POSITION_BOOM_TPDO1": (10, "Cyclic"), "DIAG_BOOM_TPDO2": (100, "Cyclic"),
+                "SENSOR_BOOM_HEARTBEAT": (1000, "Cyclic"), "SEVCON_BOOM_TPDO1": (10, "Cyclic"),
+                "SENSOR_BOOM_EMCY": (None, "Spontaneous"), "IO_MODULE_TPDO1": (None, "OnChange"),
+                "SENSOR_BOOM_SDO_TX": (None, "Spontaneous")}
+    for name, (cycle_ms, send_type) in expected.items():
+        message = db.get_message_by_name(name)
+        assert (message.cycle_time, message.send_type) == (cycle_ms, send_type), name
+    for message in db.messages:
+        assert message.send_type in ("Cyclic", "OnChange", "Spontaneous"), message.name
+        assert (message.cycle_time is not None) == (message.send_type == "Cyclic"), message.name
+
+
+def test_sensor_heartbeat_emcy_and_sdo_frames_decode(cfg: Config) -> None:
+    codec = FrameCodec(cfg)
+    ids = codec.ids
+    assert ids[message_name("sensor_heartbeat", "boom")] == 0x731
+    assert ids[message_name("emcy", "bucket")] == 0xB2
+    assert (ids[message_name("sdo_tx", "boom")], ids[message_name("sdo_rx", "boom")]) == \
+        (0x5B1, 0x631)
+    assert ids["NMT_COMMAND"] == 0
+    db = load_dbc()
+    signals = {s.name: 0 for s in db.get_message_by_name("SENSOR_BOOM_EMCY").signals}
+    signals.update({"ErrorCode": 0x8100, "RegisterGeneric": 1, "RegisterCommunication": 1,
+                    "FlagConcerned": 1, "ActiveStaleInput": 1})
+    emcy = codec.encode(message_name("emcy", "boom"), signals)
+    assert bytes(emcy.data) == bytes([0x00, 0x81, 0x11, 0x01, 0x01, 0, 0, 0])
+    decoded = db.decode_message(0xB1, bytes(emcy.data))
+    assert str(decoded["ErrorCode"]) == "InputStale"
+    boot = codec.decode(codec.encode(message_name("sensor_heartbeat", "bucket"), {"NmtState": 0}))
+    assert boot == ("SENSOR_BUCKET_HEARTBEAT", {"NmtState": 0})
 
 
 def test_default_config_uses_the_dbc_ids(cfg: Config) -> None:
@@ -92,6 +157,8 @@ def test_other_node_ids_keep_the_function_code(cfg: Config) -> None:
     assert ids[message_name("heartbeat", "boom")] == 0x705
     assert ids[message_name("position", "boom")] == 0x1C0
     assert ids[message_name("diag", "boom")] == 0x2C0
+    assert ids[message_name("emcy", "boom")] == 0xC0
+    assert ids[message_name("sensor_heartbeat", "boom")] == 0x740
     assert ids[message_name("sevcon", "bucket")] == 0x182
     assert FrameCodec(changed).encode_sevcon("boom", 0.0, 0.0).arbitration_id == 0x185
 

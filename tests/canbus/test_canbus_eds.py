@@ -27,7 +27,26 @@ def test_eds_describes_a_cia406_linear_encoder() -> None:
     assert od[0x1000].default == 0x00080196          # profile 406, absolute linear encoder
     assert od[0x6005][1].default == 10000            # nm: 0.01 mm, the DBC's position step
     assert od[0x6010][1].access_type == "rw"         # preset: the manual reference
-    assert od[0x1800][1].default == 0x180 + 49
+    assert od[0x1800][1].default == 0x4000_0000 | (0x180 + 49)     # bit 30: no RTR
+    assert od[0x1014].default == 0x80 + 49                          # EMCY
+    assert od[0x6005][2].default == 100                             # um/s: 0.1 mm/s
+    assert od[0x2001].data_type == canopen.objectdictionary.UNSIGNED24
+
+
+def test_eds_lists_every_object_it_defines() -> None:
+    """The [..Objects] sections name exactly the objects defined (what tools read first)."""
+    import configparser
+    eds = configparser.ConfigParser()
+    eds.optionxform = str
+    eds.read(EDS)
+    listed = {int(v, 16) for section in ("MandatoryObjects", "OptionalObjects",
+                                         "ManufacturerObjects")
+              for k, v in eds[section].items() if k != "SupportedObjects"}
+    for section in ("MandatoryObjects", "OptionalObjects", "ManufacturerObjects"):
+        assert int(eds[section]["SupportedObjects"]) == len(eds[section]) - 1
+    defined = {int(s, 16) for s in eds.sections() if len(s) == 4 and s.isalnum()
+               and all(c in "0123456789ABCDEFabcdef" for c in s)}
+    assert listed == defined
 
 
 def test_tpdo1_packs_like_the_position_frame(sensor: tuple[str, canopen.LocalNode],

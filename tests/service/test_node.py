@@ -84,3 +84,62 @@ def test_stopped_node_sends_nothing(node, sent) -> None:
     assert node.publish(Published(1.0, 0.0, 0.0, 0, 0, 0), 0) == 0 and not sent
     node.heartbeat_due(100.0)
     assert [bytes(m.data) for m in sent] == [b"\x04"]   # heartbeat says STOPPED
+
+
+def test_auto_start_off_stays_pre_operational(cfg, sent) -> None:
+    import dataclasses
+    manual = dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, nmt_auto_start=False))
+    n = SensorNode(ServiceNetwork(lambda m: sent.append(m) or True), manual, "boom",
+                   live=lambda: Published(1.0, 0.0, 0.0, 0, 0, 0), on_preset=lambda mm: None)
+    n.boot()
+    assert n.node.nmt.state == "PRE-OPERATIONAL" and not n.operational
+    assert n.publish(Published(1.0, 0.0, 0.0, 0, 0, 0), 0) == 0
+
+
+def test_emcy_per_fault_flag_and_error_reset(node, sent) -> None:
+    node.node.sdo[0x1015].raw = 0                                   # no inhibit time
+    sent.clear()
+    p = Published(1.0, 0.0, 0.1, 0x01 | 0x02 | 0x04 | 0x08, 0, 0)   # soft limit, adapting:
+    assert node.report_faults(p) == 2                               # not faults
+    assert [bytes(m.data) for m in sent] == [
+        bytes([0x00, 0x81, 0x91, 0x01, 0x03, 0, 0, 0]),
+        bytes([0x02, 0xFF, 0x91, 0x02, 0x03, 0, 0, 0])]
+    assert all(m.arbitration_id == 0xB1 for m in sent)
+    assert node.report_faults(p) == 0                               # once per change
+    sent.clear()
+    assert node.report_faults(Published(1.0, 0.0, 0.1, 0x02 | 0x40, 0, 0)) == 2
+    assert [bytes(m.data[:5]) for m in sent] == [
+        bytes([0x00, 0x00, 0x91, 0x01, 0x42]),                      # stale cleared
+        bytes([0x30, 0x81, 0x91, 0x40, 0x42])]                      # controller lost
+    assert node.node.sdo[0x1003][0].raw == 3
+    assert node.node.sdo[0x1003][1].raw == 0x8130 | 0x40 << 16      # newest first
+
+
+def test_reset_communication_keeps_the_application_area(node, sent) -> None:
+    sdo = node.node.sdo
+    sdo[0x1017].raw = 100
+    sdo[0x6401][1].raw = 7
+    node.network.notify(0, bytes([0x82, 49]), 0.0)                 # as the service routes it
+    node.after_nmt_command()
+    assert sdo[0x1017].raw == 1000 and sdo[0x6401][1].raw == 7
+    assert node.heartbeat_period_s == 1.0 and node.operational
+    node.network.notify(0, bytes([0x81, 0]), 0.0)                  # reset node, broadcast
+    node.after_nmt_command()
+    assert sdo[0x6401][1].raw == -2 ** 31
+
+
+def test_emcy_inhibit_time_bounds_a_flapping_flag(node, sent) -> None:
+    assert node.node.sdo[0x1015].raw == 100                         # 10 ms, EDS default
+    sent.clear()
+    flapping = [Published(1.0, 0.0, 0.1, 0x40 * (k % 2), 0, 0) for k in range(100)]
+    sent_at_ms = [k for k, p in enumerate(flapping)                 # a change every 1 ms
+                  if node.report_faults(p, now_s=k * 0.001)]
+    gaps = [b - a for a, b in zip(sent_at_ms, sent_at_ms[1:])]
+    assert len(sent) == len(sent_at_ms) >= 8 and min(gaps) >= 10    # one per 10 ms at most
+    both = Published(1.0, 0.0, 0.1, 0x01 | 0x02, 0, 0)              # two at once
+    first = len(sent)
+    assert node.report_faults(both, now_s=1.0) == 1
+    assert node.report_faults(both, now_s=1.005) == 0                # the second waits
+    assert node.report_faults(both, now_s=1.010) == 1
+    assert [int.from_bytes(m.data[:2], "little") for m in sent[first:]] == [0x8100, 0xFF02]
+    assert node.node.sdo[0x1003][1].raw & 0xFFFF == 0xFF02           # the field: at once

@@ -1,0 +1,119 @@
+"""Faults as a generic master sees them: EMCY (node.emcy), error register 0x1001, the
+pre-defined error field 0x1003 and the CiA 406 alarms/warnings, from the status flags."""
+
+from __future__ import annotations
+
+import pytest
+
+from ddh_vsensor.estimator.estimator import (FLAG_CLAMPED, FLAG_CONTROLLER, FLAG_NOT_REFERENCED,
+                                             FLAG_PRESET, FLAG_STALE)
+from ddh_vsensor.service import ServiceOptions
+from ddh_vsensor.service.node import ABORT_VALUE_RANGE
+
+from .conftest import Feeder, FlaggedService, master_on, service_thread, wait_for
+
+# stale after 0.5 s without input: a loaded machine's thread jitter never flips it
+OPTIONS = ServiceOptions(stale_periods=50.0)
+
+
+def _all_clear(emcy) -> bool:
+    """Every flag an EMCY set has had its error reset, and the register says 0."""
+    last: dict[int, int] = {}
+    for e in emcy.log:
+        last[e.data[0]] = e.code
+    return bool(last) and all(code == 0 for code in last.values()) and \
+        emcy.log[-1].register == 0
+
+
+def _codes(emcy, start: int = 0) -> list[int]:
+    return [e.code for e in emcy.log[start:]]
+
+
+def test_cold_start_faults_then_cleared_by_inputs_and_a_preset(cfg, unit_tables, channel) -> None:
+    with master_on(cfg, channel) as master, \
+            service_thread(cfg, unit_tables, channel, OPTIONS):
+        node = master.nodes["boom"]
+        emcy = node.emcy
+        wait_for(lambda: {0x8100, 0xFF02} <= set(_codes(emcy)), "EMCY stale + not referenced")
+        assert {e.register for e in emcy.active} == {0x91}     # both faults, one register
+        assert node.sdo[0x1001].raw == 0x91            # generic, communication, manufacturer
+        assert node.sdo[0x1003][0].raw == 2
+        history = {node.sdo[0x1003][1].raw, node.sdo[0x1003][2].raw}
+        assert history == {0x8100 | FLAG_STALE << 16, 0xFF02 | FLAG_NOT_REFERENCED << 16}
+        assert node.sdo[0x6503].raw == 0x0001          # CiA 406 alarm: position error
+        assert node.sdo[0x6505].raw & 0x0020           # warning: reference point not reached
+        frame = next(m for m in master.frames.since(0, 0xB1) if m.data[:2] == b"\x00\x81")
+        assert frame.data[3] == FLAG_STALE             # the flag concerned
+
+        start = len(emcy.log)
+        with Feeder(cfg, channel):
+            wait_for(lambda: 0x0000 in _codes(emcy, start), "error reset: inputs back")
+            reset = emcy.log[start + _codes(emcy, start).index(0)]
+            assert reset.register == 0x81              # not referenced remains
+            assert reset.data[0] == FLAG_STALE and reset.data[1] == FLAG_NOT_REFERENCED
+            assert node.sdo[0x6503].raw == 0
+            start = len(emcy.log)
+            node.sdo[0x6010][1].raw = 10000            # preset: referenced
+            wait_for(lambda: 0x0000 in _codes(emcy, start), "error reset: referenced")
+            assert emcy.log[-1].register == 0 and emcy.active == []
+            assert node.sdo[0x1001].raw == 0
+        node.sdo[0x1003][0].raw = 0                    # a master clears the history
+        assert node.sdo[0x1003][0].raw == 0
+        with pytest.raises(Exception) as exc:
+            node.sdo[0x1003][0].raw = 3
+        assert getattr(exc.value, "code", None) == ABORT_VALUE_RANGE
+
+
+@pytest.mark.parametrize("flag, code, register", [
+    (FLAG_CLAMPED, 0xFF10, 0x81), (FLAG_PRESET, 0xFF20, 0x81), (FLAG_CONTROLLER, 0x8130, 0x11)])
+def test_each_fault_flag_has_its_emcy_and_error_reset(cfg, unit_tables, channel, flag, code,
+                                                      register) -> None:
+    with master_on(cfg, channel) as master, \
+            service_thread(cfg, unit_tables, channel, OPTIONS, FlaggedService) as service:
+        node = master.nodes["bucket"]
+        service.extra_flags = {}
+        with Feeder(cfg, channel):
+            node.sdo[0x6010][1].raw = 10000
+            wait_for(lambda: _all_clear(node.emcy), "no fault left (error resets seen)")
+            start = len(node.emcy.log)
+            service.extra_flags = {"bucket": flag}
+            got = wait_for(lambda: node.emcy.wait(code, 0.1), f"EMCY {code:04X}")
+            assert got.register == register and got.data[0] == flag and got.data[1] == flag
+            assert node.sdo[0x1001].raw == register
+            assert node.sdo[0x1003][1].raw == code | flag << 16       # newest first
+            service.extra_flags = {}
+            wait_for(lambda: 0x0000 in _codes(node.emcy, start), "error reset")
+            assert node.emcy.log[-1].register == 0 and node.sdo[0x1001].raw == 0
+            assert _codes(node.emcy, start) == [code, 0x0000]
+            assert all(m.data[3] != flag for m in master.frames.since(0, 0xB1))  # boom: own
+
+
+def test_emcy_can_be_disabled_and_is_not_sent_while_stopped(cfg, unit_tables, channel) -> None:
+    with master_on(cfg, channel) as master, \
+            service_thread(cfg, unit_tables, channel, OPTIONS, FlaggedService) as service:
+        node = master.nodes["boom"]
+        service.extra_flags = {}
+        wait_for(lambda: 0xFF02 in _codes(node.emcy), "not referenced at start")
+        node.sdo[0x1014].raw = 0x8000_0000 | 0xB1         # EMCY invalid
+        with pytest.raises(Exception) as exc:
+            node.sdo[0x1014].raw = 0xC1                    # another COB-ID: refused
+        assert getattr(exc.value, "code", None) == ABORT_VALUE_RANGE
+        start = len(node.emcy.log)
+        service.extra_flags = {"boom": FLAG_CLAMPED}
+        mark = master.frames.mark()
+        master.frames.wait_count(mark, 0x1B1, 20, "TPDO1 with the flag set")
+        assert node.sdo[0x1001].raw & 0x80                 # the register shows it
+        assert len(node.emcy.log) == start                 # no EMCY: producer disabled
+        node.sdo[0x1014].raw = 0xB1                        # valid again: reported
+        wait_for(lambda: 0xFF10 in _codes(node.emcy, start), "EMCY after enabling")
+
+        node.nmt.state = "STOPPED"
+        wait_for(lambda: node.nmt.state == "STOPPED", "heartbeat STOPPED")
+        start = len(node.emcy.log)
+        service.extra_flags = {}
+        mark = master.frames.mark()
+        wait_for(lambda: len([m for m in master.frames.since(mark, 0x1B2)]) >= 20,
+                 "ticks while stopped (the other node's TPDO1)")
+        assert len(node.emcy.log) == start                 # nothing in STOPPED
+        node.nmt.state = "PRE-OPERATIONAL"
+        wait_for(lambda: 0x0000 in _codes(node.emcy, start), "error reset after STOPPED")
