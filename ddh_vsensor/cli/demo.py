@@ -81,13 +81,11 @@ def _run(args: argparse.Namespace) -> int:
     from ..service.replay import machine_frames
     from ..sim import RunSpec, simulate_with_truth
     from .progress import ProgressBar
-    from .run import setup_logging
 
     if not 0.05 <= args.rate <= 1000:
         raise UserError(f"--rate {args.rate}: outside 0.05..1000")
     if not 1 <= args.cycles <= 100:
         raise UserError(f"--cycles {args.cycles}: outside 1..100")
-    setup_logging(args.log_level)
     cfg = config_from(args)
     extensions = extensions_from(args, cfg)
     spec = RunSpec(speed=args.speed, cycles=args.cycles, payload_kg=args.payload_kg,
