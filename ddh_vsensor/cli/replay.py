@@ -8,6 +8,7 @@ import sys
 
 from ..errors import UserError
 from .common import add_config_arg, config_from
+from .progress import ProgressBar
 from .run import add_bus_args, bus_from_args
 
 # python-can interfaces that deliver the sender's timestamp (preserve_timestamps=True)
@@ -78,11 +79,20 @@ def _run(args: argparse.Namespace) -> int:
         bus = open_bus(settings)
     except (can.CanError, OSError) as exc:
         raise UserError(f"cannot open the bus {settings}: {exc}") from None
+    span_s = max(frames[-1].timestamp - frames[0].timestamp, 1e-9)
+    bar = ProgressBar("replay")
+    reached = [0.0]
+
+    def progress(log_time_s: float) -> None:
+        reached[0] = log_time_s
+        bar.update(log_time_s / span_s, f"{log_time_s:.1f} of {span_s:.1f} s of log")
+
     try:
         stats = asyncio.run(replay(frames, bus_sender(bus), rate=args.rate, stamp=args.stamp,
-                                   skip_ids=skip))
+                                   skip_ids=skip, progress=progress))
     finally:
         bus.shutdown()
+        bar.close(f"{reached[0]:.1f} of {span_s:.1f} s of log")
     print(f"replayed {stats.frames} frames ({stats.skipped} skipped, {stats.send_errors} send "
           f"errors) spanning {stats.log_span_s:.3f} s of log in {stats.duration_s:.3f} s; "
           f"latest frame {stats.late_max_s * 1e3:.2f} ms behind its deadline", file=sys.stderr)
