@@ -144,6 +144,8 @@ def cold_run(cfg, paper_cycle, hub_url, tmp_path_factory) -> dict[str, Published
     text = service_log.read_text(errors="replace")
     assert code == 0, text
     assert "no saved estimate" in text                   # it did start cold
+    # the commissioning SDO requests: counted into canopen's summary line, not a line each
+    assert "Expedited download" not in text and "canopen activity" in text, text
     out = {}
     for actuator in cfg.can.units:
         pairs = paired_outputs(cfg, recorder.frames, actuator)
