@@ -4,7 +4,8 @@ The plant simulator runs the paper's work cycle; its Sevcon, oil temperature, Ha
 and heartbeat frames are replayed onto a python-can ``virtual`` bus in real time (``--rate``
 for faster); the service, unchanged, estimates and publishes both cylinders as CiA 406
 sensors; a listener on the same bus shows the published positions next to the simulator's
-true ones, and a summary of the errors ends it. Before the cycle starts the demo writes the
+true ones; a summary of the errors and a figure (true against published position per
+cylinder, the paper's Figures 6/8) end it. Before the cycle starts the demo writes the
 true start positions to the sensors' preset objects over SDO (as at commissioning) and sets
 the diagnostic frame's timer to the position frame's, so that every published position can be
 paired with the input frame it includes (the diag frame's input counter).
@@ -18,6 +19,7 @@ import dataclasses
 import math
 import os
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -26,6 +28,7 @@ from .common import add_config_arg, add_extension_arg, config_from, extensions_f
 
 PAPER_MAX_ERROR_MM = 30.0     # the source paper: about 30 mm maximum error per work cycle
 HEARTBEAT_PERIOD_S = 0.1      # the simulated controllers' heartbeat
+DEFAULT_FIGURE = "ddh-vsensor-demo.png"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -43,6 +46,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--payload-kg", type=float, default=0.0)
     p.add_argument("--oil-temp-c", type=float, default=27.0)
     add_extension_arg(p)
+    p.add_argument("--figure", metavar="FILE.png", default=DEFAULT_FIGURE,
+                   help=f"where the figure of true against published position goes (default "
+                        f"{DEFAULT_FIGURE} in the current directory)")
+    p.add_argument("--no-figure", action="store_true", help="do not write the figure")
     p.add_argument("--log-level", default="warning",
                    choices=("debug", "info", "warning", "error"),
                    help="service log level (default warning)")
@@ -60,11 +67,14 @@ class _Pairing:
     received: int = 0          # unwrapped diag input counter
     last_raw: int = 0
     errors: list[tuple[float, float]] = dataclasses.field(default_factory=list)
+    samples: list[tuple[float, float, float, float]] = dataclasses.field(default_factory=list)
 
     def on_position(self, position_mm: float) -> None:
         self.pending_mm = position_mm
 
-    def on_diag(self, input_frames: int) -> tuple[float, float, float] | None:
+    def on_diag(self, input_frames: int, uncertainty_mm: float
+                ) -> tuple[float, float, float] | None:
+        """Pair the pending position with the truth; (log time, published, true)."""
         self.received += (input_frames - self.last_raw) % 0x10000
         self.last_raw = input_frames
         if self.pending_mm is None or self.received == 0:
@@ -74,6 +84,7 @@ class _Pairing:
         true_mm = float(np.interp(t, self.truth_t, self.truth_mm))
         est, self.pending_mm = self.pending_mm, None
         self.errors.append((t, est - true_mm))
+        self.samples.append((t, est, true_mm, uncertainty_mm))
         return t, est, true_mm
 
 
@@ -81,13 +92,13 @@ def _run(args: argparse.Namespace) -> int:
     from ..service.replay import machine_frames
     from ..sim import RunSpec, simulate_with_truth
     from .progress import ProgressBar
-    from .run import setup_logging
 
     if not 0.05 <= args.rate <= 1000:
         raise UserError(f"--rate {args.rate}: outside 0.05..1000")
     if not 1 <= args.cycles <= 100:
         raise UserError(f"--cycles {args.cycles}: outside 1..100")
-    setup_logging(args.log_level)
+    if not args.no_figure and not args.figure.lower().endswith(".png"):
+        raise UserError(f"--figure {args.figure}: a .png file name")
     cfg = config_from(args)
     extensions = extensions_from(args, cfg)
     spec = RunSpec(speed=args.speed, cycles=args.cycles, payload_kg=args.payload_kg,
@@ -101,10 +112,55 @@ def _run(args: argparse.Namespace) -> int:
     runs = {a: run for a, (run, _) in result.items()}
     truths = {a: truth for a, (_, truth) in result.items()}
     frames = machine_frames(cfg, runs, HEARTBEAT_PERIOD_S)
-    return asyncio.run(_demo(cfg, frames, truths, args.rate, extensions))
+    pairing = asyncio.run(_demo(cfg, frames, truths, args.rate, extensions))
+    if not args.no_figure:
+        path = write_figure(pairing, truths, args.figure)
+        print(f"figure: {path.resolve()} (true against published position, and their "
+              f"difference, per cylinder)")
+    return 0
 
 
-async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict) -> int:
+def write_figure(pairing: dict[str, "_Pairing"], truths: dict, path: str) -> Path:
+    """The paper's Figures 6/8 for each cylinder: true and published position (left), their
+    difference with the published uncertainty (right)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    out = Path(path)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--figure {path}: {exc.strerror or exc}") from None
+    fig, axes = plt.subplots(len(pairing), 2, figsize=(12, 3.8 * len(pairing)), squeeze=False)
+    for (actuator, p), (left, right) in zip(pairing.items(), axes):
+        truth = truths[actuator]
+        left.plot(truth.time_s, truth.x_m * 1e3, color="k", lw=1.2, label="true (simulator)")
+        right.axhline(0.0, color="k", lw=0.8)
+        if p.samples:
+            t, est, true, u = (np.array(c) for c in zip(*p.samples))
+            left.plot(t, est, color="tab:red", lw=1.0, ls="--", label="published (service)")
+            right.plot(t, est - true, color="tab:blue", lw=1.0, label="published − true")
+            right.fill_between(t, -u, u, color="tab:blue", alpha=0.12,
+                               label="± published uncertainty")
+        left.set_ylabel(f"{actuator} position (mm)")
+        right.set_ylabel(f"{actuator} difference (mm)")
+        for ax in (left, right):
+            ax.set_xlabel("time (s)")
+            ax.grid(True, alpha=0.3)
+            ax.legend(loc="best", fontsize="small")
+    fig.suptitle("ddh-vsensor demo: the paper's work cycle, the service's output on the bus")
+    fig.tight_layout()
+    try:
+        fig.savefig(out, dpi=110)
+    except OSError as exc:
+        raise UserError(f"--figure {path}: {exc.strerror or exc}") from None
+    finally:
+        plt.close(fig)
+    return out
+
+
+async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
+                ) -> dict[str, _Pairing]:
     import can
     import canopen
 
@@ -158,7 +214,7 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict) 
                     if what == "position":
                         pairing[actuator].on_position(r.position_mm)
                     elif what == "diag":
-                        paired = pairing[actuator].on_diag(r.input_frames)
+                        paired = pairing[actuator].on_diag(r.input_frames, r.uncertainty_mm)
                         if paired is not None:
                             latest[actuator] = paired
                 lines = []
@@ -194,7 +250,7 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict) 
         for bus in (machine, listener, master):
             bus.shutdown()
     _summary(cfg, service, pairing, stats, sevcon_ids)
-    return 0
+    return pairing
 
 
 def _commission(network, cfg, truths: dict, eds: str) -> None:

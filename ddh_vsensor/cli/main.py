@@ -9,10 +9,11 @@ from collections.abc import Sequence
 
 from .. import __version__
 from ..errors import UserError
+from .logs import configure_logging
 
 # Subcommand modules under ddh_vsensor.cli, each exposing register(subparsers).
 SUBCOMMANDS = ("tables", "steady", "simulate", "estimate", "analyze",
-               "run", "replay", "monitor", "status", "demo")
+               "run", "replay", "monitor", "status", "demo", "config", "install")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,6 +21,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="ddh-vsensor",
         description="Virtual position sensor for pump-controlled hydraulic cylinders.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log detail, repeatable (before the command; at debug also "
+                             "canopen's line per SDO request instead of its summary)")
+    parser.add_argument("-q", "--quiet", action="count", default=0,
+                        help="less log detail, repeatable (before the command)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in SUBCOMMANDS:
         importlib.import_module(f"{__package__}.{name}").register(sub)
@@ -29,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # A subcommand's --log-level (run, demo) is the base; elsewhere warnings and errors.
+    configure_logging(getattr(args, "log_level", None), args.verbose - args.quiet)
     try:
         return int(args.func(args) or 0)
     except UserError as exc:

@@ -8,7 +8,11 @@ import sys
 
 from ..errors import UserError
 from .common import add_config_arg, config_from
+from .progress import ProgressBar
 from .run import add_bus_args, bus_from_args
+
+# python-can interfaces that deliver the sender's timestamp (preserve_timestamps=True)
+STAMP_KEEPING_INTERFACES = ("virtual", "remote")
 
 
 def _frame_id(text: str) -> int:
@@ -35,6 +39,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "compressed too")
     p.add_argument("--skip-id", type=_frame_id, action="append", default=[], metavar="ID",
                    help="do not send frames with this ID (repeatable)")
+    p.add_argument("--stamp", choices=("bus", "log"), default="bus",
+                   help="bus (default): the bus stamps each frame as it goes out, as a real "
+                        "bus does; log: each frame carries its log time (start-aligned to "
+                        "now), kept by the virtual and remote interfaces, so a receiver "
+                        "integrates in the log's time whatever the transport's jitter or "
+                        "--rate")
     p.add_argument("--inputs-only", action="store_true",
                    help="send only the frames the service reads (Sevcon, oil, I/O, "
                         "heartbeats): not the logged position frames, which would clash with "
@@ -60,14 +70,29 @@ def _run(args: argparse.Namespace) -> int:
             codec.ids[message_name(k, a)] for a in cfg.can.units for k in ("sevcon", "heartbeat")}
         skip |= {m.arbitration_id for m in frames} - keep
     settings = bus_from_args(args, cfg)
+    if args.stamp == "log":
+        if settings["interface"] not in STAMP_KEEPING_INTERFACES:
+            raise UserError(f"--stamp log: the {settings['interface']} interface stamps frames "
+                            f"itself (use {' or '.join(STAMP_KEEPING_INTERFACES)})")
+        settings["preserve_timestamps"] = True
     try:
         bus = open_bus(settings)
     except (can.CanError, OSError) as exc:
         raise UserError(f"cannot open the bus {settings}: {exc}") from None
+    span_s = max(frames[-1].timestamp - frames[0].timestamp, 1e-9)
+    bar = ProgressBar("replay")
+    reached = [0.0]
+
+    def progress(log_time_s: float) -> None:
+        reached[0] = log_time_s
+        bar.update(log_time_s / span_s, f"{log_time_s:.1f} of {span_s:.1f} s of log")
+
     try:
-        stats = asyncio.run(replay(frames, bus_sender(bus), rate=args.rate, skip_ids=skip))
+        stats = asyncio.run(replay(frames, bus_sender(bus), rate=args.rate, stamp=args.stamp,
+                                   skip_ids=skip, progress=progress))
     finally:
         bus.shutdown()
+        bar.close(f"{reached[0]:.1f} of {span_s:.1f} s of log")
     print(f"replayed {stats.frames} frames ({stats.skipped} skipped, {stats.send_errors} send "
           f"errors) spanning {stats.log_span_s:.3f} s of log in {stats.duration_s:.3f} s; "
           f"latest frame {stats.late_max_s * 1e3:.2f} ms behind its deadline", file=sys.stderr)

@@ -18,7 +18,9 @@ from .progress import ProgressBar
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    effects = "; ".join(f"{e.name} ({e.parameter}, {e.allowed})" for e in EFFECTS.values())
+    # argparse %-formats help strings: the effects' own text may contain '%'
+    effects = "; ".join(f"{e.name} ({e.parameter}, {e.allowed})"
+                        for e in EFFECTS.values()).replace("%", "%%")
     p = sub.add_parser(
         "simulate", help="simulate a work cycle of both units: boom.csv, bucket.csv, run.blf",
         description="Time-domain simulation of both DDH units under PID position control. "

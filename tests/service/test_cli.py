@@ -42,7 +42,10 @@ def test_replay_sends_a_log_onto_a_bus(cfg, frames, tmp_path: Path, capsys) -> N
     expected = [m for m in part if m.arbitration_id != 0x190]
     assert [(m.arbitration_id, bytes(m.data)) for m in got] == \
         [(m.arbitration_id, bytes(m.data)) for m in expected]
-    assert "replayed" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "replayed" in err
+    # progress: redrawn in place on a terminal; elsewhere only its final line
+    assert re.search(r"^replay \[#+\] 100\.0% .* of 0\.\d s of log", err, re.M), err
 
 
 def test_replay_inputs_only_drops_logged_positions(cfg, tmp_path: Path) -> None:
@@ -137,11 +140,33 @@ def test_status_without_a_service_says_so(cfg, capsys) -> None:
     assert "did not answer" in capsys.readouterr().err
 
 
-def test_demo_runs_and_ends_with_its_summary(capsys) -> None:
+# README (Quick start): the demo's worst error on the paper cycle is 0.47 mm (boom) and
+# 0.77 mm (bucket) (real time). Bar: 1.0 mm, a margin of 0.23 mm over the bucket's.
+DEMO_MAX_ERROR_MM = 1.0
+# In real time each tick (10 ms) includes one Sevcon frame: 2438 of the 2460 per unit were
+# paired idle, 1610 with three busy loops competing for the two cores. At least a third of
+# them: the errors cover the cycle, not a few points. (Faster --rate pairs too few under
+# load: 11..57 at --rate 4.)
+DEMO_MIN_SAMPLES = 800
+
+
+@pytest.mark.slow
+def test_demo_runs_and_ends_with_its_summary_and_figure(tmp_path: Path, capsys) -> None:
     pytest.importorskip("ddh_vsensor.sim")
-    assert main(["demo", "--rate", "40"]) == 0
+    figure = tmp_path / "out" / "demo.png"
+    assert main(["demo", "--figure", str(figure)]) == 0
     out = capsys.readouterr().out
     assert "summary:" in out
-    rows = re.findall(r"^\s+(boom|bucket)\s+([\d.]+) mm\s+([\d.]+) mm", out, re.M)
-    assert {r[0] for r in rows} == {"boom", "bucket"}
-    assert all(float(r[1]) < 30.0 for r in rows)       # the paper's bar, by a wide margin
+    rows = re.findall(r"^\s+(boom|bucket)\s+([\d.]+) mm\s+([\d.]+) mm\s+[-+][\d.]+ mm\s+(\d+)",
+                      out, re.M)
+    assert {r[0] for r in rows} == {"boom", "bucket"}, out
+    for name, worst, _rms, samples in rows:
+        assert int(samples) >= DEMO_MIN_SAMPLES, (name, samples)
+        assert float(worst) <= DEMO_MAX_ERROR_MM, (name, worst)
+    assert f"figure: {figure.resolve()}" in out
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 20000
+
+
+def test_demo_refuses_a_figure_name_that_is_no_png(capsys) -> None:
+    assert main(["demo", "--figure", "demo.pdf"]) == 2
+    assert "--figure demo.pdf" in capsys.readouterr().err

@@ -57,7 +57,8 @@ def test_a_blocked_loop_skips_ticks_instead_of_bursting(use_timerfd: bool) -> No
 
     late, nxt = asyncio.run(scenario())
     assert late.missed >= 4
-    assert nxt.deadline == pytest.approx(late.deadline + 0.005, abs=1e-9)
+    # the next deadline follows on the grid (a loaded machine may miss more: counted too)
+    assert nxt.deadline == pytest.approx(late.deadline + (nxt.missed + 1) * 0.005, abs=1e-9)
 
 
 @pytest.mark.parametrize("use_timerfd", KINDS)
@@ -74,8 +75,8 @@ def test_period_change_takes_effect_from_the_next_deadline(use_timerfd: bool) ->
         return first, ticks
 
     first, ticks = asyncio.run(scenario())
-    gaps = [b.deadline - a.deadline for a, b in zip(ticks, ticks[1:]) if not b.missed]
-    assert gaps and all(g == pytest.approx(0.002, abs=1e-9) for g in gaps)
+    for a, b in zip(ticks, ticks[1:]):          # on the new grid, missed ticks counted
+        assert b.deadline - a.deadline == pytest.approx((b.missed + 1) * 0.002, abs=1e-9)
     assert ticks[0].deadline >= first.deadline + 0.002 - 1e-9
 
 
