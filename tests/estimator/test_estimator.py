@@ -19,7 +19,7 @@ def _online(est, run, refs=True):
     return out
 
 
-@pytest.mark.parametrize("mode", ["full", "paper"])
+@pytest.mark.parametrize("mode", ["full", "paper", "dynamic"])
 def test_online_and_offline_faces_agree(cfg, boom, unit_tables, make_run, mode):
     run = make_run(boom, seconds=40, leakage=2.0, unit_cfg=cfg.unit("boom"))
     run.time_s[1500] = run.time_s[1499]                    # a repeated timestamp
