@@ -113,6 +113,10 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     int ra = (int)S[S_RA], rb = (int)S[S_RB];
     double v;
     solve(P, fa, fb, da, db, torque, d, &ra, &rb, &pa, &pb, &v);
+    /* A rod the pumps press into its end stop does not move: the flow goes over the relief
+     * valve, where a fraction of a bar of pressure error would read as travel. */
+    if ((x <= 0.0 && n < 0.0) || (x >= stroke && n > 0.0))
+        v = 0.0;
     double x_new = x + 0.5 * h * (S[S_V] + v);
     S[S_X] = x_new < 0.0 ? 0.0 : x_new > stroke ? stroke : x_new;
     S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n; S[S_TAU] = tau;

@@ -15,7 +15,9 @@ the tables' steady state, and the first sample (and one after an input gap) star
 
 Model errors: a wrong pump parameter moves the steady state the pressures settle to, it
 cannot run away — the valves bound every pressure, and leakage pulls it back with the time
-constant C/g. ``blend_s`` > 0 adds a pull towards the steady state with that time constant
+constant C/g. A rod the pumps press into its end stop (the model's own position at the
+stroke end, the motor driving towards it) does not move: its pumps' flow goes over the relief
+valve, where a fraction of a bar of pressure error would otherwise read as travel. ``blend_s`` > 0 adds a pull towards the steady state with that time constant
 (a virtual leakage C/blend_s); ``estimator.dynamic_blend_s`` in the configuration says which
 value was chosen and why.
 
@@ -153,7 +155,7 @@ class DynamicModel:
     def viscosity_pa_s(self, oil_temp_c: float) -> float:
         if oil_temp_c != self._temp_c:
             self._temp_c = oil_temp_c
-            self._mu = float(self.oil.dynamic_viscosity_pa_s(np.array([oil_temp_c]))[0])
+            self._mu = self.oil.dynamic_viscosity_scalar_pa_s(oil_temp_c)
         return self._mu
 
     def step(self, h_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float) -> float:
@@ -262,6 +264,8 @@ def _py_step(P: np.ndarray, S: np.ndarray, h: float, n: float, tau: float, mu: f
         da += ka
         db += kb
     pa, pb, v, ra, rb = _solve(P, fa, fb, da, db, torque, d, int(S[S_RA]), int(S[S_RB]))
+    if (x <= 0.0 and n < 0.0) or (x >= stroke and n > 0.0):
+        v = 0.0
     x_new = x + 0.5 * h * (S[S_V] + v)
     S[S_X] = min(max(x_new, 0.0), stroke)
     S[S_PA], S[S_PB], S[S_V], S[S_N], S[S_TAU] = pa, pb, v, n, tau
