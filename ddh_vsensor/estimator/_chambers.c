@@ -100,7 +100,9 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     double cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h);
     double fa = P[P_Q_A] * n + ca * pa, fb = P[P_Q_B] * n + cb * pb;
     double da = ca + ga, db = cb + gb;
-    int d = direction(n);
+    /* pumping or motoring: over the step, as the mean torque (a reversal within the step
+     * would otherwise switch the efficiencies a whole step early) */
+    int d = direction(n + S[S_N]);
     if (P[P_BLEND_S] > 0.0) {
         /* pulled towards the steady state with time constant blend_s (model errors) */
         int sa = (int)S[S_SA], sb = (int)S[S_SB];

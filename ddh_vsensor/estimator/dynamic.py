@@ -253,7 +253,7 @@ def _py_step(P: np.ndarray, S: np.ndarray, h: float, n: float, tau: float, mu: f
     cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h)
     fa, fb = P[P_Q_A] * n + ca * pa, P[P_Q_B] * n + cb * pb
     da, db = ca + ga, cb + gb
-    d = _direction(n)
+    d = _direction(n + S[S_N])
     if P[P_BLEND_S] > 0.0:
         qa, qb, _, sa, sb = _solve(P, P[P_Q_A] * n, P[P_Q_B] * n, ga, gb, torque, d,
                                    int(S[S_SA]), int(S[S_SB]))
