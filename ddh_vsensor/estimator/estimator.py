@@ -158,12 +158,15 @@ class Estimator:
                    index: int) -> tuple[float, ReferenceEvent]:
         """Apply an accepted edge: returns the corrected position and what happened."""
         p = sw.edge_position_mm(rising, snap.v, snap.x)
-        error = snap.x - p
-        # The edge happened somewhere within the last sample's travel: a smaller error is no
-        # evidence against the model, and learning from it only fits sampling noise. An
+        # The switch changed state somewhere within the edge sample's travel dx, at any moment
+        # alike: the estimate at the crossing is, on average, x - dx/2 (at speed, dx is
+        # millimetres: taking x itself would bias every edge met in motion by half of it).
+        error = snap.x - 0.5 * snap.dx - p
+        # Within +-dx/2 the error is no evidence against the model, and learning from it
+        # only fits sampling noise. An
         # estimate that was not referenced (cold start, restore) carries an unknown offset,
         # not the model's travel error: its first edge only sets the position.
-        adapted = (self.referenced and abs(error) > abs(snap.dx) and self.gain.update(
+        adapted = (self.referenced and abs(error) > 0.5 * abs(snap.dx) and self.gain.update(
             error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1]))
         self.s_ref = (snap.s_up, snap.s_down)
         # An edge met at speed is exact, but the estimate then carries a transient offset (oil
