@@ -134,6 +134,7 @@ class DynamicModel:
         self.state[S_X] = position_mm * 1e-3
         self.state[S_RA] = self.state[S_RB] = self.state[S_SA] = self.state[S_SB] = 2.0
         self._lib = library() if use_compiled else None
+        self._p_list = self.params.tolist()
         self._p_ptr = self.params.ctypes.data
         self._s_ptr = self.state.ctypes.data
         self._temp_c = math.nan
@@ -164,7 +165,7 @@ class DynamicModel:
         if self._lib is not None:
             return self._lib.chambers_step(self._p_ptr, self._s_ptr, h_s, speed_rpm,
                                            torque_nm, mu) * 1e3
-        return _py_step(self.params, self.state, h_s, speed_rpm, torque_nm, mu) * 1e3
+        return _py_step(self._p_list, self.state, h_s, speed_rpm, torque_nm, mu) * 1e3
 
     def run(self, time_s: ArrayLike, speed_rpm: ArrayLike, torque_nm: ArrayLike,
             oil_temp_c: ArrayLike) -> np.ndarray:
@@ -184,7 +185,7 @@ class DynamicModel:
             last = 0.0
             for k in range(len(t)):
                 h = 0.0 if self.state[S_STARTED] == 0.0 else t[k] - last
-                v[k] = _py_step(self.params, self.state, h, n[k], tau[k], mu[k])
+                v[k] = _py_step(self._p_list, self.state, h, n[k], tau[k], mu[k])
                 last = t[k]
         if len(t):
             self._temp_c, self._mu = float(temp[-1]), float(mu[-1])
@@ -232,9 +233,9 @@ def _direction(n: float) -> int:
     return 2 if n > 0.0 else 0 if n < 0.0 else 1
 
 
-def _py_step(P: np.ndarray, S: np.ndarray, h: float, n: float, tau: float, mu: float) -> float:
-    """``chambers_step`` of _chambers.c, line by line."""
-    P = P.tolist()
+def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: float
+             ) -> float:
+    """``chambers_step`` of _chambers.c, line by line (``P`` the parameters as a list)."""
     if S[S_STARTED] == 0.0 or not h > 0.0 or h > P[P_MAX_GAP_S]:
         if S[S_STARTED] == 0.0 or h > 0.0:
             pa, pb, v, ra, rb = _solve(P, P[P_Q_A] * n, P[P_Q_B] * n, P[P_LEAK_A] / mu,
