@@ -2,8 +2,12 @@
 
 - the table: mode x actuator x speed x payload, max and RMS error, no references, 27 °C;
 - drift per cycle without references over a multi-cycle run;
-- a 50-cycle run with references: max error overall, first ten cycles vs last ten.
-Run: python bench/accuracy.py [--cycles 50]
+- a 50-cycle run with references: max error overall, first ten cycles vs last ten;
+- the temperature sweep (issue 12): oil at -10, 0, 10, 27, 50, 80 degC x the paper's cycle at
+  four speeds x 0/1040 kg, plus the dig-dump cycle (both end stops, 0/1040 kg) and random work
+  cycles with end-stop contact (seeds 201.., never used for tuning): worst and RMS error per
+  temperature, per mode, per actuator, no references.
+Run: python bench/accuracy.py [--cycles 50] [--skip-sweep]
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from _results import publish  # noqa: E402
 from ddh_vsensor.config import ACTUATORS, load_config  # noqa: E402
 from ddh_vsensor.estimator.accuracy import accuracy  # noqa: E402
 from ddh_vsensor.estimator.estimator import Estimator  # noqa: E402
+from ddh_vsensor.sim.cycles import dig_dump_cycle, random_cycle  # noqa: E402
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
@@ -32,9 +37,62 @@ def _estimate(cfg, tables, actuator, run, mode, references):
                    run.refs if references else None)
 
 
+MODES = ("dynamic", "full", "paper")
+SWEEP_TEMPS_C = (-10.0, 0.0, 10.0, 27.0, 50.0, 80.0)
+SWEEP_SEED = 201
+
+
+def sweep_specs(cfg, temp_c: float) -> list[RunSpec]:
+    """One temperature's runs: paper cycle x 4 speeds x 0/1040 kg, dig-dump x 0/1040 kg and
+    two random cycles (seeded from the temperature) with end-stop contact."""
+    specs = [RunSpec(speed=s, payload_kg=p, oil_temp_c=temp_c) for s in (1, 2, 3, 4)
+             for p in (0.0, 1040.0)]
+    specs += [RunSpec(cycle=dig_dump_cycle(cfg, 4), payload_kg=p, oil_temp_c=temp_c)
+              for p in (0.0, 1040.0)]
+    seed = SWEEP_SEED + 2 * SWEEP_TEMPS_C.index(temp_c)
+    specs += [RunSpec(cycle=random_cycle(cfg, seed + i), payload_kg=p, oil_temp_c=temp_c)
+              for i, p in enumerate((0.0, 1040.0))]
+    return specs
+
+
+def temperature_sweep(cfg, tables, figures: dict[str, object]) -> None:
+    rows = []
+    for temp in SWEEP_TEMPS_C:
+        t0 = time.perf_counter()
+        specs = sweep_specs(cfg, temp)
+        runs = simulate_campaign(cfg, specs)
+        print(f"{temp:g} degC: simulated {len(specs)} runs in {time.perf_counter() - t0:.0f} s",
+              flush=True)
+        for mode in MODES:
+            for actuator in ACTUATORS:
+                worst, worst_run, sq, count = 0.0, "", 0.0, 0
+                for spec, run in zip(specs, runs):
+                    r = run[actuator]
+                    err = (_estimate(cfg, tables, actuator, r, mode, False).position_mm
+                           - r.position_mm)
+                    err = err[np.isfinite(err)]
+                    if np.max(np.abs(err)) > worst:
+                        worst = float(np.max(np.abs(err)))
+                        worst_run = (spec.cycle.name if not isinstance(spec.cycle, str)
+                                     else f"paper speed {spec.speed}") + \
+                            f" {spec.payload_kg:g} kg"
+                    sq += float(np.sum(err ** 2))
+                    count += err.size
+                rms = (sq / count) ** 0.5
+                key = f"sweep_{mode}_{actuator}_{temp:g}C"
+                figures[f"{key}_max_abs_error_mm"] = round(worst, 3)
+                figures[f"{key}_rms_error_mm"] = round(rms, 3)
+                figures[f"{key}_worst_run"] = worst_run
+                rows.append((temp, mode, actuator, worst, rms, worst_run))
+    print(f"{'oil':>5} {'mode':8} {'actuator':8} {'max mm':>7} {'RMS mm':>7}  worst run")
+    for temp, mode, actuator, worst, rms, run in rows:
+        print(f"{temp:5g} {mode:8} {actuator:8} {worst:7.2f} {rms:7.2f}  {run}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--cycles", type=int, default=50)
+    parser.add_argument("--skip-sweep", action="store_true")
     args = parser.parse_args()
     cfg = load_config(None)
     tables = {a: build_unit_tables(cfg, a) for a in ACTUATORS}
@@ -45,7 +103,7 @@ def main() -> None:
     runs = simulate_campaign(cfg, specs)
     print(f"simulated 8 nominal runs in {time.perf_counter() - t0:.1f} s")
     print(f"{'mode':6} {'actuator':8} {'speed':>5} {'payload':>8} {'max mm':>8} {'RMS mm':>8}")
-    for mode in ("full", "paper"):
+    for mode in MODES:
         for actuator in ACTUATORS:
             worst = 0.0
             for spec, run in zip(specs, runs):
@@ -64,29 +122,34 @@ def main() -> None:
     long = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=0.0, oil_temp_c=27.0,
                                            cycles=args.cycles)])[0]
     print(f"simulated {args.cycles} cycles in {time.perf_counter() - t0:.1f} s")
-    for actuator in ACTUATORS:
-        r = long[actuator]
-        period = r.time_s[-1] / args.cycles
-        cycle = np.minimum((r.time_s / period).astype(int), args.cycles - 1)
-        for refs in (False, True):
-            est = Estimator(cfg, actuator, tables[actuator], references=refs,
-                            initial_position_mm=float(r.position_mm[0]))
-            res = est.run(r.time_s, r.speed_rpm, r.torque_nm, r.oil_temp_c,
-                          r.refs if refs else None)
-            err = res.position_mm - r.position_mm
-            per_cycle = np.array([np.nanmax(np.abs(err[cycle == c])) for c in range(args.cycles)])
-            tag = f"{actuator}_{args.cycles}cycles_{'refs' if refs else 'norefs'}"
-            figures[f"{tag}_max_abs_error_mm"] = round(float(np.nanmax(np.abs(err))), 3)
-            figures[f"{tag}_first10_max_mm"] = round(float(per_cycle[:10].max()), 3)
-            figures[f"{tag}_last10_max_mm"] = round(float(per_cycle[-10:].max()), 3)
-            if not refs:
-                ends = np.array([err[cycle == c][np.isfinite(err[cycle == c])][-1]
-                                 for c in range(args.cycles)])
-                drift = np.polyfit(np.arange(args.cycles), ends, 1)[0]
-                figures[f"{actuator}_drift_per_cycle_norefs_mm"] = round(float(drift), 4)
-            else:
-                figures[f"{actuator}_gains_after_{args.cycles}_cycles"] = [
-                    round(float(g), 5) for g in est.gain.gain]
+    for mode in ("dynamic", "full"):
+        for actuator in ACTUATORS:
+            r = long[actuator]
+            period = r.time_s[-1] / args.cycles
+            cycle = np.minimum((r.time_s / period).astype(int), args.cycles - 1)
+            for refs in (False, True):
+                est = Estimator(cfg, actuator, tables[actuator], mode=mode, references=refs,
+                                initial_position_mm=float(r.position_mm[0]))
+                res = est.run(r.time_s, r.speed_rpm, r.torque_nm, r.oil_temp_c,
+                              r.refs if refs else None)
+                err = res.position_mm - r.position_mm
+                per_cycle = np.array([np.nanmax(np.abs(err[cycle == c]))
+                                      for c in range(args.cycles)])
+                tag = f"{mode}_{actuator}_{args.cycles}cycles_{'refs' if refs else 'norefs'}"
+                figures[f"{tag}_max_abs_error_mm"] = round(float(np.nanmax(np.abs(err))), 3)
+                figures[f"{tag}_first10_max_mm"] = round(float(per_cycle[:10].max()), 3)
+                figures[f"{tag}_last10_max_mm"] = round(float(per_cycle[-10:].max()), 3)
+                if not refs:
+                    ends = np.array([err[cycle == c][np.isfinite(err[cycle == c])][-1]
+                                     for c in range(args.cycles)])
+                    drift = np.polyfit(np.arange(args.cycles), ends, 1)[0]
+                    figures[f"{mode}_{actuator}_drift_per_cycle_norefs_mm"] = round(
+                        float(drift), 4)
+                else:
+                    figures[f"{mode}_{actuator}_gains_after_{args.cycles}_cycles"] = [
+                        round(float(g), 5) for g in est.gain.gain]
+    if not args.skip_sweep:
+        temperature_sweep(cfg, tables, figures)
     publish("accuracy", figures)
 
 

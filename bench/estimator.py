@@ -1,4 +1,5 @@
-"""Benchmark: offline estimator samples per second and the online step's cost, both units."""
+"""Benchmark: offline estimator samples per second and the online step's cost, both units,
+in the table mode (`full`) and the chamber-model mode (`dynamic`)."""
 
 from __future__ import annotations
 
@@ -34,20 +35,26 @@ def main() -> None:
         tables = build_unit_tables(cfg, actuator)
         t, n, q, temp, mid = _signals(2_000_000, 0)
         refs = {"mid": mid}
-        est = Estimator(cfg, actuator, tables, initial_position_mm=100.0)
-        t0 = time.perf_counter()
-        est.run(t, n, q, temp, refs)
-        figures[f"{actuator}_offline_Msamples_s"] = round(len(t) / (time.perf_counter() - t0) / 1e6, 2)
-        est = Estimator(cfg, actuator, tables, initial_position_mm=100.0)
-        count = 100_000
-        step = est.step
-        args = list(zip(t[:count].tolist(), n[:count].tolist(), q[:count].tolist(),
-                        temp[:count].tolist()))
-        ref_dicts = [{"mid": bool(m)} for m in mid[:count]]
-        t0 = time.perf_counter()
-        for (tk, nk, qk, tc), r in zip(args, ref_dicts):
-            step(tk, nk, qk, tc, r)
-        figures[f"{actuator}_online_step_us"] = round((time.perf_counter() - t0) / count * 1e6, 2)
+        for mode in ("full", "dynamic"):
+            est = Estimator(cfg, actuator, tables, mode=mode, initial_position_mm=100.0)
+            t0 = time.perf_counter()
+            est.run(t, n, q, temp, refs)
+            figures[f"{mode}_{actuator}_offline_Msamples_s"] = round(
+                len(t) / (time.perf_counter() - t0) / 1e6, 2)
+            est = Estimator(cfg, actuator, tables, mode=mode, initial_position_mm=100.0)
+            count = 100_000
+            step = est.step
+            args = list(zip(t[:count].tolist(), n[:count].tolist(), q[:count].tolist(),
+                            temp[:count].tolist()))
+            ref_dicts = [{"mid": bool(m)} for m in mid[:count]]
+            t0 = time.perf_counter()
+            for (tk, nk, qk, tc), r in zip(args, ref_dicts):
+                step(tk, nk, qk, tc, r)
+            figures[f"{mode}_{actuator}_online_step_us"] = round(
+                (time.perf_counter() - t0) / count * 1e6, 2)
+            print(f"{mode:8} {actuator:7} offline "
+                  f"{figures[f'{mode}_{actuator}_offline_Msamples_s']} M samples/s, online "
+                  f"{figures[f'{mode}_{actuator}_online_step_us']} us/step", flush=True)
     figures["goal_offline_Msamples_s"] = 2.0
     figures["goal_online_step_us"] = 20.0
     publish("estimator", figures)

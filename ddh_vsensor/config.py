@@ -159,7 +159,8 @@ class TablesConfig:
 class EstimatorConfig:
     """How the position is integrated, referenced, adapted, bounded and persisted."""
 
-    mode: Literal["full", "paper"]
+    mode: Literal["full", "paper", "dynamic"]
+    dynamic_blend_s: float = field(metadata={"ge": 0.0})
     max_gap_s: float = field(metadata=_positive())
     inertia_compensation: bool
     soft_limit_margin_mm: float = field(metadata={"ge": 0.0})

@@ -28,7 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_config_arg(p)
     add_actuator_arg(p)
     p.add_argument("--mode", choices=("full", "paper"), default=None,
-                   help="estimator mode to diagnose (default: the config's)")
+                   help="estimator mode to diagnose (default: the config's; full if that "
+                        "is dynamic)")
     p.add_argument("--report", required=True, metavar="DIR", help="report directory")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")
     p.set_defaults(func=_run)
@@ -40,7 +41,8 @@ def _run(args: argparse.Namespace) -> int:
     from ..diagnosis.runs import load_analysis_run
 
     cfg = config_from(args)
-    mode = args.mode or cfg.estimator.mode
+    # the diagnosis extends the tables' modes; a `dynamic` default is diagnosed as `full`
+    mode = args.mode or (cfg.estimator.mode if cfg.estimator.mode != "dynamic" else "full")
     runs = [load_analysis_run(path, args.actuator, cfg) for path in args.runs]
     prepare_report_dir(args.report)
     bar = ProgressBar("analyze")

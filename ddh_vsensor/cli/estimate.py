@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run", metavar="RUN", help="CSV of the measured-data format, or a CAN log")
     add_config_arg(p)
     add_actuator_arg(p)
-    p.add_argument("--mode", choices=("full", "paper"), default=None,
+    p.add_argument("--mode", choices=("full", "paper", "dynamic"), default=None,
                    help="estimator mode (default: the config's)")
     p.add_argument("--tables", metavar="DIR", help="table set (default: built from --config)")
     p.add_argument("--no-references", action="store_true", help="ignore the Hall switches")

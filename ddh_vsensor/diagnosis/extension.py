@@ -48,7 +48,7 @@ from ..physics.unit import DDHUnit
 from ..tables.build import build_unit_tables
 from ..tables.lookup import UnitTables
 from .causes import ALL_CAUSES, slipped_speed
-from .chambers import ChamberModel, ChamberRow, track_chambers
+from ..estimator.chambers import ChamberModel, ChamberRow, track_chambers
 from .inertia import with_inertia_compensation
 from .workbench import shift_signal
 

@@ -20,7 +20,7 @@ from ..estimator.estimator import Estimator
 from ..physics.unit import DDHUnit
 from ..tables.build import build_unit_tables
 from ..tables.lookup import UnitTables
-from .chambers import ChamberRow, track_chambers
+from ..estimator.chambers import ChamberRow, track_chambers
 from .inertia import with_inertia_compensation
 from .runs import AnalysisRun
 

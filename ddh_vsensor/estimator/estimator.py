@@ -16,9 +16,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..config import Config
+from ..physics.unit import DDHUnit
 from ..tables.lookup import UnitTables
 from .adaptation import DirectionalGain
 from .bounded import bounded_cumsum
+from .dynamic import DynamicModel
 from .model import Mode, VelocityModel
 from .references import Debouncer, Switch, accepted_edges, switches_from_config
 from .state import EstimatorState
@@ -99,7 +101,8 @@ class Estimator:
                  initial_position_mm: float | None = None) -> None:
         ecfg, ucfg = cfg.estimator, cfg.unit(actuator)
         self.cfg, self.actuator = cfg, actuator
-        self.model = VelocityModel(tables, mode or ecfg.mode)
+        self.mode: Mode = mode or ecfg.mode
+        self.model = VelocityModel(tables, self.mode)
         self.lower_mm = ecfg.soft_limit_margin_mm
         self.upper_mm = ucfg.stroke_mm - ecfg.soft_limit_margin_mm
         self.max_gap_s = ecfg.max_gap_s
@@ -119,6 +122,12 @@ class Estimator:
         self.per_travel = ecfg.uncertainty_per_travel
         self.hold_rate = ecfg.uncertainty_hold_mm_per_s
         self.position_mm = 0.0 if initial_position_mm is None else float(initial_position_mm)
+        # `dynamic`: the chamber pressures are states; the model carries its own rod position
+        # for the chamber volumes (it sees no references, so both faces feed it alike)
+        self.dynamic = (DynamicModel(DDHUnit.from_config(cfg, actuator), self.position_mm,
+                                     inertia=ecfg.inertia_compensation,
+                                     blend_s=ecfg.dynamic_blend_s, max_gap_s=self.max_gap_s)
+                        if self.mode == "dynamic" else None)
         self.u_base = self.u_ref
         self.referenced = True          # False only after a restore, until a reference
         self.travel_mm = 0.0
@@ -149,12 +158,15 @@ class Estimator:
                    index: int) -> tuple[float, ReferenceEvent]:
         """Apply an accepted edge: returns the corrected position and what happened."""
         p = sw.edge_position_mm(rising, snap.v, snap.x)
-        error = snap.x - p
-        # The edge happened somewhere within the last sample's travel: a smaller error is no
-        # evidence against the model, and learning from it only fits sampling noise. An
+        # The switch changed state somewhere within the edge sample's travel dx, at any moment
+        # alike: the estimate at the crossing is, on average, x - dx/2 (at speed, dx is
+        # millimetres: taking x itself would bias every edge met in motion by half of it).
+        error = snap.x - 0.5 * snap.dx - p
+        # Within +-dx/2 the error is no evidence against the model, and learning from it
+        # only fits sampling noise. An
         # estimate that was not referenced (cold start, restore) carries an unknown offset,
         # not the model's travel error: its first edge only sets the position.
-        adapted = (self.referenced and abs(error) > abs(snap.dx) and self.gain.update(
+        adapted = (self.referenced and abs(error) > 0.5 * abs(snap.dx) and self.gain.update(
             error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1]))
         self.s_ref = (snap.s_up, snap.s_down)
         # An edge met at speed is exact, but the estimate then carries a transient offset (oil
@@ -178,9 +190,12 @@ class Estimator:
         on = self._on
         dt = t_s - on.t if on.t is not None else 0.0
         valid = 0.0 < dt <= self.max_gap_s
-        pump_torque = torque_nm - (self.inertia_nm_per_rpm_s * (speed_rpm - on.n) / dt
-                                   if valid else 0.0)
-        v, clamped = self.model.velocity(speed_rpm, pump_torque, oil_temp_c)
+        if self.dynamic is not None:
+            v, clamped = self.dynamic.step(dt, speed_rpm, torque_nm, oil_temp_c), False
+        else:
+            pump_torque = torque_nm - (self.inertia_nm_per_rpm_s * (speed_rpm - on.n) / dt
+                                       if valid else 0.0)
+            v, clamped = self.model.velocity(speed_rpm, pump_torque, oil_temp_c)
         stale = False
         dx_raw = 0.0
         if on.t is not None:
@@ -238,11 +253,15 @@ class Estimator:
         dt = np.diff(t)
         valid = (dt > 0.0) & (dt <= self.max_gap_s)
         speed = np.asarray(speed_rpm, dtype=float)
-        pump_torque = np.array(torque_nm, dtype=float)
-        safe_dt = np.where(valid, dt, 1.0)
-        pump_torque[1:] -= np.where(valid, self.inertia_nm_per_rpm_s * np.diff(speed) / safe_dt,
-                                    0.0)
-        v, clamped = self.model.velocity_many(speed, pump_torque, oil_temp_c)
+        if self.dynamic is not None:
+            v = self.dynamic.run(t, speed, torque_nm, np.broadcast_to(oil_temp_c, t.shape))
+            clamped = np.zeros(n, dtype=bool)
+        else:
+            pump_torque = np.array(torque_nm, dtype=float)
+            safe_dt = np.where(valid, dt, 1.0)
+            pump_torque[1:] -= np.where(valid, self.inertia_nm_per_rpm_s * np.diff(speed)
+                                        / safe_dt, 0.0)
+            v, clamped = self.model.velocity_many(speed, pump_torque, oil_temp_c)
         dx_raw = np.zeros(n)
         dx_raw[1:] = np.where(valid, 0.5 * (v[:-1] + v[1:]) * dt, 0.0)
         hold_dt = np.zeros(n)
@@ -304,6 +323,8 @@ class Estimator:
         """A manual reference (CiA 406 preset): position and uncertainty are set, and travel
         for the next adaptation counts from here."""
         self.position_mm = self._clip(position_mm)
+        if self.dynamic is not None:
+            self.dynamic.set_position(self.position_mm)
         self.u_base, self.travel_mm, self.hold_s = uncertainty_mm, 0.0, 0.0
         self.referenced = True
         self.s_ref = (self._on.s_up, self._on.s_down)
@@ -323,6 +344,8 @@ class Estimator:
     def restore(self, state: EstimatorState) -> None:
         """Carry on from a saved state: trusted for position, flagged until a reference."""
         self.position_mm = self._clip(state.position_mm)
+        if self.dynamic is not None:
+            self.dynamic.set_position(self.position_mm)
         self.u_base = state.uncertainty_mm
         self.travel_mm = self.hold_s = 0.0
         self.gain.gain = np.clip([state.gain_up, state.gain_down], 1 - self.gain.bound,

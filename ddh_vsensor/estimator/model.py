@@ -9,15 +9,16 @@ from numpy.typing import ArrayLike
 
 from ..tables.lookup import UnitTables
 
-Mode = Literal["full", "paper"]
+Mode = Literal["full", "paper", "dynamic"]
 
 
 class VelocityModel:
     """``full``: velocity from the speed-continuous table. ``paper``: mm per revolution from
-    the three-speed-range tables times the motor speed, as the paper did (the baseline)."""
+    the three-speed-range tables times the motor speed, as the paper did (the baseline).
+    ``dynamic`` runs the chamber model of :mod:`.dynamic`; its steady state is the full table."""
 
     def __init__(self, tables: UnitTables, mode: Mode) -> None:
-        if mode not in ("full", "paper"):
+        if mode not in ("full", "paper", "dynamic"):
             raise ValueError(f"unknown estimator mode {mode!r}")
         self.tables, self.mode = tables, mode
         self._full = tables.full.velocity
@@ -26,14 +27,14 @@ class VelocityModel:
     def velocity(self, speed_rpm: float, torque_nm: float,
                  oil_temp_c: float) -> tuple[float, bool]:
         """Cylinder velocity in mm/s, and whether the table had to clamp an input."""
-        if self.mode == "full":
+        if self.mode != "paper":
             return self._full(speed_rpm, torque_nm, oil_temp_c)
         mm_rev, clamped = self._paper(speed_rpm, torque_nm, oil_temp_c)
         return mm_rev * speed_rpm / 60.0, clamped
 
     def velocity_many(self, speed_rpm: ArrayLike, torque_nm: ArrayLike,
                       oil_temp_c: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-        if self.mode == "full":
+        if self.mode != "paper":
             return self.tables.full.velocity_many(speed_rpm, torque_nm, oil_temp_c)
         mm_rev, clamped = self.tables.paper.movement_mm_per_rev_many(speed_rpm, torque_nm,
                                                                      oil_temp_c)

@@ -217,3 +217,105 @@ def load_profile_csv(path: str | Path, cfg: Config, cycles: int = 1) -> Profile:
             raise UserError(f"{path}: {a}_mm must stay within the stroke 0..{stroke:g} mm")
         trajectories[a] = Trajectory(t, x, smooth=False)
     return Profile(path.name, trajectories, float(t[-1])).repeated(cycles)
+
+
+END_STOP_OVERTRAVEL_MM = 20.0   # setpoint beyond a stroke end: the controller presses the rod
+                                # into its stop (pressure to the relief, no motion)
+
+
+@dataclass(frozen=True)
+class DigDumpDesign:
+    """A fast digging cycle: the bucket curled into its retracted stop and dumped into its
+    extended stop, the boom lowered onto its bottom stop to dig, as an operator does."""
+
+    boom_dig_mm: float = -END_STOP_OVERTRAVEL_MM
+    boom_carry_mm: float = 180.0
+    bucket_start_mm: float = 600.0
+    bucket_curled_mm: float = -END_STOP_OVERTRAVEL_MM
+    bucket_dumped_extra_mm: float = END_STOP_OVERTRAVEL_MM
+    boom_velocity_mm_s: float = 95.0
+    bucket_velocity_mm_s: float = 195.0
+    stop_hold_s: float = 0.6
+    pause_s: float = 0.2
+
+
+def dig_dump_cycle(cfg: Config, speed: int = 4, cycles: int = 1,
+                   design: DigDumpDesign = DigDumpDesign()) -> Profile:
+    """Dig (boom down onto its stop, bucket curled into its stop), carry, dump (bucket into
+    its extended stop), curl again, back to the start; ``speed`` 1..4 as the paper's cycle."""
+    if speed not in SPEED_LEVELS:
+        raise UserError(f"speed must be one of 1, 2, 3, 4 (4 the fastest), got {speed}")
+    f, d = speed / 4.0, design
+    boom_start = 0.5 * d.boom_carry_mm
+    dumped = cfg.unit("bucket").stroke_mm + d.bucket_dumped_extra_mm
+    knots: dict[str, list[tuple[float, float]]] = {
+        "boom": [(0.0, boom_start)], "bucket": [(0.0, d.bucket_start_mm)]}
+    t = 0.5
+
+    def move(actuator: str, target: float, hold_s: float, together: bool = False) -> None:
+        nonlocal t
+        velocity = (d.boom_velocity_mm_s if actuator == "boom" else d.bucket_velocity_mm_s) * f
+        start = knots[actuator][-1][1]
+        knots[actuator].append((t, start))
+        end = t + _move_time(target - start, velocity)
+        knots[actuator].append((end, target))
+        if not together:
+            t = end + hold_s
+
+    move("boom", d.boom_dig_mm, 0.0, together=True)            # boom down onto its stop ...
+    move("bucket", d.bucket_start_mm - 100.0, d.pause_s)       # ... while the bucket tilts
+    move("bucket", d.bucket_curled_mm, d.stop_hold_s)          # curl: fill, into the stop
+    move("boom", d.boom_carry_mm, d.pause_s)                   # lift and carry
+    move("bucket", dumped, d.stop_hold_s)                      # dump into the extended stop
+    move("bucket", d.bucket_curled_mm, d.stop_hold_s)          # shake out: curl back in
+    move("bucket", dumped, d.stop_hold_s)                      # ... and dump again
+    move("boom", boom_start, 0.0, together=True)               # back to the start state
+    move("bucket", d.bucket_start_mm, d.pause_s)
+    t = max(t, knots["boom"][-1][0] + d.pause_s)
+    trajectories = {}
+    for name, pts in knots.items():
+        pts.append((t, pts[-1][1]))
+        trajectories[name] = Trajectory(np.array([p[0] for p in pts]),
+                                        np.array([p[1] for p in pts]), smooth=True)
+    return Profile(f"dig-dump speed {speed}", trajectories, t).repeated(cycles)
+
+
+def random_cycle(cfg: Config, seed: int, duration_s: float = 60.0,
+                 end_stop_share: float = 0.25) -> Profile:
+    """Random work: partial strokes between random positions at random speeds, short and
+    long (loaded) holds, and a share of the moves pressed into an end stop. Both units move
+    independently, so their moves overlap."""
+    rng = np.random.default_rng(seed)
+    v_top = {"boom": PaperCycleDesign.boom_velocity_mm_s,
+             "bucket": PaperCycleDesign.bucket_velocity_mm_s}
+    trajectories = {}
+    for actuator in ACTUATORS:
+        stroke = cfg.unit(actuator).stroke_mm
+        lo, hi = 0.03 * stroke, 0.97 * stroke
+        t, x = 0.0, rng.uniform(lo, hi)
+        knots = [(0.0, x)]
+        while True:
+            hold = rng.uniform(0.2, 1.5) if rng.random() < 0.8 else rng.uniform(3.0, 10.0)
+            if rng.random() < end_stop_share:
+                target = (-END_STOP_OVERTRAVEL_MM if rng.random() < 0.5
+                          else stroke + END_STOP_OVERTRAVEL_MM)
+            else:
+                target = rng.uniform(lo, hi)
+            move = _move_time(target - x, rng.uniform(0.3, 1.0) * v_top[actuator])
+            if t + hold + move + 1.0 > duration_s:
+                break
+            t += hold
+            knots.append((t, x))
+            t += move
+            knots.append((t, target))
+            x = target
+        if x < 0.0 or x > stroke:           # leave the stop before the end
+            back = float(np.clip(x, lo, hi))
+            t_back = min(t + 0.3, duration_s - 0.5 - _move_time(back - x, v_top[actuator]))
+            knots += [(max(t_back, t), x),
+                      (max(t_back, t) + _move_time(back - x, v_top[actuator]), back)]
+        knots.append((max(duration_s, knots[-1][0]), knots[-1][1]))
+        trajectories[actuator] = Trajectory(np.array([k[0] for k in knots]),
+                                            np.array([k[1] for k in knots]), smooth=True)
+    length = max(tr.time_s[-1] for tr in trajectories.values())
+    return Profile(f"random {seed}", trajectories, length)

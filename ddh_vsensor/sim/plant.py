@@ -365,7 +365,8 @@ class Plant:
                 [moving & (mf * v <= 0.0), moving & past_stop,
                  stuck & (force0 > f_hi), stuck & (force0 < f_lo)],
                 [F_STUCK, F_IMPACT, F_UP, F_DOWN], mf)
-            stop = np.where(mf == F_UP, self.stroke, 0.0)
+            # the stop an impact meets is the nearer end (mf may already read F_IMPACT here)
+            stop = np.where(x > 0.5 * self.stroke, self.stroke, 0.0)
             x_stop = np.where(new_mf == F_IMPACT, stop,
                               x if x_stop is None else np.where(mf == F_IMPACT, x_stop, x))
             v_fix = (x_stop - x) / h                  # the velocity that reaches the stop

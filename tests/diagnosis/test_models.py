@@ -8,7 +8,7 @@ import pytest
 from ddh_vsensor.physics.air import compliance, log_density, secant_compliance
 from ddh_vsensor.diagnosis.breakdown import breakdown, classify
 from ddh_vsensor.diagnosis.causes import Cause
-from ddh_vsensor.diagnosis.chambers import ChamberRow, track_chambers
+from ddh_vsensor.estimator.chambers import ChamberRow, track_chambers
 from ddh_vsensor.diagnosis.fit import fit_cause
 from ddh_vsensor.diagnosis.runs import AnalysisRun, prepare_run
 from ddh_vsensor.measured import MeasuredDataError, Run, read_csv

@@ -1,4 +1,5 @@
-"""The estimator on synthetic runs whose truth is the exact steady state."""
+"""The estimator on synthetic runs whose truth is the exact steady state (hence `full` mode:
+the tables are that steady state; `dynamic` is tested on simulated runs)."""
 
 import numpy as np
 import pytest
@@ -19,7 +20,7 @@ def _online(est, run, refs=True):
     return out
 
 
-@pytest.mark.parametrize("mode", ["full", "paper"])
+@pytest.mark.parametrize("mode", ["full", "paper", "dynamic"])
 def test_online_and_offline_faces_agree(cfg, boom, unit_tables, make_run, mode):
     run = make_run(boom, seconds=40, leakage=2.0, unit_cfg=cfg.unit("boom"))
     run.time_s[1500] = run.time_s[1499]                    # a repeated timestamp
@@ -38,7 +39,7 @@ def test_online_and_offline_faces_agree(cfg, boom, unit_tables, make_run, mode):
 
 def test_full_mode_tracks_the_truth_without_references(cfg, boom, unit_tables, make_run):
     run = make_run(boom, seconds=60, )
-    est = Estimator(cfg, "boom", unit_tables["boom"], references=False,
+    est = Estimator(cfg, "boom", unit_tables["boom"], mode="full", references=False,
                     initial_position_mm=run.position_mm[0])
     res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c)
     assert np.max(np.abs(res.position_mm - run.position_mm)) < 0.5
@@ -63,7 +64,7 @@ def test_standstill_at_the_holding_speed_in_full_mode(cfg, boom, unit_tables):
 
 def test_resync_corrects_a_planted_offset(cfg, boom, unit_tables, make_run):
     run = make_run(boom, seconds=30, unit_cfg=cfg.unit("boom"))
-    est = Estimator(cfg, "boom", unit_tables["boom"], adaptation=False,
+    est = Estimator(cfg, "boom", unit_tables["boom"], mode="full", adaptation=False,
                     initial_position_mm=run.position_mm[0] + 12.0)
     res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
     first = res.events[0]
@@ -76,7 +77,7 @@ def test_resync_corrects_a_planted_offset(cfg, boom, unit_tables, make_run):
 def _cycle_errors(cfg, boom, unit_tables, make_run, adaptation, leakage, seed=1):
     run = make_run(boom, seconds=240, leakage=leakage, unit_cfg=cfg.unit("boom"),
                    seed=seed)
-    est = Estimator(cfg, "boom", unit_tables["boom"], adaptation=adaptation,
+    est = Estimator(cfg, "boom", unit_tables["boom"], mode="full", adaptation=adaptation,
                     initial_position_mm=run.position_mm[0])
     res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
     return [abs(e.error_mm) for e in res.events if e.switch == "mid"], est
@@ -94,7 +95,8 @@ def test_adaptation_stays_bounded_on_noise(cfg, boom, unit_tables, make_run):
     rng = np.random.default_rng(4)
     run = make_run(boom, seconds=240, unit_cfg=cfg.unit("boom"))
     noisy_torque = run.torque_nm + rng.normal(0, 2.0, len(run.torque_nm))
-    est = Estimator(cfg, "boom", unit_tables["boom"], initial_position_mm=run.position_mm[0])
+    est = Estimator(cfg, "boom", unit_tables["boom"], mode="full",
+                    initial_position_mm=run.position_mm[0])
     res = est.run(run.time_s, run.speed_rpm, noisy_torque, run.oil_temp_c, run.refs)
     assert np.all(np.abs(est.gain.gain - 1) < 0.02)
     assert np.max(np.abs(res.position_mm - run.position_mm)) < 3.0
@@ -102,7 +104,7 @@ def test_adaptation_stays_bounded_on_noise(cfg, boom, unit_tables, make_run):
 
 def test_soft_limits_act_and_are_flagged(cfg, boom, unit_tables):
     t = np.arange(0, 10, 0.01)
-    est = Estimator(cfg, "boom", unit_tables["boom"], references=False,
+    est = Estimator(cfg, "boom", unit_tables["boom"], mode="full", references=False,
                     initial_position_mm=300.0)
     res = est.run(t, np.full_like(t, 3000.0), np.full_like(t, 22.0), np.full_like(t, 27.0))
     assert res.position_mm.max() == pytest.approx(cfg.unit("boom").stroke_mm)
@@ -124,7 +126,8 @@ def test_bounded_cumsum_equals_the_clipped_loop():
 
 def test_restored_estimate_is_flagged_until_a_reference(cfg, boom, unit_tables, make_run):
     run = make_run(boom, seconds=30, unit_cfg=cfg.unit("boom"))
-    first = Estimator(cfg, "boom", unit_tables["boom"], initial_position_mm=run.position_mm[0])
+    first = Estimator(cfg, "boom", unit_tables["boom"], mode="full",
+                      initial_position_mm=run.position_mm[0])
     half = len(run.time_s) // 3
     for k in range(half):
         first.step(run.time_s[k], run.speed_rpm[k], float(run.torque_nm[k]), 27.0)

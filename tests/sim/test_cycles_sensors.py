@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ddh_vsensor.errors import UserError
-from ddh_vsensor.sim.cycles import load_profile_csv, paper_cycle
+from ddh_vsensor.sim.cycles import dig_dump_cycle, load_profile_csv, paper_cycle, random_cycle
 from ddh_vsensor.sim.sensors import hall_switch, lagged, quantise
 
 
@@ -89,3 +89,36 @@ def test_quantise_and_lag():
     np.testing.assert_array_equal(q * 16, np.round(q * 16))
     t = np.arange(5) * 0.1
     np.testing.assert_allclose(lagged(t, t * 10, 0.2), [0, 0, 0, 1, 2])
+
+
+def test_dig_dump_cycle_presses_the_bucket_into_both_end_stops(cfg):
+    p = dig_dump_cycle(cfg, 4, cycles=3)
+    stroke = cfg.unit("bucket").stroke_mm
+    t = np.arange(0.0, p.duration_s, 0.01)
+    x, _ = p.evaluate("bucket", t)
+    boom, _ = p.evaluate("boom", t)
+    beyond_top, beyond_bottom = x > stroke, x < 0.0
+    assert beyond_top.any() and beyond_bottom.any() and (boom < 0.0).any()
+    # several contacts per cycle, each held a while: the rod is pressed, not just touched
+    assert np.count_nonzero(np.diff(beyond_top.astype(int)) == 1) == 2 * 3
+    assert np.count_nonzero(beyond_top) * 0.01 > 3 * 1.0
+    assert p.duration_s == pytest.approx(3 * p.cycle_s)
+    with pytest.raises(UserError):
+        dig_dump_cycle(cfg, 5)
+
+
+def test_random_cycles_are_seeded_and_reach_the_end_stops(cfg):
+    a, b = random_cycle(cfg, 7), random_cycle(cfg, 7)
+    for name in ("boom", "bucket"):
+        assert np.array_equal(a.trajectories[name].position_mm,
+                              b.trajectories[name].position_mm)
+    contacts = 0
+    for seed in range(5):
+        p = random_cycle(cfg, seed, duration_s=60.0)
+        for name in ("boom", "bucket"):
+            xk = p.trajectories[name].position_mm
+            stroke = cfg.unit(name).stroke_mm
+            contacts += np.count_nonzero((xk < 0.0) | (xk > stroke))
+            assert 0.0 <= xk[-1] <= stroke                 # ends off the stops
+        assert p.duration_s == pytest.approx(60.0, abs=2.0)
+    assert contacts >= 5

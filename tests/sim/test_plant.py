@@ -183,3 +183,21 @@ def test_speed_limit_holds_the_motor_at_the_limit(cfg):
     np.testing.assert_allclose(plant.n, [6000.0, -6000.0, 6000.0], rtol=1e-12)
     assert np.all(np.abs(plant.torque) < 60.0)
     assert plant.unconverged_steps == 0
+
+
+@pytest.mark.parametrize("torque_nm", [-20.0, 0.0, 30.0, 90.0])
+def test_an_impact_at_the_top_end_stays_there(cfg, torque_nm):
+    """Rods reaching the top end at speed, whatever the motor does meanwhile, stop at the top
+    (an impact meets the nearer end, never the other one)."""
+    bucket = DDHUnit.from_config(cfg, "bucket")
+    speeds = np.array([500.0, 1500.0, 2500.0, 4000.0])
+    plant = Plant([RowSpec(bucket, 0.0)] * 4, 1e-3)
+    st = steady_state(bucket, speeds, bucket.load_force_n(0.0), T)
+    plant.set_state(np.full(4, 0.845), speeds, st.p_a_pa, st.p_b_pa, st.velocity_m_s)
+    mu = bucket.oil.dynamic_viscosity_pa_s(np.full(4, T))
+    lowest = np.full(4, np.inf)
+    for _ in range(400):
+        plant.step(np.full(4, torque_nm), mu)
+        lowest = np.minimum(lowest, plant.x)
+    assert np.all(lowest >= 0.84)
+    assert np.all(plant.x > 0.8)

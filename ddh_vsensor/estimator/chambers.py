@@ -7,7 +7,7 @@ model drops that assumption. Per sample it solves, by backward Euler over the sa
     tau - J d(omega)/dt  = k_A p_A + k_B p_B                       (pump torque at the motor)
 
 for the rod velocity v and both gauge pressures, with C_s = V_s(x) / beta_eff(p) the chamber's
-compliance (oil-air mixture law, :mod:`.air`) and V_s the chamber plus dead volume. Every other
+compliance (oil-air mixture law, ``physics.air``) and V_s the chamber plus dead volume. Every other
 element (pump flow and leakage, valve characteristics, torque gains with their efficiencies)
 is the one of ``physics/``, so with h -> infinity each step is exactly the tables' steady
 state. No load model is needed: the measured torque closes the system.

@@ -1,0 +1,138 @@
+/* The compressible-chamber step of the estimator's `dynamic` mode (see chambers.py).
+ *
+ * One sample: backward Euler over the step h for both gauge chamber pressures and the rod
+ * velocity, closed by the measured torque; valve regimes from the last step first, all
+ * sixteen when that is inconsistent. `run` is the same step over a whole log, so the online
+ * and the offline faces share one arithmetic. Layouts of P (parameters) and S (state) are
+ * fixed by the P_* / S_* indices below and mirrored in chambers.py.
+ */
+#include <math.h>
+
+enum {
+    P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
+    P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S,
+    P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
+    P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
+};
+enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_SIZE };
+
+int chambers_sizes(int which) { return which == 0 ? P_SIZE : S_SIZE; }
+
+static int regime(double dp, double crack, double relief)
+{
+    return (dp >= crack) + (dp >= 0.0) + (dp > relief);
+}
+
+static void attempt(const double *P, int ra, int rb, double fa, double fb, double da,
+                    double db, double torque, int d, double *pa, double *pb, double *v)
+{
+    double den_a = da + P[P_G_A + ra], den_b = db + P[P_G_B + rb];
+    double al_a = (fa + P[P_GE_A + ra]) / den_a, be_a = -P[P_AREA_A] / den_a;
+    double al_b = (fb + P[P_GE_B + rb]) / den_b, be_b = P[P_AREA_B] / den_b;
+    double k_a = P[P_K_A + 4 * d + ra], k_b = P[P_K_B + 4 * d + rb];
+    *v = (torque - k_a * al_a - k_b * al_b) / (k_a * be_a + k_b * be_b);
+    *pa = al_a + be_a * *v;
+    *pb = al_b + be_b * *v;
+}
+
+static double outside(double p, int r, double crack, double relief)
+{
+    double lo = r == 0 ? -INFINITY : r == 1 ? crack : r == 2 ? 0.0 : relief;
+    double hi = r == 0 ? crack : r == 1 ? 0.0 : r == 2 ? relief : INFINITY;
+    return (p < lo ? lo - p : 0.0) + (p > hi ? p - hi : 0.0);
+}
+
+/* Pressures and velocity for inflows f at zero pressure and conductances d; regimes *ra, *rb
+ * are the first guess and come back as the consistent ones. */
+static void solve(const double *P, double fa, double fb, double da, double db, double torque,
+                  int d, int *ra, int *rb, double *pa, double *pb, double *v)
+{
+    double crack = P[P_CRACK], rel_a = P[P_RELIEF_A], rel_b = P[P_RELIEF_B];
+    attempt(P, *ra, *rb, fa, fb, da, db, torque, d, pa, pb, v);
+    if (regime(*pa, crack, rel_a) == *ra && regime(*pb, crack, rel_b) == *rb)
+        return;
+    double best = INFINITY;
+    int best_a = 0, best_b = 0;
+    for (int i = 0; i < 4; i++)
+        for (int j = 0; j < 4; j++) {
+            double qa, qb, qv;
+            attempt(P, i, j, fa, fb, da, db, torque, d, &qa, &qb, &qv);
+            double out = outside(qa, i, crack, rel_a) + outside(qb, j, crack, rel_b);
+            if (out < best) {
+                best = out; best_a = i; best_b = j; *pa = qa; *pb = qb; *v = qv;
+            }
+        }
+    *ra = best_a;
+    *rb = best_b;
+}
+
+static int direction(double n) { return n > 0.0 ? 2 : n < 0.0 ? 0 : 1; }
+
+/* The steady state at this speed and (pump) torque: the step with no compliance. */
+static void settle(const double *P, double *S, double n, double torque, double mu)
+{
+    int ra = (int)S[S_SA], rb = (int)S[S_SB];
+    double pa, pb, v;
+    solve(P, P[P_Q_A] * n, P[P_Q_B] * n, P[P_LEAK_A] / mu, P[P_LEAK_B] / mu, torque,
+          direction(n), &ra, &rb, &pa, &pb, &v);
+    S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v;
+    S[S_RA] = S[S_SA] = ra; S[S_RB] = S[S_SB] = rb;
+}
+
+/* One sample h seconds after the last; returns the rod velocity (m/s). A first sample, and
+ * one after a gap longer than max_gap_s, starts settled and does not move the rod. */
+double chambers_step(const double *P, double *S, double h, double n, double tau, double mu)
+{
+    if (S[S_STARTED] == 0.0 || !(h > 0.0) || h > P[P_MAX_GAP_S]) {
+        if (S[S_STARTED] == 0.0 || h > 0.0) {
+            settle(P, S, n, tau, mu);
+            S[S_N] = n; S[S_TAU] = tau; S[S_STARTED] = 1.0;
+        }
+        return S[S_V];
+    }
+    double pa = S[S_PA], pb = S[S_PB], x = S[S_X], stroke = P[P_STROKE];
+    double xv = x < 0.0 ? 0.0 : x > stroke ? stroke : x;
+    /* The speed's backward difference is the rotor's mean acceleration over the step: it
+     * pairs with the step's mean motor torque. */
+    double torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / h;
+    double ga = P[P_LEAK_A] / mu, gb = P[P_LEAK_B] / mu;
+    double ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h);
+    double cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h);
+    double fa = P[P_Q_A] * n + ca * pa, fb = P[P_Q_B] * n + cb * pb;
+    double da = ca + ga, db = cb + gb;
+    /* pumping or motoring: over the step, as the mean torque (a reversal within the step
+     * would otherwise switch the efficiencies a whole step early) */
+    int d = direction(n + S[S_N]);
+    if (P[P_BLEND_S] > 0.0) {
+        /* pulled towards the steady state with time constant blend_s (model errors) */
+        int sa = (int)S[S_SA], sb = (int)S[S_SB];
+        double qa, qb, qv;
+        solve(P, P[P_Q_A] * n, P[P_Q_B] * n, ga, gb, torque, d, &sa, &sb, &qa, &qb, &qv);
+        S[S_SA] = sa; S[S_SB] = sb;
+        double ka = ca * h / P[P_BLEND_S], kb = cb * h / P[P_BLEND_S];
+        fa += ka * qa; fb += kb * qb; da += ka; db += kb;
+    }
+    int ra = (int)S[S_RA], rb = (int)S[S_RB];
+    double v;
+    solve(P, fa, fb, da, db, torque, d, &ra, &rb, &pa, &pb, &v);
+    /* A rod the pumps press into its end stop does not move: the flow goes over the relief
+     * valve, where a fraction of a bar of pressure error would read as travel. */
+    if ((x <= 0.0 && n < 0.0) || (x >= stroke && n > 0.0))
+        v = 0.0;
+    double x_new = x + 0.5 * h * (S[S_V] + v);
+    S[S_X] = x_new < 0.0 ? 0.0 : x_new > stroke ? stroke : x_new;
+    S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n; S[S_TAU] = tau;
+    S[S_RA] = ra; S[S_RB] = rb;
+    return v;
+}
+
+/* The step over a whole log: t, n, tau, mu in; v (m/s) out. */
+void chambers_run(const double *P, double *S, long count, const double *t, const double *n,
+                  const double *tau, const double *mu, double *v, double t_last)
+{
+    for (long k = 0; k < count; k++) {
+        double h = S[S_STARTED] == 0.0 ? 0.0 : t[k] - t_last;
+        v[k] = chambers_step(P, S, h, n[k], tau[k], mu[k]);
+        t_last = t[k];
+    }
+}

@@ -1,0 +1,274 @@
+"""The estimator's `dynamic` mode: the chamber pressures as states, for the 1 kHz step.
+
+The movement tables hold steady states; where the chamber pressures take long to settle
+(cold oil: the leakage that settles them is small) the table's velocity is off for as long as
+they do. This model keeps both gauge pressures as states and, per sample, solves by backward
+Euler over the sample step h
+
+    C_s (p_s - p_s') / h = q_s(n) - g_s(mu) p_s + q_valves,s(p_s) - sign_s A_s v  (s = A, B)
+    (tau + tau') / 2 - J (omega - omega') / h = k_A p_A + k_B p_B
+
+with C_s = V_s(x) / beta the chamber's compliance (chamber plus dead volume of the
+configuration; no air) and every other element (pump flow, laminar leakage, valves, torque
+gains with their efficiencies) the one of ``physics/``: with h -> infinity a step is exactly
+the tables' steady state, and the first sample (and one after an input gap) starts there.
+
+Model errors: a wrong pump parameter moves the steady state the pressures settle to, it
+cannot run away — the valves bound every pressure, and leakage pulls it back with the time
+constant C/g. A rod the pumps press into its end stop (the model's own position at the
+stroke end, the motor driving towards it) does not move: its pumps' flow goes over the relief
+valve, where a fraction of a bar of pressure error would otherwise read as travel. ``blend_s`` > 0 adds a pull towards the steady state with that time constant
+(a virtual leakage C/blend_s); ``estimator.dynamic_blend_s`` in the configuration says which
+value was chosen and why.
+
+The step is compiled C (``_chambers.c``, built once with the system's C compiler and cached):
+the online face calls it per sample, the offline face runs the same function over a whole
+log, so both share one arithmetic. Without a compiler the same step runs in Python
+(:func:`_py_step`), slower but equal.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import math
+import os
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ..physics.oil import Oil
+from ..physics.unit import DDHUnit
+
+RPM_RAD_S = 2.0 * math.pi / 60.0
+_SOURCE = Path(__file__).with_name("_chambers.c")
+_P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valve regime
+# indices of the parameter and state vectors (the P_* / S_* enums of _chambers.c)
+(P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
+ P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S) = range(16)
+P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 16, 20, 24, 28, 32, 44, 56
+S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_SIZE = range(12)
+
+
+def _library() -> ctypes.CDLL | None:
+    """The compiled step, built on first use into a per-user cache; None without a compiler."""
+    source = _SOURCE.read_bytes()
+    tag = hashlib.sha256(source).hexdigest()[:16]
+    dirs = [Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "ddh-vsensor",
+            Path(tempfile.gettempdir()) / f"ddh-vsensor-{os.getuid()}"]
+    for d in dirs:
+        lib = d / f"chambers-{tag}.so"
+        try:
+            if not lib.exists():
+                d.mkdir(parents=True, exist_ok=True)
+                tmp = d / f".chambers-{tag}-{os.getpid()}.so"
+                subprocess.run([os.environ.get("CC", "cc"), "-O2", "-shared", "-fPIC",
+                                "-o", str(tmp), str(_SOURCE), "-lm"], check=True,
+                               capture_output=True, timeout=120)
+                os.replace(tmp, lib)
+            cdll = ctypes.CDLL(str(lib))
+        except (OSError, subprocess.SubprocessError):
+            continue
+        if cdll.chambers_sizes(0) != P_SIZE or cdll.chambers_sizes(1) != S_SIZE:
+            raise RuntimeError(f"{lib}: layout differs from dynamic.py")
+        ptr, dbl = ctypes.c_void_p, ctypes.c_double
+        cdll.chambers_step.argtypes = [ptr, ptr, dbl, dbl, dbl, dbl]
+        cdll.chambers_step.restype = dbl
+        cdll.chambers_run.argtypes = [ptr, ptr, ctypes.c_long, ptr, ptr, ptr, ptr, ptr, dbl]
+        cdll.chambers_run.restype = None
+        return cdll
+    return None
+
+
+_LIB: ctypes.CDLL | None | bool = False
+
+
+def library() -> ctypes.CDLL | None:
+    global _LIB
+    if _LIB is False:
+        _LIB = _library()
+    return _LIB  # type: ignore[return-value]
+
+
+def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
+               ) -> np.ndarray:
+    """The step's parameter vector for one unit (SI units, speeds in motor rpm)."""
+    a, b = unit.a, unit.b
+    p = np.zeros(P_SIZE)
+    p[P_AREA_A], p[P_AREA_B] = a.area_m2, b.area_m2
+    p[P_STROKE] = unit.cylinder.stroke_m
+    p[P_DEAD_A] = p[P_DEAD_B] = unit.dead_volume_m3
+    p[P_Q_A] = float(a.pump.geometric_flow_m3_s(1.0))
+    p[P_Q_B] = float(b.pump.geometric_flow_m3_s(1.0))
+    p[P_LEAK_A], p[P_LEAK_B] = a.pump.leak_coeff_m3, b.pump.leak_coeff_m3
+    p[P_CRACK] = a.anticav.cracking_pa
+    p[P_RELIEF_A], p[P_RELIEF_B] = a.relief.setting_pa, b.relief.setting_pa
+    p[P_INERTIA] = unit.motor.inertia_kg_m2 * RPM_RAD_S if inertia else 0.0
+    p[P_BETA] = unit.bulk_modulus_pa
+    p[P_BLEND_S] = blend_s
+    p[P_MAX_GAP_S] = max_gap_s
+    for side, g, ge, k in ((a, P_G_A, P_GE_A, P_K_A), (b, P_G_B, P_GE_B, P_K_B)):
+        g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
+        g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
+        p[g:g + 4] = (g_ac, 0.0, 0.0, g_rv)
+        p[ge:ge + 4] = (g_ac * cr, 0.0, 0.0, g_rv * st)
+        p[k:k + 12] = np.concatenate([side.pump.torque_gain_nm_per_pa(_P_SIGN, d)
+                                      for d in (-1.0, 0.0, 1.0)])
+    return p
+
+
+class DynamicModel:
+    """One unit's chamber state and its step; positions in mm, velocities in mm/s."""
+
+    def __init__(self, unit: DDHUnit, position_mm: float, *, inertia: bool = True,
+                 blend_s: float = 0.0, max_gap_s: float = math.inf,
+                 use_compiled: bool = True) -> None:
+        if not blend_s >= 0.0:
+            raise ValueError(f"blend time constant must be >= 0 s, got {blend_s!r}")
+        self.oil: Oil = unit.oil
+        self.params = parameters(unit, inertia=inertia, blend_s=blend_s, max_gap_s=max_gap_s)
+        self.state = np.zeros(S_SIZE)
+        self.state[S_X] = position_mm * 1e-3
+        self.state[S_RA] = self.state[S_RB] = self.state[S_SA] = self.state[S_SB] = 2.0
+        self._lib = library() if use_compiled else None
+        self._p_list = self.params.tolist()
+        self._p_ptr = self.params.ctypes.data
+        self._s_ptr = self.state.ctypes.data
+        self._temp_c = math.nan
+        self._mu = math.nan
+
+    @property
+    def compiled(self) -> bool:
+        return self._lib is not None
+
+    @property
+    def pressures_bar(self) -> tuple[float, float]:
+        """Gauge chamber pressures A and B (bar), as the model holds them."""
+        return float(self.state[S_PA]) * 1e-5, float(self.state[S_PB]) * 1e-5
+
+    def set_position(self, position_mm: float) -> None:
+        """The rod is known to be here (preset, restore): chamber volumes follow it."""
+        self.state[S_X] = position_mm * 1e-3
+
+    def viscosity_pa_s(self, oil_temp_c: float) -> float:
+        if oil_temp_c != self._temp_c:
+            self._temp_c = oil_temp_c
+            self._mu = self.oil.dynamic_viscosity_scalar_pa_s(oil_temp_c)
+        return self._mu
+
+    def step(self, h_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float) -> float:
+        """One sample ``h_s`` after the last (ignored on the first): velocity in mm/s."""
+        mu = self.viscosity_pa_s(oil_temp_c)
+        if self._lib is not None:
+            return self._lib.chambers_step(self._p_ptr, self._s_ptr, h_s, speed_rpm,
+                                           torque_nm, mu) * 1e3
+        return _py_step(self._p_list, self.state, h_s, speed_rpm, torque_nm, mu) * 1e3
+
+    def run(self, time_s: ArrayLike, speed_rpm: ArrayLike, torque_nm: ArrayLike,
+            oil_temp_c: ArrayLike) -> np.ndarray:
+        """A whole log from this (fresh) state: velocity in mm/s, equal to :meth:`step`."""
+        t = np.ascontiguousarray(time_s, dtype=float)
+        n = np.ascontiguousarray(speed_rpm, dtype=float)
+        tau = np.ascontiguousarray(torque_nm, dtype=float)
+        temp = np.ascontiguousarray(oil_temp_c, dtype=float)
+        temp = np.broadcast_to(temp, t.shape) if temp.ndim == 0 else temp
+        mu = np.ascontiguousarray(self.oil.dynamic_viscosity_pa_s(temp), dtype=float)
+        v = np.empty(len(t))
+        if self._lib is not None:
+            self._lib.chambers_run(self._p_ptr, self._s_ptr, len(t), t.ctypes.data,
+                                   n.ctypes.data, tau.ctypes.data, mu.ctypes.data,
+                                   v.ctypes.data, 0.0)
+        else:
+            last = 0.0
+            for k in range(len(t)):
+                h = 0.0 if self.state[S_STARTED] == 0.0 else t[k] - last
+                v[k] = _py_step(self._p_list, self.state, h, n[k], tau[k], mu[k])
+                last = t[k]
+        if len(t):
+            self._temp_c, self._mu = float(temp[-1]), float(mu[-1])
+        return v * 1e3
+
+
+# --- the same step in Python (no compiler) ------------------------------------------------
+
+def _regime(dp: float, crack: float, relief: float) -> int:
+    return (dp >= crack) + (dp >= 0.0) + (dp > relief)
+
+
+def _attempt(P, ra, rb, fa, fb, da, db, torque, d):
+    den_a = da + P[P_G_A + ra]
+    den_b = db + P[P_G_B + rb]
+    al_a, be_a = (fa + P[P_GE_A + ra]) / den_a, -P[P_AREA_A] / den_a
+    al_b, be_b = (fb + P[P_GE_B + rb]) / den_b, P[P_AREA_B] / den_b
+    k_a, k_b = P[P_K_A + 4 * d + ra], P[P_K_B + 4 * d + rb]
+    v = (torque - k_a * al_a - k_b * al_b) / (k_a * be_a + k_b * be_b)
+    return al_a + be_a * v, al_b + be_b * v, v
+
+
+def _outside(p: float, r: int, crack: float, relief: float) -> float:
+    lo = (-math.inf, crack, 0.0, relief)[r]
+    hi = (crack, 0.0, relief, math.inf)[r]
+    return (lo - p if p < lo else 0.0) + (p - hi if p > hi else 0.0)
+
+
+def _solve(P, fa, fb, da, db, torque, d, ra, rb):
+    crack, rel_a, rel_b = P[P_CRACK], P[P_RELIEF_A], P[P_RELIEF_B]
+    pa, pb, v = _attempt(P, ra, rb, fa, fb, da, db, torque, d)
+    if _regime(pa, crack, rel_a) == ra and _regime(pb, crack, rel_b) == rb:
+        return pa, pb, v, ra, rb
+    best = math.inf
+    for i in range(4):
+        for j in range(4):
+            qa, qb, qv = _attempt(P, i, j, fa, fb, da, db, torque, d)
+            out = _outside(qa, i, crack, rel_a) + _outside(qb, j, crack, rel_b)
+            if out < best:
+                best, ra, rb, pa, pb, v = out, i, j, qa, qb, qv
+    return pa, pb, v, ra, rb
+
+
+def _direction(n: float) -> int:
+    return 2 if n > 0.0 else 0 if n < 0.0 else 1
+
+
+def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: float
+             ) -> float:
+    """``chambers_step`` of _chambers.c, line by line (``P`` the parameters as a list)."""
+    if S[S_STARTED] == 0.0 or not h > 0.0 or h > P[P_MAX_GAP_S]:
+        if S[S_STARTED] == 0.0 or h > 0.0:
+            pa, pb, v, ra, rb = _solve(P, P[P_Q_A] * n, P[P_Q_B] * n, P[P_LEAK_A] / mu,
+                                       P[P_LEAK_B] / mu, tau, _direction(n), int(S[S_SA]),
+                                       int(S[S_SB]))
+            S[S_PA], S[S_PB], S[S_V] = pa, pb, v
+            S[S_RA] = S[S_SA] = ra
+            S[S_RB] = S[S_SB] = rb
+            S[S_N], S[S_TAU], S[S_STARTED] = n, tau, 1.0
+        return float(S[S_V])
+    pa, pb, x, stroke = float(S[S_PA]), float(S[S_PB]), float(S[S_X]), P[P_STROKE]
+    xv = min(max(x, 0.0), stroke)
+    torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / h
+    ga, gb = P[P_LEAK_A] / mu, P[P_LEAK_B] / mu
+    ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h)
+    cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h)
+    fa, fb = P[P_Q_A] * n + ca * pa, P[P_Q_B] * n + cb * pb
+    da, db = ca + ga, cb + gb
+    d = _direction(n + S[S_N])
+    if P[P_BLEND_S] > 0.0:
+        qa, qb, _, sa, sb = _solve(P, P[P_Q_A] * n, P[P_Q_B] * n, ga, gb, torque, d,
+                                   int(S[S_SA]), int(S[S_SB]))
+        S[S_SA], S[S_SB] = sa, sb
+        ka, kb = ca * h / P[P_BLEND_S], cb * h / P[P_BLEND_S]
+        fa += ka * qa
+        fb += kb * qb
+        da += ka
+        db += kb
+    pa, pb, v, ra, rb = _solve(P, fa, fb, da, db, torque, d, int(S[S_RA]), int(S[S_RB]))
+    if (x <= 0.0 and n < 0.0) or (x >= stroke and n > 0.0):
+        v = 0.0
+    x_new = x + 0.5 * h * (S[S_V] + v)
+    S[S_X] = min(max(x_new, 0.0), stroke)
+    S[S_PA], S[S_PB], S[S_V], S[S_N], S[S_TAU] = pa, pb, v, n, tau
+    S[S_RA], S[S_RB] = ra, rb
+    return v
