@@ -21,20 +21,18 @@ valve, where a fraction of a bar of pressure error would otherwise read as trave
 (a virtual leakage C/blend_s); ``estimator.dynamic_blend_s`` in the configuration says which
 value was chosen and why.
 
-The step is compiled C (``_chambers.c``, built once with the system's C compiler and cached):
-the online face calls it per sample, the offline face runs the same function over a whole
-log, so both share one arithmetic. Without a compiler the same step runs in Python
-(:func:`_py_step`), slower but equal.
+The step is compiled C (``_chambers.c``, built with the package as an optional extension and
+loaded with ctypes): the online face calls it per sample, the offline face runs the same
+function over a whole log, so both share one arithmetic. Where the install had no C compiler
+the same step runs in Python (:func:`_py_step`), slower but equal.
 """
 
 from __future__ import annotations
 
 import ctypes
-import hashlib
+import importlib.machinery
+import logging
 import math
-import os
-import subprocess
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -43,8 +41,9 @@ from numpy.typing import ArrayLike
 from ..physics.oil import Oil
 from ..physics.unit import DDHUnit
 
+log = logging.getLogger(__name__)
+
 RPM_RAD_S = 2.0 * math.pi / 60.0
-_SOURCE = Path(__file__).with_name("_chambers.c")
 _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valve regime
 # indices of the parameter and state vectors (the P_* / S_* enums of _chambers.c)
 (P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
@@ -54,33 +53,25 @@ S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_SIZE = ra
 
 
 def _library() -> ctypes.CDLL | None:
-    """The compiled step, built on first use into a per-user cache; None without a compiler."""
-    source = _SOURCE.read_bytes()
-    tag = hashlib.sha256(source).hexdigest()[:16]
-    dirs = [Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "ddh-vsensor",
-            Path(tempfile.gettempdir()) / f"ddh-vsensor-{os.getuid()}"]
-    for d in dirs:
-        lib = d / f"chambers-{tag}.so"
-        try:
-            if not lib.exists():
-                d.mkdir(parents=True, exist_ok=True)
-                tmp = d / f".chambers-{tag}-{os.getpid()}.so"
-                subprocess.run([os.environ.get("CC", "cc"), "-O2", "-shared", "-fPIC",
-                                "-o", str(tmp), str(_SOURCE), "-lm"], check=True,
-                               capture_output=True, timeout=120)
-                os.replace(tmp, lib)
-            cdll = ctypes.CDLL(str(lib))
-        except (OSError, subprocess.SubprocessError):
-            continue
-        if cdll.chambers_sizes(0) != P_SIZE or cdll.chambers_sizes(1) != S_SIZE:
-            raise RuntimeError(f"{lib}: layout differs from dynamic.py")
-        ptr, dbl = ctypes.c_void_p, ctypes.c_double
-        cdll.chambers_step.argtypes = [ptr, ptr, dbl, dbl, dbl, dbl]
-        cdll.chambers_step.restype = dbl
-        cdll.chambers_run.argtypes = [ptr, ptr, ctypes.c_long, ptr, ptr, ptr, ptr, ptr, dbl]
-        cdll.chambers_run.restype = None
-        return cdll
-    return None
+    """The compiled step, built with the package (an optional extension of pyproject.toml);
+    None where it could not be built. Only the package's own directory is searched: a
+    library loaded from a writable cache or /tmp could be planted by another user."""
+    here = Path(__file__).parent
+    found = [here / f"_chambers{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES]
+    lib = next((f for f in found if f.is_file()), None)
+    if lib is None:
+        log.warning("dynamic mode: the compiled chamber step was not built with this install "
+                    "(no C compiler?); using the Python step (~50 us per sample, equal results)")
+        return None
+    cdll = ctypes.CDLL(str(lib))
+    if cdll.chambers_sizes(0) != P_SIZE or cdll.chambers_sizes(1) != S_SIZE:
+        raise RuntimeError(f"{lib}: layout differs from dynamic.py; reinstall the package")
+    ptr, dbl = ctypes.c_void_p, ctypes.c_double
+    cdll.chambers_step.argtypes = [ptr, ptr, dbl, dbl, dbl, dbl]
+    cdll.chambers_step.restype = dbl
+    cdll.chambers_run.argtypes = [ptr, ptr, ctypes.c_long, ptr, ptr, ptr, ptr, ptr, dbl]
+    cdll.chambers_run.restype = None
+    return cdll
 
 
 _LIB: ctypes.CDLL | None | bool = False
