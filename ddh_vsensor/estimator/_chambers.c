@@ -91,7 +91,10 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         return S[S_V];
     }
     double pa = S[S_PA], pb = S[S_PB], x = S[S_X], stroke = P[P_STROKE];
-    double xv = x < 0.0 ? 0.0 : x > stroke ? stroke : x;
+    /* x is NaN while the rod's position is unknown (never referenced): chamber volumes at
+     * mid-stroke, and no end stop, which would otherwise be met at a made-up position */
+    int known = x == x;
+    double xv = !known ? 0.5 * stroke : x < 0.0 ? 0.0 : x > stroke ? stroke : x;
     /* The speed's backward difference is the rotor's mean acceleration over the step: it
      * pairs with the step's mean motor torque. */
     double torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / h;
@@ -117,7 +120,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     solve(P, fa, fb, da, db, torque, d, &ra, &rb, &pa, &pb, &v);
     /* A rod the pumps press into its end stop does not move: the flow goes over the relief
      * valve, where a fraction of a bar of pressure error would read as travel. */
-    if ((x <= 0.0 && n < 0.0) || (x >= stroke && n > 0.0))
+    if (known && ((x <= 0.0 && n < 0.0) || (x >= stroke && n > 0.0)))
         v = 0.0;
     double x_new = x + 0.5 * h * (S[S_V] + v);
     S[S_X] = x_new < 0.0 ? 0.0 : x_new > stroke ? stroke : x_new;

@@ -140,9 +140,10 @@ class DynamicModel:
         """Gauge chamber pressures A and B (bar), as the model holds them."""
         return float(self.state[S_PA]) * 1e-5, float(self.state[S_PB]) * 1e-5
 
-    def set_position(self, position_mm: float) -> None:
-        """The rod is known to be here (preset, restore): chamber volumes follow it."""
-        self.state[S_X] = position_mm * 1e-3
+    def set_position(self, position_mm: float | None) -> None:
+        """The rod is known to be here (preset, reference), or not known at all (None: no
+        end stop is assumed, chamber volumes at mid-stroke)."""
+        self.state[S_X] = math.nan if position_mm is None else position_mm * 1e-3
 
     def viscosity_pa_s(self, oil_temp_c: float) -> float:
         if oil_temp_c != self._temp_c:
@@ -159,8 +160,9 @@ class DynamicModel:
         return _py_step(self._p_list, self.state, h_s, speed_rpm, torque_nm, mu) * 1e3
 
     def run(self, time_s: ArrayLike, speed_rpm: ArrayLike, torque_nm: ArrayLike,
-            oil_temp_c: ArrayLike) -> np.ndarray:
-        """A whole log from this (fresh) state: velocity in mm/s, equal to :meth:`step`."""
+            oil_temp_c: ArrayLike, t_last_s: float = 0.0) -> np.ndarray:
+        """A log from this state (``t_last_s``: the previous sample's time when it continues
+        one): velocity in mm/s, equal to :meth:`step`."""
         t = np.ascontiguousarray(time_s, dtype=float)
         n = np.ascontiguousarray(speed_rpm, dtype=float)
         tau = np.ascontiguousarray(torque_nm, dtype=float)
@@ -171,9 +173,9 @@ class DynamicModel:
         if self._lib is not None:
             self._lib.chambers_run(self._p_ptr, self._s_ptr, len(t), t.ctypes.data,
                                    n.ctypes.data, tau.ctypes.data, mu.ctypes.data,
-                                   v.ctypes.data, 0.0)
+                                   v.ctypes.data, t_last_s)
         else:
-            last = 0.0
+            last = t_last_s
             for k in range(len(t)):
                 h = 0.0 if self.state[S_STARTED] == 0.0 else t[k] - last
                 v[k] = _py_step(self._p_list, self.state, h, n[k], tau[k], mu[k])
@@ -238,7 +240,8 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             S[S_N], S[S_TAU], S[S_STARTED] = n, tau, 1.0
         return float(S[S_V])
     pa, pb, x, stroke = float(S[S_PA]), float(S[S_PB]), float(S[S_X]), P[P_STROKE]
-    xv = min(max(x, 0.0), stroke)
+    known = x == x                                      # NaN: position unknown
+    xv = min(max(x, 0.0), stroke) if known else 0.5 * stroke
     torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / h
     ga, gb = P[P_LEAK_A] / mu, P[P_LEAK_B] / mu
     ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h)
@@ -256,10 +259,10 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         da += ka
         db += kb
     pa, pb, v, ra, rb = _solve(P, fa, fb, da, db, torque, d, int(S[S_RA]), int(S[S_RB]))
-    if (x <= 0.0 and n < 0.0) or (x >= stroke and n > 0.0):
+    if known and ((x <= 0.0 and n < 0.0) or (x >= stroke and n > 0.0)):
         v = 0.0
     x_new = x + 0.5 * h * (S[S_V] + v)
-    S[S_X] = min(max(x_new, 0.0), stroke)
+    S[S_X] = min(max(x_new, 0.0), stroke) if known else math.nan
     S[S_PA], S[S_PB], S[S_V], S[S_N], S[S_TAU] = pa, pb, v, n, tau
     S[S_RA], S[S_RB] = ra, rb
     return v

@@ -155,17 +155,23 @@ class Estimator:
         return flags
 
     def _reference(self, sw: Switch, rising: bool, snap: _Snapshot, x_now: float,
-                   index: int) -> tuple[float, ReferenceEvent]:
-        """Apply an accepted edge: returns the corrected position and what happened."""
+                   s_now: tuple[float, float], index: int) -> tuple[float, ReferenceEvent]:
+        """Apply an accepted edge: returns the corrected position and what happened.
+        ``s_now`` holds the raw travel sums (up, down) at acceptance."""
+        if not self.referenced:
+            # A cold estimate may sit clipped at a soft limit while the rod moves on through
+            # the debounce time: take that travel unclipped, or the clipping is published.
+            g_up, g_down = self.gain.gain
+            x_now = snap.x + g_up * (s_now[0] - snap.s_up) + g_down * (s_now[1] - snap.s_down)
         p = sw.edge_position_mm(rising, snap.v, snap.x)
         # The switch changed state somewhere within the edge sample's travel dx, at any moment
         # alike: the estimate at the crossing is, on average, x - dx/2 (at speed, dx is
         # millimetres: taking x itself would bias every edge met in motion by half of it).
         error = snap.x - 0.5 * snap.dx - p
         # Within +-dx/2 the error is no evidence against the model, and learning from it
-        # only fits sampling noise. An
-        # estimate that was not referenced (cold start, restore) carries an unknown offset,
-        # not the model's travel error: its first edge only sets the position.
+        # only fits sampling noise. An estimate that was not referenced (cold start, restore)
+        # carries an unknown offset, not the model's travel error: its first edge only sets
+        # the position.
         adapted = (self.referenced and abs(error) > 0.5 * abs(snap.dx) and self.gain.update(
             error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1]))
         self.s_ref = (snap.s_up, snap.s_down)
@@ -232,7 +238,9 @@ class Estimator:
                     accepted.append((sw, edge[1], on.snapshots[i]))
             for sw, rising, snap in accepted:
                 self.position_mm, _ = self._reference(sw, rising, snap, self.position_mm,
-                                                      on.index)
+                                                      (on.s_up, on.s_down), on.index)
+                if self.dynamic is not None:
+                    self.dynamic.set_position(self.position_mm)
         flags = self.state_flags()
         if stale:
             flags |= FLAG_STALE
@@ -253,24 +261,42 @@ class Estimator:
         dt = np.diff(t)
         valid = (dt > 0.0) & (dt <= self.max_gap_s)
         speed = np.asarray(speed_rpm, dtype=float)
-        if self.dynamic is not None:
-            v = self.dynamic.run(t, speed, torque_nm, np.broadcast_to(oil_temp_c, t.shape))
+        stale = np.zeros(n, dtype=bool)
+        stale[1:] = ~valid & (dt > 0.0)
+        v, dx_raw, hold_dt, s_up, s_down = (np.zeros(n) for _ in range(5))
+
+        def integrate(lo: int, hi: int) -> None:
+            """Travel of samples lo..hi-1 from their velocities (and v[lo - 1])."""
+            a = max(lo, 1)
+            dx_raw[a:hi] = np.where(valid[a - 1:hi - 1],
+                                    0.5 * (v[a - 1:hi - 1] + v[a:hi]) * dt[a - 1:hi - 1], 0.0)
+            hold_dt[a:hi] = np.where(valid[a - 1:hi - 1],
+                                     np.where(np.abs(v[a:hi]) < HOLD_SPEED_MM_S,
+                                              dt[a - 1:hi - 1], 0.0),
+                                     np.maximum(dt[a - 1:hi - 1], 0.0))
+            up0, down0 = (s_up[lo - 1], s_down[lo - 1]) if lo else (0.0, 0.0)
+            s_up[lo:hi] = up0 + np.cumsum(np.maximum(dx_raw[lo:hi], 0.0))
+            s_down[lo:hi] = down0 + np.cumsum(np.minimum(dx_raw[lo:hi], 0.0))
+
+        dynamic = self.dynamic
+        if dynamic is not None:
+            # The chamber model's rod follows every reference (end stops, volumes), so it
+            # runs segment by segment, up to each accepted edge, as step() does.
             clamped = np.zeros(n, dtype=bool)
+            torque = np.asarray(torque_nm, dtype=float)
+            temp = np.broadcast_to(np.asarray(oil_temp_c, dtype=float), t.shape)
+
+            def advance(lo: int, hi: int) -> None:
+                v[lo:hi] = dynamic.run(t[lo:hi], speed[lo:hi], torque[lo:hi], temp[lo:hi],
+                                       t_last_s=float(t[lo - 1]) if lo else 0.0)
+                integrate(lo, hi)
         else:
             pump_torque = np.array(torque_nm, dtype=float)
             safe_dt = np.where(valid, dt, 1.0)
             pump_torque[1:] -= np.where(valid, self.inertia_nm_per_rpm_s * np.diff(speed)
                                         / safe_dt, 0.0)
-            v, clamped = self.model.velocity_many(speed, pump_torque, oil_temp_c)
-        dx_raw = np.zeros(n)
-        dx_raw[1:] = np.where(valid, 0.5 * (v[:-1] + v[1:]) * dt, 0.0)
-        hold_dt = np.zeros(n)
-        hold_dt[1:] = np.where(valid, np.where(np.abs(v[1:]) < HOLD_SPEED_MM_S, dt, 0.0),
-                               np.maximum(dt, 0.0))
-        stale = np.zeros(n, dtype=bool)
-        stale[1:] = ~valid & (dt > 0.0)
-        s_up = np.cumsum(np.maximum(dx_raw, 0.0))
-        s_down = np.cumsum(np.minimum(dx_raw, 0.0))
+            v[:], clamped = self.model.velocity_many(speed, pump_torque, oil_temp_c)
+            integrate(0, n)
 
         events = []
         for order, sw in enumerate(self.switches):
@@ -290,6 +316,8 @@ class Estimator:
         x_start = start
         for k, _, c, rising, sw in events + [(n - 1, -1, -1, False, None)]:
             if k >= i:
+                if dynamic is not None:
+                    advance(i, k + 1)
                 dx = self.gain.scale_many(dx_raw[i:k + 1])
                 x[i:k + 1], _ = bounded_cumsum(start, dx, self.lower_mm, self.upper_mm)
                 travel = self.travel_mm + np.cumsum(np.abs(dx))
@@ -306,7 +334,10 @@ class Estimator:
             x_before = float(x[c - 1]) if c > 0 else x_start
             snap = _Snapshot(c, x_c, x_c - x_before, float(v[c]), float(s_up[c]),
                              float(s_down[c]))
-            x[k], event = self._reference(sw, rising, snap, float(x[k]), k)
+            x[k], event = self._reference(sw, rising, snap, float(x[k]),
+                                         (float(s_up[k]), float(s_down[k])), k)
+            if dynamic is not None:
+                dynamic.set_position(float(x[k]))
             u[k] = self.uncertainty_mm
             not_ref[k] = False
             adapting[k] = self.gain.active
@@ -345,7 +376,9 @@ class Estimator:
         """Carry on from a saved state: trusted for position, flagged until a reference."""
         self.position_mm = self._clip(state.position_mm)
         if self.dynamic is not None:
-            self.dynamic.set_position(self.position_mm)
+            # Not referenced: the rod may be anywhere the bound allows, so the chamber model
+            # assumes no end stop until the next reference tells where it is.
+            self.dynamic.set_position(None)
         self.u_base = state.uncertainty_mm
         self.travel_mm = self.hold_s = 0.0
         self.gain.gain = np.clip([state.gain_up, state.gain_down], 1 - self.gain.bound,

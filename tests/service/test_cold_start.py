@@ -37,8 +37,8 @@ pytestmark = pytest.mark.slow
 # The bar: the referenced accuracy (README: 0.63 mm boom / 1.09 mm bucket over 50
 # referenced cycles) with margin for a real-time replay between processes.
 COLD_START_MAX_ERROR_MM = 2.0
-# The first edge's own transient: the cold estimate's clipped travel since the edge sample
-# (see the xfail below) is corrected by the switch's other edge, 30 ms later at speed 4.
+# After the first edge's own samples, what remains is the learnt model: a gain corrupted by
+# the first edge would show on every later move.
 FIRST_EDGE_S = 0.1
 HANG_GUARD_S = 180.0          # bounds waits for processes and frames; never a speed assertion
 
@@ -172,12 +172,6 @@ def cold_run(cfg, paper_cycle, hub_url, tmp_path_factory) -> dict[str, Published
     return out
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "measured 4.85 mm (bucket) for the 30 ms between its first edge and the next: the cold "
-    "estimate sits clipped at 0 mm, so the travel between the edge sample and its debounced "
-    "acceptance (15-20 ms at 196 mm/s) is clipped away and the edge's position is published "
-    "without it; Estimator._reference adds the clipped x_now - snap.x (estimator/, not this "
-    "test's to change)"))
 def test_cold_start_error_from_the_first_reference_on(cold_run) -> None:
     for actuator, p in cold_run.items():
         worst = float(np.max(np.abs(p.error_mm)))
