@@ -13,7 +13,7 @@ import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.cli.main import main
-from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED, FLAG_STALE
+from ddh_vsensor.estimator.estimator import FLAG_CONTROLLER, FLAG_NOT_REFERENCED, FLAG_STALE
 from ddh_vsensor.estimator.state import EstimatorState, save_state
 from ddh_vsensor.service import ServiceOptions
 
@@ -35,7 +35,9 @@ def _boom(service):
     return service.published(service.units["boom"])
 
 
-def test_lost_and_non_operational_controller_mark_the_unit_stale(cfg, unit_tables) -> None:
+def test_controller_heartbeat_raises_a_flag_and_never_discards_motion(cfg, unit_tables) -> None:
+    """Consumed by configuration (boom: node 1, bucket: node 2): not OPERATIONAL or lost sets
+    FLAG_CONTROLLER; the frames are integrated all the same, nothing is stale for it."""
     channel = channel_name()
     codec = FrameCodec(cfg)
 
@@ -48,28 +50,53 @@ def test_lost_and_non_operational_controller_mark_the_unit_stale(cfg, unit_table
                 feeder.send(codec.encode_oil_temp(30.0, t0))
                 await _feed(feeder, codec, t0, 0, 15, heartbeat=5)
                 ok = _boom(service)
-                # pre-operational: frames keep coming, the unit is stale, position held
-                await _feed(feeder, codec, t0, 15, 15, heartbeat=127)
+                await _feed(feeder, codec, t0, 15, 15, heartbeat=127)     # pre-operational
                 preop = _boom(service)
-                held = service.units["boom"].held
-                # heartbeat lost altogether (frames without heartbeats)
                 await _feed(feeder, codec, t0, 30, 10, heartbeat=5)
-                await _feed(feeder, codec, t0, 40, 50)
+                await _feed(feeder, codec, t0, 40, 50)                     # heartbeat lost
                 lost = _boom(service)
-                lost_why = service.stale(service.units["boom"])[1]
+                lost_why = service.units["boom"].heartbeat.status()[1]
                 await _feed(feeder, codec, t0, 90, 10, heartbeat=5)
                 back = _boom(service)
                 bucket = service.published(service.units["bucket"])
+                unit = service.units["boom"]
             finally:
                 feeder.shutdown()
-            return ok, preop, held, lost, lost_why, back, bucket
+            return ok, preop, lost, lost_why, back, bucket, unit
 
-    ok, preop, held, lost, lost_why, back, bucket = asyncio.run(scenario())
-    assert not ok.flags & FLAG_STALE
-    assert preop.flags & FLAG_STALE and held >= 10
-    assert lost.flags & FLAG_STALE and "heartbeat lost" in lost_why
-    assert not back.flags & FLAG_STALE and back.position_mm > ok.position_mm
-    assert not bucket.flags & FLAG_STALE           # its controller sent no heartbeat at all
+    ok, preop, lost, lost_why, back, bucket, unit = asyncio.run(scenario())
+    assert not ok.flags & (FLAG_STALE | FLAG_CONTROLLER)
+    assert preop.flags & FLAG_CONTROLLER and not preop.flags & FLAG_STALE
+    assert preop.position_mm > ok.position_mm + 1.0            # integrated all the same
+    assert lost.flags & FLAG_CONTROLLER and "heartbeat lost" in lost_why
+    assert lost.position_mm > preop.position_mm + 1.0
+    assert not back.flags & (FLAG_STALE | FLAG_CONTROLLER)
+    assert unit.held == 0 and unit.integrated == 100
+    assert bucket.flags & FLAG_CONTROLLER and not bucket.flags & FLAG_STALE  # never heard
+
+
+def test_heartbeats_of_unconfigured_nodes_arm_nothing(cfg, unit_tables) -> None:
+    """Without a configured consumer a spoofed heartbeat is just an unknown frame."""
+    import dataclasses
+    quiet = dataclasses.replace(cfg, faults=dataclasses.replace(cfg.faults,
+                                                                heartbeat_node_ids={}))
+    channel = channel_name()
+    codec = FrameCodec(quiet)
+
+    async def scenario():
+        async with running_service(quiet, unit_tables, channel) as service:
+            feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            try:
+                feeder.send(codec.encode_oil_temp(30.0, 600.0))
+                await _feed(feeder, codec, 600.0, 0, 10, heartbeat=4)      # "stopped", spoofed
+                await _feed(feeder, codec, 600.0, 10, 10)
+                return _boom(service), service.units["boom"]
+            finally:
+                feeder.shutdown()
+
+    boom, unit = asyncio.run(scenario())
+    assert unit.heartbeat is None
+    assert not boom.flags & (FLAG_CONTROLLER | FLAG_STALE) and unit.integrated == 20
 
 
 def test_malformed_frames_are_counted_and_ignored(cfg, unit_tables, caplog) -> None:
