@@ -26,7 +26,9 @@ temperature, dropped from the backlog; longer than ``estimator.max_gap_s``) wide
 uncertainty by the worst travel possible in it, ``Config.max_speed_mm_s`` x its length; when
 that reaches the stroke the unit is "not referenced" until the next Hall reference. A unit is
 stale while no Sevcon frame was integrated for 3 periods (the slower of the event timer and
-the measured Sevcon period), or no oil temperature was ever received: position held,
+the measured Sevcon period), while the newest integrated frame is older than that by its own
+timestamp (when frame timestamps are this host's wall clock: frames delivered late), or no
+oil temperature was ever received: position held,
 published speed 0, published uncertainty growing at the worst-case speed (capped at the
 stroke), FLAG_STALE set. The stale flag clears with the first integrated frame after the gap,
 because that frame brings the gap's worst-case travel into the uncertainty: from then on the
@@ -60,14 +62,14 @@ from ..diagnosis.extension import Extension
 from canopen.sdo import SdoAbortedError
 
 from ..atomic import remove_temp_files
-from ..estimator.estimator import (FLAG_CLAMPED, FLAG_CONTROLLER, FLAG_NAMES, FLAG_PRESET,
-                                   FLAG_STALE, Estimator, Step)
+from ..estimator.estimator import (FLAG_CLAMPED, FLAG_CONTROLLER, FLAG_NAMES,
+                                   FLAG_NOT_REFERENCED, FLAG_PRESET, FLAG_STALE, Estimator, Step)
 from ..estimator.state import EstimatorState, load_state, save_state
 from ..tables.lookup import UnitTables
 from .bus import BusLink, exact_filters
 from .heartbeat import HeartbeatConsumer
 from .inputs import Inputs, LogLimiter, RateLimitedLog, TokenBucket
-from .node import Published, SensorNode, ServiceNetwork
+from .node import UNCERTAINTY_STEP_MM, Published, SensorNode, ServiceNetwork
 from .scheduler import Ticker
 from .sdnotify import SystemdNotifier
 
@@ -79,6 +81,13 @@ DISPATCH_SLICE_S = 0.002
 BACKLOG_UNHEALTHY_S = 1.0        # a frame waiting this long: integration is not keeping up
 BACKLOG_DROP_S = 0.5             # batches waiting longer are dropped (counted)
 STATUS_INTERVAL_S = 2.0
+# Frame timestamps within this of the wall clock are this host's clock (socketcan stamps on
+# reception; a remote hub passes the sender's time on): then the newest integrated frame's
+# own age says how old the published position is, delivery delays included.
+WALL_CLOCK_MATCH_S = 5.0
+# The largest uncertainty the diagnostic frame can carry (UINT16 counts): a bound beyond it
+# is published as "not referenced".
+UNCERTAINTY_MAX_MM = 0xFFFF * UNCERTAINTY_STEP_MM
 # canopen traffic per COB-ID (NMT, SDO requests, consumed heartbeats): rate and burst. An NMT
 # master sends a handful of commands, an SDO client one request per response, a controller
 # one heartbeat per 100 ms or slower; beyond that a frame is dropped and counted.
@@ -630,8 +639,13 @@ class Service:
         period = max(self.ticker.period_s, unit.input_period_s or 0.0)
         if unit.last_rx_s is None:
             return True, "no Sevcon frame yet"
-        if now - unit.last_rx_s > self.options.stale_periods * period:
+        limit_s = self.options.stale_periods * period
+        if now - unit.last_rx_s > limit_s:
             return True, f"no Sevcon frame for {now - unit.last_rx_s:.2f} s"
+        if unit.last_frame_t is not None:
+            age_s = time.time() - unit.last_frame_t
+            if limit_s < age_s < WALL_CLOCK_MATCH_S:
+                return True, f"the newest Sevcon frame is {age_s:.2f} s old (delivered late)"
         return False, ""
 
     def published(self, unit: Unit, now: float | None = None) -> Published:
@@ -661,6 +675,8 @@ class Service:
             self._log.info(f"back-{unit.actuator}", "%s: input back after %.2f s (%s)",
                            unit.actuator, now - unit.stale_since_s, unit.stale_reason)
             unit.stale_since_s = None
+        if u >= UNCERTAINTY_MAX_MM:
+            flags |= FLAG_NOT_REFERENCED
         counters = self.inputs.units[unit.actuator]
         return Published(est.position_mm, speed, u, flags, counters.received, counters.rejected)
 
