@@ -135,6 +135,11 @@ class Unit:
     gaps: int = 0                            # unintegrated intervals that widened the bound
     gap_widening_mm: float = 0.0             # their worst-case travel, in total
     preset_pending: bool = False             # FLAG_PRESET: until a reference confirms it
+    # After a preset or a widened gap the estimate is provisional: the estimator is kept
+    # unreferenced inside (its next reference corrects in full and teaches the gains
+    # nothing), while the flags published say what the service knows (PRESET, or nothing
+    # beyond the widened bound).
+    provisional: bool = False
     presets_accepted: int = 0
     presets_refused: int = 0
 
@@ -287,12 +292,14 @@ class Service:
         if add >= stroke or est.uncertainty_mm + add >= stroke:
             est.add_uncertainty(max(stroke - est.uncertainty_mm, 0.0))
             est.referenced = False
-            unit.preset_pending = False
+            unit.preset_pending = unit.provisional = False
             self._log.warning(f"gap-{unit.actuator}", "%s: %s: up to %.1f mm of travel not "
                               "integrated: not referenced until the next reference switch",
                               unit.actuator, why, add)
         else:
             est.add_uncertainty(add)
+            if est.referenced:
+                est.referenced, unit.provisional = False, True
             self._log.warning(f"gap-{unit.actuator}", "%s: %s: uncertainty widened by %.1f "
                               "mm (worst-case travel)", unit.actuator, why, add)
 
@@ -566,10 +573,11 @@ class Service:
                 # not integrated by the estimator: only the worst case is known
                 self._widen(unit, self.max_speed_mm_s[unit.actuator] * max(dt, 0.0),
                             f"{dt:.3f} s without integrated Sevcon frames")
-            elif dt <= 0.0 and unit.last_rx_s is not None and \
-                    now - unit.last_rx_s > est.max_gap_s:
-                # the frame's clock went back: its arrival tells how long the gap was
-                self._widen(unit, self.max_speed_mm_s[unit.actuator] * (now - unit.last_rx_s),
+            elif dt <= 0.0 and unit.last_rx_s is not None:
+                # the frame's clock went back: the estimator skips this interval; its length
+                # is the arrival gap, at least one input period
+                gap_s = max(now - unit.last_rx_s, unit.input_period_s or est.max_gap_s)
+                self._widen(unit, self.max_speed_mm_s[unit.actuator] * gap_s,
                             "Sevcon frame time went back")
         unit.first_held_t = None
         refs_before = getattr(est, "references", None)
@@ -579,13 +587,17 @@ class Service:
         unit.last_step = step
         unit.last_frame_t, unit.last_rx_s = sample.t_s, now
         unit.integrated += 1
-        referenced = (getattr(est, "references", None) != refs_before if refs_before is not None
-                      else step.uncertainty_mm < u_before - 1e-9 and est.travel_mm == 0.0)
-        if referenced:
-            unit.references += 1
+        confirmed = unit.provisional and est.referenced       # only a reference does that
+        referenced = confirmed or (
+            getattr(est, "references", None) != refs_before if refs_before is not None
+            else step.uncertainty_mm < u_before - 1e-9 and est.travel_mm == 0.0)
+        if confirmed:
+            unit.provisional = False
             if unit.preset_pending:
                 unit.preset_pending = False
                 log.info("%s: preset confirmed by a reference switch", unit.actuator)
+        if referenced:
+            unit.references += 1
             self._log.info(f"ref-{unit.actuator}", "%s: reference switch: position %.2f mm, "
                            "uncertainty %.2f mm", unit.actuator, step.position_mm,
                            step.uncertainty_mm)
@@ -621,14 +633,16 @@ class Service:
                               position_mm, refusal[1], old_mm, unit.presets_refused)
             raise SdoAbortedError(refusal[0])
         est.preset(position_mm, self.cfg.estimator.uncertainty_reference_mm)
-        unit.preset_pending = True
+        est.referenced = False                       # provisional: see Unit.provisional
+        unit.preset_pending = unit.provisional = True
         unit.presets_accepted += 1
         self._log.info(f"preset-{unit.actuator}", "%s: preset accepted: %.3f mm -> %.3f mm "
                        "(flagged until a reference switch confirms it; %d accepted so far)",
                        unit.actuator, old_mm, est.position_mm, unit.presets_accepted)
         if unit.last_step is not None:
             unit.last_step = Step(est.position_mm, unit.last_step.velocity_mm_s,
-                                  est.uncertainty_mm, estimator_flags(est))
+                                  est.uncertainty_mm,
+                                  estimator_flags(est) & ~FLAG_NOT_REFERENCED)
 
     # --- what is published -------------------------------------------------------------------
 
@@ -654,6 +668,8 @@ class Service:
         stale, why = self.stale(unit, now)
         clamped = bool(unit.last_step and unit.last_step.flags & FLAG_CLAMPED)
         flags = estimator_flags(est, clamped)
+        if unit.provisional:
+            flags &= ~FLAG_NOT_REFERENCED
         if unit.preset_pending:
             flags |= FLAG_PRESET
         if unit.heartbeat is not None and not unit.heartbeat.status(now)[0]:

@@ -265,6 +265,14 @@ def _daemon_rss(tmp_path) -> int:
     return CURRENT[0].rss_kb()   # the row's daemon
 
 
+def _assert_flood_invariant(cfg, paper, row) -> None:
+    """The invariant throughout; its teeth (unflagged outputs) before the flood, which may
+    delay frames enough on a loaded machine to flag them stale."""
+    _assert_invariant(cfg, paper, row)
+    _assert_invariant(cfg, paper, row, ["boom"], meaningful=MEANINGFUL,
+                      until_wall=row.base_wall + 5.0)
+
+
 def _max_gap(times: list[float]) -> float:
     return max((b - a for a, b in zip(times, times[1:])), default=float("inf"))
 
@@ -289,7 +297,7 @@ def test_bus_off_error_frame_flood(cfg, cfg_raw, paper, hub, tmp_path) -> None:
     assert flood.sent >= 15000
     assert len(row.daemon.log().splitlines()) < 200
     assert _max_gap(row.daemon.times("WATCHDOG=1")) < 1.0
-    _assert_invariant(cfg, paper, row, meaningful=MEANINGFUL)
+    _assert_flood_invariant(cfg, paper, row)
 
 
 def test_random_29_bit_ids_cost_no_memory(cfg, cfg_raw, paper, hub, tmp_path) -> None:
@@ -298,7 +306,7 @@ def test_random_29_bit_ids_cost_no_memory(cfg, cfg_raw, paper, hub, tmp_path) ->
     assert flood.sent >= 15000
     growth_kb = row.extra[7.4] - row.extra[5.6]    # ~14 000 random IDs after a warm-up
     assert growth_kb <= 1024, growth_kb
-    _assert_invariant(cfg, paper, row, meaningful=MEANINGFUL)
+    _assert_flood_invariant(cfg, paper, row)
 
 
 def test_endless_segmented_sdo_download_keeps_the_estimate(cfg, cfg_raw, paper, hub,
@@ -307,4 +315,4 @@ def test_endless_segmented_sdo_download_keeps_the_estimate(cfg, cfg_raw, paper, 
     download does not hold up integration or publishing."""
     row, flood = _flood_row(cfg, cfg_raw, paper, hub, tmp_path, "sdo_segments", 1000.0)
     assert flood.sent >= 2000
-    _assert_invariant(cfg, paper, row, meaningful=MEANINGFUL)
+    _assert_flood_invariant(cfg, paper, row)
