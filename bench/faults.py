@@ -266,6 +266,11 @@ def campaign(cfg: Config, tables: dict, paper: dict, n_faults: int, seed: int) -
             "campaign_wall_s": round(time.perf_counter() - started, 1)}
 
 
+def _drain(bus: can.BusABC) -> None:
+    while bus.recv(0.0) is not None:
+        pass
+
+
 def _rss_kb() -> int:
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
@@ -298,6 +303,7 @@ def soak(cfg: Config, tables: dict, paper: dict, seconds: float, flood_hz: float
                 while sent["flood"] < due:
                     bus.send(rng.choice(makers)())
                     sent["flood"] += 1
+                _drain(bus)           # a virtual bus queues every frame of the channel
                 time.sleep(0.005)
         finally:
             bus.shutdown()
@@ -319,6 +325,7 @@ def soak(cfg: Config, tables: dict, paper: dict, seconds: float, flood_hz: float
                     bus.send(can.Message(timestamp=due, arbitration_id=msg.arbitration_id,
                                          data=msg.data, is_extended_id=False))
                     sent["machine"] += 1
+                    _drain(bus)
                 lap += 1
         finally:
             bus.shutdown()

@@ -313,6 +313,12 @@ class Estimator:
         """Motion the estimator could not integrate (e.g. input lost): widen the bound."""
         self.u_base += abs(mm)
 
+    def forget_switch_states(self) -> None:
+        """After motion not integrated: a switch state that changed meanwhile is no edge at
+        a known position; the next sample sets the state afresh."""
+        for deb in self._on.debouncers:
+            deb.state, deb.candidate_since_s = None, None
+
     # --- persistence -----------------------------------------------------------------------
 
     def snapshot(self) -> EstimatorState:

@@ -289,6 +289,7 @@ class Service:
         add = min(abs(travel_mm), stroke)
         unit.gaps += 1
         unit.gap_widening_mm += add
+        est.forget_switch_states()          # a switch that changed in the gap is no edge
         if add >= stroke or est.uncertainty_mm + add >= stroke:
             est.add_uncertainty(max(stroke - est.uncertainty_mm, 0.0))
             est.referenced = False
