@@ -583,12 +583,20 @@ class Service:
         unit.first_held_t = None
         refs_before = getattr(est, "references", None)
         u_before = est.uncertainty_mm
+        was_referenced = est.referenced
         step = est.step(sample.t_s, sample.speed_rpm, sample.torque_nm, oil,
                         self.inputs.refs(unit.actuator))
         unit.last_step = step
         unit.last_frame_t, unit.last_rx_s = sample.t_s, now
         unit.integrated += 1
-        confirmed = unit.provisional and est.referenced       # only a reference does that
+        if not was_referenced and est.referenced:       # only a reference does that
+            # Taken in full from an unreferenced estimate: the edge lies somewhere within its
+            # sample, and the travel from the edge to its acceptance (debounce) came from an
+            # estimate that may have been clipped at a stroke end: that much is not known.
+            period_s = unit.input_period_s or est.max_gap_s
+            est.add_uncertainty(abs(step.velocity_mm_s)
+                                * (self.cfg.estimator.debounce_s + 2.0 * period_s))
+        confirmed = unit.provisional and est.referenced
         referenced = confirmed or (
             getattr(est, "references", None) != refs_before if refs_before is not None
             else step.uncertainty_mm < u_before - 1e-9 and est.travel_mm == 0.0)
