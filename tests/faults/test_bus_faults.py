@@ -242,31 +242,8 @@ def test_event_timers_bounded_and_timing_owned_by_the_service(cfg, cfg_raw, pape
     _assert_invariant(cfg, paper, row)
 
 
-def _flood_row(cfg, cfg_raw, paper, hub, tmp_path, kind, rate_hz, duration_s=2.5,
-               samples=None):
-    flood = Flood(hub, kind, rate_hz, duration_s)
-    box: dict = {}
-
-    def hook(t, bus):
-        if t >= 5.0 and flood.proc is None:
-            flood.start()
-        for at in samples or ():
-            if t >= at and at not in box:
-                box[at] = _daemon_rss(tmp_path)
-
-    row = run_row(hub, tmp_path, cfg, cfg_raw, paper, T0, T1, hook=hook,
-                  watchdog_usec=1_000_000)
-    flood.join()
-    row.extra.update(box)
-    return row, flood
-
-
-def _daemon_rss(tmp_path) -> int:
-    return CURRENT[0].rss_kb()   # the row's daemon
-
-
 def _assert_flood_invariant(cfg, paper, row) -> None:
-    """The invariant throughout; its teeth (unflagged outputs) before the flood, which may
+    """The invariant throughout; its teeth (unflagged outputs) before the floods, which may
     delay frames enough on a loaded machine to flag them stale."""
     _assert_invariant(cfg, paper, row)
     _assert_invariant(cfg, paper, row, ["boom"], meaningful=MEANINGFUL,
@@ -277,42 +254,44 @@ def _max_gap(times: list[float]) -> float:
     return max((b - a for a, b in zip(times, times[1:])), default=float("inf"))
 
 
-def test_nmt_reset_broadcast_flood(cfg, cfg_raw, paper, hub, tmp_path) -> None:
-    row, flood = _flood_row(cfg, cfg_raw, paper, hub, tmp_path, "nmt_reset", 2000.0)
-    assert flood.sent >= 4000
-    codec = FrameCodec(cfg)
-    pos_id = codec.ids[message_name("position", "boom")]
+# One run, one hostile participant after the other (each its own process): the table's rows
+# "NMT reset broadcast at 2000/s", "bus-off error frames at 8000/s", "random 29-bit IDs at
+# 8000/s" and "endless segmented SDO download".
+PHASES = [(5.0, "nmt_reset", 2000.0, 1.0), (6.1, "bus_off", 8000.0, 1.0),
+          (7.2, "random_ext", 8000.0, 1.2), (8.5, "sdo_segments", 1000.0, 0.8)]
+RSS_AT = (7.45, 8.4)          # random IDs: after a warm-up, and at the end
+
+
+def test_floods_of_hostile_traffic(cfg, cfg_raw, paper, hub, tmp_path) -> None:
+    floods = {kind: Flood(hub, kind, rate, duration) for _, kind, rate, duration in PHASES}
+    rss: dict[float, int] = {}
+
+    def hook(t, bus):
+        for at, kind, _, _ in PHASES:
+            if t >= at and floods[kind].proc is None:
+                floods[kind].start()
+        for at in RSS_AT:
+            if t >= at and at not in rss:
+                rss[at] = CURRENT[0].rss_kb()
+
+    row = run_row(hub, tmp_path, cfg, cfg_raw, paper, T0, 9.5, hook=hook,
+                  watchdog_usec=1_000_000)
+    for flood in floods.values():
+        flood.join()
+    assert row.exit_code == 0
+    nmt, bus_off = floods["nmt_reset"], floods["bus_off"]
+    for _, kind, rate, duration in PHASES:       # at least half the nominal rate got out
+        assert floods[kind].sent >= 0.5 * rate * duration, (kind, floods[kind].sent)
+    # NMT resets: publishing goes on (no burst of reboots holds up the tick)
+    pos_id = FrameCodec(cfg).ids[message_name("position", "boom")]
     during = [m.timestamp for m in row.frames if m.arbitration_id == pos_id
-              and flood.started_wall <= m.timestamp <= flood.ended_wall]
-    assert len(during) >= 0.5 * (flood.ended_wall - flood.started_wall) / 0.01
+              and nmt.started_wall <= m.timestamp <= nmt.ended_wall]
+    assert len(during) >= 0.5 * (nmt.ended_wall - nmt.started_wall) / 0.01
     assert _max_gap(during) < 0.5
-    pings = row.daemon.times("WATCHDOG=1")
-    assert _max_gap(pings) < 1.0
-    assert len(row.daemon.log().splitlines()) < 200
-    _assert_invariant(cfg, paper, row)
-
-
-def test_bus_off_error_frame_flood(cfg, cfg_raw, paper, hub, tmp_path) -> None:
-    row, flood = _flood_row(cfg, cfg_raw, paper, hub, tmp_path, "bus_off", 8000.0)
-    assert flood.sent >= 15000
-    assert len(row.daemon.log().splitlines()) < 200
+    # the watchdog is never starved, the log stays short
     assert _max_gap(row.daemon.times("WATCHDOG=1")) < 1.0
-    _assert_flood_invariant(cfg, paper, row)
-
-
-def test_random_29_bit_ids_cost_no_memory(cfg, cfg_raw, paper, hub, tmp_path) -> None:
-    row, flood = _flood_row(cfg, cfg_raw, paper, hub, tmp_path, "random_ext", 8000.0,
-                            samples=(5.6, 7.4))
-    assert flood.sent >= 15000
-    growth_kb = row.extra[7.4] - row.extra[5.6]    # ~14 000 random IDs after a warm-up
+    assert len(row.daemon.log().splitlines()) < 250
+    # random IDs cost no memory
+    growth_kb = rss[RSS_AT[1]] - rss[RSS_AT[0]]
     assert growth_kb <= 1024, growth_kb
-    _assert_flood_invariant(cfg, paper, row)
-
-
-def test_endless_segmented_sdo_download_keeps_the_estimate(cfg, cfg_raw, paper, hub,
-                                                          tmp_path) -> None:
-    """Bounding the download buffer is the SDO server's business; here: an endless
-    download does not hold up integration or publishing."""
-    row, flood = _flood_row(cfg, cfg_raw, paper, hub, tmp_path, "sdo_segments", 1000.0)
-    assert flood.sent >= 2000
     _assert_flood_invariant(cfg, paper, row)
