@@ -10,7 +10,6 @@ import time
 
 import can
 import canopen
-import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.estimator.estimator import (FLAG_CONTROLLER, FLAG_NOT_REFERENCED, FLAG_PRESET,
