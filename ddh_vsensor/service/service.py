@@ -79,7 +79,9 @@ STALE_PERIODS = 3.0
 DISPATCH_SLICE_FRAMES = 200      # frames per dispatcher slice before yielding to the ticks
 DISPATCH_SLICE_S = 0.002
 BACKLOG_UNHEALTHY_S = 1.0        # a frame waiting this long: integration is not keeping up
-BACKLOG_DROP_S = 0.5             # batches waiting longer are dropped (counted)
+# Batches waiting longer are dropped (counted): sooner than BACKLOG_UNHEALTHY_S would withhold
+# the watchdog.
+BACKLOG_DROP_S = 0.9
 STATUS_INTERVAL_S = 2.0
 # Frame timestamps within this of the wall clock are this host's clock (socketcan stamps on
 # reception; a remote hub passes the sender's time on): then the newest integrated frame's
