@@ -7,6 +7,7 @@ import asyncio
 import json
 import logging
 import threading
+import time
 
 import can
 import pytest
@@ -306,3 +307,65 @@ def test_bad_config_and_bad_bus_settings_exit_2(tmp_path, capsys) -> None:
     assert "bad.yaml" in capsys.readouterr().err
     assert main(["run", "--interface", "no-such-interface", "--no-state"]) == 2
     assert "no-such-interface" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("mode", ["disabled", "pre-operational only", "enabled"])
+def test_preset_modes_and_their_abort_codes(cfg, unit_tables, mode) -> None:
+    """SDO presets per ``faults.preset``; the jump bound once referenced; FLAG_PRESET until a
+    reference confirms; every one counted in the status line."""
+    import dataclasses
+
+    import canopen
+
+    from ddh_vsensor.estimator.estimator import FLAG_PRESET
+    from ddh_vsensor.service.node import EDS_PATH
+    modal = dataclasses.replace(cfg, faults=dataclasses.replace(cfg.faults, preset=mode))
+    channel = channel_name()
+    node_id = cfg.can.units["boom"].sensor_node_id
+    step = cfg.can.position_step_mm
+
+    def client() -> dict:
+        bus = can.Bus(interface="virtual", channel=channel)
+        network = canopen.Network(bus)
+        notifier = can.Notifier(bus, network.listeners, 0.1)
+        out: dict = {}
+
+        def write(name: str, mm: float) -> None:
+            try:
+                node.sdo[0x6010][1].raw = round(mm / step)
+                out[name] = "accepted"
+            except canopen.SdoAbortedError as exc:
+                out[name] = exc.code
+        try:
+            node = network.add_node(node_id, str(EDS_PATH))
+            node.sdo.RESPONSE_TIMEOUT = 2.0
+            write("operational", 100.0)
+            bus.send(can.Message(arbitration_id=0, data=[0x80, node_id], is_extended_id=False))
+            time.sleep(0.1)                                   # -> PRE-OPERATIONAL
+            write("pre-operational", 100.0)
+            write("jump", 160.0)                              # 60 mm from a referenced 100
+            write("small", 103.0)
+        finally:
+            notifier.stop(1.0)
+            bus.shutdown()
+        return out
+
+    async def scenario():
+        async with running_service(modal, unit_tables, channel) as service:
+            out = await asyncio.get_running_loop().run_in_executor(None, client)
+            return out, service.published(service.units["boom"]), service.status_line()
+
+    out, boom, status = asyncio.run(scenario())
+    if mode == "disabled":
+        assert set(out.values()) == {0x06010002}
+    elif mode == "pre-operational only":
+        assert out == {"operational": 0x08000022, "pre-operational": "accepted",
+                       "jump": 0x06090030, "small": "accepted"}
+    else:
+        assert out == {"operational": "accepted", "pre-operational": "accepted",
+                       "jump": 0x06090030, "small": "accepted"}
+    if mode != "disabled":
+        assert boom.flags & FLAG_PRESET and not boom.flags & FLAG_NOT_REFERENCED
+        assert boom.position_mm == pytest.approx(103.0)
+        accepted = sum(v == "accepted" for v in out.values())
+        assert f"boom {accepted}/{len(out) - accepted}" in status
