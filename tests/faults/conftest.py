@@ -108,7 +108,11 @@ def start_daemon(hub: Hub, tmp_path: Path, cfg_raw: dict, name: str = "daemon", 
     daemon = Daemon(hub.url, tmp_path, name, config=config, state_dir=state_dir,
                     watchdog_usec=watchdog_usec)
     CURRENT[:] = [daemon]
-    daemon.wait_for("READY=1")
+    try:
+        daemon.wait_for("READY=1")
+    except BaseException:
+        daemon.stop(signal.SIGKILL)          # never leave a daemon behind
+        raise
     return daemon
 
 
@@ -122,8 +126,12 @@ def run_row(hub: Hub, tmp_path: Path, cfg: Config, cfg_raw: dict, paper: Paper,
     truth at ``t0`` over SDO; the paper cycle from ``t0`` to ``t1`` fed in real time (less
     the frames ``drop`` says, plus whatever ``hook`` injects); SIGTERM."""
     recorder = Recorder(hub)
-    daemon = start_daemon(hub, tmp_path, cfg_raw, overrides=overrides,
-                          watchdog_usec=watchdog_usec)
+    try:
+        daemon = start_daemon(hub, tmp_path, cfg_raw, overrides=overrides,
+                              watchdog_usec=watchdog_usec)
+    except BaseException:
+        recorder.close()
+        raise
     try:
         commission({"interface": "remote", "channel": hub.url}, cfg,
                    {a: paper.at(a, t0) for a in cfg.can.units} if preset else None,

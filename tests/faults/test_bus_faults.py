@@ -107,6 +107,7 @@ def test_kill_9_and_restart_allows_for_the_time_since_the_save(cfg, cfg_raw, pap
     state_dir = tmp_path / "state"
     overrides = {"estimator.state_save_interval_s": 0.5}
     recorder = Recorder(hub)
+    first = second = None
     try:
         first = start_daemon(hub, tmp_path, cfg_raw, "first", overrides=overrides,
                              state_dir=state_dir)
@@ -124,6 +125,9 @@ def test_kill_9_and_restart_allows_for_the_time_since_the_save(cfg, cfg_raw, pap
         time.sleep(0.3)
         code = second.stop()
     finally:
+        for daemon in (first, second):           # never leave a daemon behind
+            if daemon is not None and daemon.proc.poll() is None:
+                daemon.stop(signal.SIGKILL)
         recorder.close()
     assert code == 0, second.log()
     assert "periodic save" in second.log()
