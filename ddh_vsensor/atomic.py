@@ -1,9 +1,11 @@
 """Output files that are either wholly old or wholly new: write a temp file beside the target,
 fsync, rename over it, fsync the directory. A crash or power cut mid-write leaves the old
-file. Also the output directories they go into."""
+file, and a kill may leave a temp file behind: :func:`remove_temp_files` clears those at the
+next start. Also the output directories they go into."""
 
 from __future__ import annotations
 
+import glob
 import os
 import uuid
 from collections.abc import Iterator
@@ -22,12 +24,36 @@ def _fsync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+def _temp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+
+
+def remove_temp_files(path: str | Path) -> list[Path]:
+    """Delete the temp files an interrupted atomic write of ``path`` left behind (only
+    names of the form this module writes; symlinks are removed, never followed)."""
+    path = Path(path)
+    removed = []
+    try:
+        candidates = list(path.parent.glob(f".{glob.escape(path.name)}.*.tmp"))
+    except OSError:
+        return removed
+    for tmp in candidates:
+        if len(tmp.name) != len(path.name) + 14:          # "." + name + ".xxxxxxxx.tmp"
+            continue
+        try:
+            tmp.unlink()
+            removed.append(tmp)
+        except (IsADirectoryError, PermissionError, OSError):
+            continue
+    return removed
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """A temporary path for a writer that opens the file itself; it replaces ``path`` (made
     durable) only if the block succeeds."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    tmp = _temp_name(path)
     try:
         yield tmp
         with open(tmp, "rb+") as fh:

@@ -9,6 +9,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import reprlib
+import stat
 import types
 import typing
 from dataclasses import dataclass, field
@@ -29,7 +32,10 @@ class ConfigError(UserError, ValueError):
     def __init__(self, source: str, key_path: str, problem: str) -> None:
         self.source, self.key_path, self.problem = source, key_path, problem
         where = f"{source}: {key_path}: " if key_path else f"{source}: "
-        super().__init__(where + problem)
+        text = where + problem
+        if len(text) > MAX_MESSAGE_CHARS:
+            text = text[:MAX_MESSAGE_CHARS - 3] + "..."
+        super().__init__(text)
 
 
 def _positive(**extra: Any) -> dict[str, Any]:
@@ -41,11 +47,11 @@ class OilConfig:
     """Hydraulic oil: two viscosity points for ASTM D341 and a linear thermal expansion."""
 
     name: str
-    viscosity_cst_at_40c: float = field(metadata=_positive())
-    viscosity_cst_at_100c: float = field(metadata=_positive())
-    density_kg_m3_at_15c: float = field(metadata=_positive())
+    viscosity_cst_at_40c: float = field(metadata=_positive(le=10000.0))
+    viscosity_cst_at_100c: float = field(metadata=_positive(le=10000.0))
+    density_kg_m3_at_15c: float = field(metadata=_positive(le=5000.0))
     thermal_expansion_per_k: float = field(metadata={"ge": 0.0, "lt": 0.01})
-    bulk_modulus_pa: float = field(metadata=_positive())
+    bulk_modulus_pa: float = field(metadata=_positive(le=1e11))
 
     def check(self, path: str) -> list[tuple[str, str]]:
         if self.viscosity_cst_at_100c >= self.viscosity_cst_at_40c:
@@ -58,66 +64,66 @@ class OilConfig:
 class HydraulicsConfig:
     """Circuit-wide settings: reservoir, pump rating point, valve characteristics."""
 
-    reservoir_pressure_bar: float
-    nominal_pressure_bar: float = field(metadata=_positive())
-    nominal_pump_speed_rpm: float = field(metadata=_positive())
-    nominal_viscosity_cst: float = field(metadata=_positive())
+    reservoir_pressure_bar: float = field(metadata={"ge": -1.0, "le": 100.0})
+    nominal_pressure_bar: float = field(metadata=_positive(le=2000.0))
+    nominal_pump_speed_rpm: float = field(metadata=_positive(le=100000.0))
+    nominal_viscosity_cst: float = field(metadata=_positive(le=10000.0))
     anticavitation_cracking_bar: float = field(metadata={"ge": 0.0, "le": 1.0})
-    anticavitation_gradient_lpm_per_bar: float = field(metadata=_positive())
+    anticavitation_gradient_lpm_per_bar: float = field(metadata=_positive(le=1e6))
     relief_rise_fraction: float = field(metadata=_positive(le=1.0))
-    relief_rise_flow_lpm: float = field(metadata=_positive())
+    relief_rise_flow_lpm: float = field(metadata=_positive(le=1e6))
 
 
 @dataclass(frozen=True)
 class PumpConfig:
     """One side's pump set (pumps in parallel act as one) and that side's relief valve."""
 
-    displacement_cm3_rev: float = field(metadata=_positive())
+    displacement_cm3_rev: float = field(metadata=_positive(le=10000.0))
     volumetric_efficiency: float = field(metadata={"gt": 0.0, "le": 1.0})
     hydromechanical_efficiency: float = field(metadata={"gt": 0.0, "le": 1.0})
-    max_speed_rpm: float = field(metadata=_positive())
-    speed_ratio: float = field(metadata=_positive())
-    relief_bar: float = field(metadata=_positive())
+    max_speed_rpm: float = field(metadata=_positive(le=100000.0))
+    speed_ratio: float = field(metadata=_positive(le=100.0))
+    relief_bar: float = field(metadata=_positive(le=2000.0))
 
 
 @dataclass(frozen=True)
 class LoadConfig:
     """External load at the rod(s); positive force pushes the rod in (held by the A side)."""
 
-    holding_force_n: float
-    force_per_payload_kg_n: float
-    mass_kg: float = field(metadata=_positive())
-    mass_per_payload_kg: float = field(metadata={"ge": 0.0})
+    holding_force_n: float = field(metadata={"ge": -1e8, "le": 1e8})
+    force_per_payload_kg_n: float = field(metadata={"ge": -1e4, "le": 1e4})
+    mass_kg: float = field(metadata=_positive(le=1e7))
+    mass_per_payload_kg: float = field(metadata={"ge": 0.0, "le": 1e4})
 
 
 @dataclass(frozen=True)
 class MotorConfig:
     """Electric motor limits and the rotating inertia of motor plus pumps."""
 
-    inertia_kg_m2: float = field(metadata=_positive())
-    torque_limit_nm: float = field(metadata=_positive())
-    speed_limit_rpm: float = field(metadata=_positive())
+    inertia_kg_m2: float = field(metadata=_positive(le=100.0))
+    torque_limit_nm: float = field(metadata=_positive(le=100000.0))
+    speed_limit_rpm: float = field(metadata=_positive(le=100000.0))
 
 
 @dataclass(frozen=True)
 class UnitConfig:
     """One DDH unit: motor, two pump sides, cylinder(s) and load."""
 
-    cylinders: int = field(metadata={"ge": 1})
-    stroke_mm: float = field(metadata=_positive())
-    area_a_mm2: float = field(metadata=_positive())
-    area_b_mm2: float = field(metadata=_positive())
-    friction_static_n: float = field(metadata={"ge": 0.0})
-    friction_coulomb_n: float = field(metadata={"ge": 0.0})
-    friction_viscous_n_s_per_m: float = field(metadata={"ge": 0.0})
-    dead_volume_l: float = field(metadata=_positive())
+    cylinders: int = field(metadata={"ge": 1, "le": 16})
+    stroke_mm: float = field(metadata=_positive(le=100000.0))
+    area_a_mm2: float = field(metadata=_positive(le=1e7))
+    area_b_mm2: float = field(metadata=_positive(le=1e7))
+    friction_static_n: float = field(metadata={"ge": 0.0, "le": 1e7})
+    friction_coulomb_n: float = field(metadata={"ge": 0.0, "le": 1e7})
+    friction_viscous_n_s_per_m: float = field(metadata={"ge": 0.0, "le": 1e9})
+    dead_volume_l: float = field(metadata=_positive(le=1000.0))
     pump_a: PumpConfig
     pump_b: PumpConfig
     load: LoadConfig
     motor: MotorConfig
     references_mm: dict[str, float]
-    reference_window_mm: float = field(metadata=_positive())
-    reference_hysteresis_mm: float = field(metadata={"ge": 0.0})
+    reference_window_mm: float = field(metadata=_positive(le=1000.0))
+    reference_hysteresis_mm: float = field(metadata={"ge": 0.0, "le": 1000.0})
 
     def check(self, path: str) -> list[tuple[str, str]]:
         problems = []
@@ -138,8 +144,8 @@ class TablesConfig:
     """Grid of the movement tables."""
 
     temperatures_c: tuple[float, ...]
-    speed_step_rpm: float = field(metadata=_positive())
-    torque_step_nm: float = field(metadata=_positive())
+    speed_step_rpm: float = field(metadata=_positive(ge=1.0, le=10000.0))
+    torque_step_nm: float = field(metadata=_positive(ge=0.01, le=1000.0))
     paper_speed_ranges_rpm: tuple[float, ...]
 
     def check(self, path: str) -> list[tuple[str, str]]:
@@ -160,22 +166,22 @@ class EstimatorConfig:
     """How the position is integrated, referenced, adapted, bounded and persisted."""
 
     mode: Literal["full", "paper", "dynamic"]
-    dynamic_blend_s: float = field(metadata={"ge": 0.0})
-    max_gap_s: float = field(metadata=_positive())
+    dynamic_blend_s: float = field(metadata={"ge": 0.0, "le": 3600.0})
+    max_gap_s: float = field(metadata=_positive(ge=0.001, le=1.0))
     inertia_compensation: bool
-    soft_limit_margin_mm: float = field(metadata={"ge": 0.0})
-    debounce_s: float = field(metadata={"ge": 0.0})
+    soft_limit_margin_mm: float = field(metadata={"ge": 0.0, "le": 1000.0})
+    debounce_s: float = field(metadata={"ge": 0.0, "le": 1.0})
     resync_gain_moving: float = field(metadata={"gt": 0.0, "le": 1.0})
-    resync_slow_mm_s: float = field(metadata={"ge": 0.0})
-    resync_transient_mm: float = field(metadata={"ge": 0.0})
+    resync_slow_mm_s: float = field(metadata={"ge": 0.0, "le": 10000.0})
+    resync_transient_mm: float = field(metadata={"ge": 0.0, "le": 1000.0})
     adaptation: bool
     adaptation_bound: float = field(metadata={"gt": 0.0, "lt": 0.5})
     adaptation_step: float = field(metadata={"gt": 0.0, "le": 1.0})
-    adaptation_min_travel_mm: float = field(metadata={"ge": 0.0})
-    uncertainty_reference_mm: float = field(metadata={"ge": 0.0})
-    uncertainty_per_travel: float = field(metadata={"ge": 0.0})
-    uncertainty_hold_mm_per_s: float = field(metadata={"ge": 0.0})
-    state_save_interval_s: float = field(metadata=_positive())
+    adaptation_min_travel_mm: float = field(metadata={"ge": 0.0, "le": 100000.0})
+    uncertainty_reference_mm: float = field(metadata={"ge": 0.0, "le": 1000.0})
+    uncertainty_per_travel: float = field(metadata={"ge": 0.0, "le": 1.0})
+    uncertainty_hold_mm_per_s: float = field(metadata={"ge": 0.0, "le": 1000.0})
+    state_save_interval_s: float = field(metadata=_positive(ge=0.1, le=3600.0))
 
 
 @dataclass(frozen=True)
@@ -199,12 +205,47 @@ class CanConfig:
 
     io_module_node_id: int = field(metadata={"ge": 1, "le": 127})
     oil_temp_node_id: int = field(metadata={"ge": 1, "le": 127})
-    position_step_mm: float = field(metadata=_positive())
+    position_step_mm: float = field(metadata=_positive(ge=0.0001, le=10.0))
     event_timer_ms: float = field(metadata={"ge": 1.0, "le": 65535.0})
     units: dict[Literal["boom", "bucket"], CanUnitConfig]
     # CiA 301 behaviour of the emulated sensor nodes
     nmt_auto_start: bool = True     # boot to OPERATIONAL; False: PRE-OPERATIONAL, master starts
     emcy_enabled: bool = True       # EMCY producer valid at boot (0x1014 bit 31 clear)
+
+
+PresetMode = Literal["disabled", "pre-operational only", "enabled"]
+
+
+@dataclass(frozen=True)
+class FaultsConfig:
+    """How the service behaves under faults and hostile input (README: "Fault behaviour").
+    Every key has a default, so a config without this section behaves as documented."""
+
+    # unit -> node ID of the motor controller whose heartbeat is consumed (absent: none)
+    heartbeat_node_ids: dict[Literal["boom", "bucket"], int] = field(default_factory=dict)
+    heartbeat_timeout_s: float = field(default=1.5, metadata={"ge": 0.05, "le": 60.0})
+    # worst-case rod speed = this factor x the speed at the motor's speed limit (see
+    # Config.max_speed_mm_s); it bounds the travel in any interval nothing was integrated
+    max_speed_factor: float = field(default=1.5, metadata={"ge": 1.0, "le": 10.0})
+    preset: PresetMode = "enabled"
+    preset_standstill_mm_s: float = field(default=2.0, metadata={"ge": 0.0, "le": 100.0})
+    preset_max_jump_mm: float = field(default=5.0, metadata={"ge": 0.0, "le": 100000.0})
+    event_timer_min_ms: float = field(default=1.0, metadata={"ge": 1.0, "le": 1000.0})
+    event_timer_max_ms: float = field(default=1000.0, metadata={"ge": 1.0, "le": 10000.0})
+    housekeeping_tick_ms: float = field(default=10.0, metadata={"ge": 1.0, "le": 100.0})
+    log_interval_s: float = field(default=5.0, metadata={"ge": 0.1, "le": 3600.0})
+    unknown_ids_max: int = field(default=256, metadata={"ge": 0, "le": 65536})
+    backlog_max_frames: int = field(default=20000, metadata={"ge": 1000, "le": 1000000})
+    state_file_max_bytes: int = field(default=65536, metadata={"ge": 1024, "le": 16777216})
+
+    def check(self, path: str) -> list[tuple[str, str]]:
+        if self.event_timer_min_ms > self.event_timer_max_ms:
+            return [(f"{path}.event_timer_min_ms", "must not exceed event_timer_max_ms")]
+        for name, node_id in self.heartbeat_node_ids.items():
+            if not 1 <= node_id <= 127:
+                return [(f"{path}.heartbeat_node_ids.{name}", f"node ID {node_id} is not in "
+                         "1..127")]
+        return []
 
 
 @dataclass(frozen=True)
@@ -218,6 +259,7 @@ class Config:
     estimator: EstimatorConfig
     can: CanConfig
     bus: dict[str, Any]
+    faults: FaultsConfig = field(default_factory=FaultsConfig)
     source: str = field(default="<memory>", compare=False, metadata={"internal": True})
 
     def check(self, path: str) -> list[tuple[str, str]]:
@@ -233,7 +275,23 @@ class Config:
                                  f"no input bit for reference(s) {', '.join(sorted(missing))}"))
         if "interface" not in self.bus:
             problems.append(("bus.interface", "missing key (a python-can interface name)"))
+        lo, hi = self.faults.event_timer_min_ms, self.faults.event_timer_max_ms
+        if not lo <= self.can.event_timer_ms <= hi:
+            problems.append(("can.event_timer_ms", f"{self.can.event_timer_ms} ms is outside "
+                             f"faults.event_timer_min_ms..event_timer_max_ms ({lo}..{hi})"))
         return problems
+
+    def max_speed_mm_s(self, actuator: str) -> float:
+        """The fastest the rod can move: the geometric flow of the faster pump side at the
+        motor's speed limit, over that side's area, divided by the volumetric efficiency
+        (a pump driven by the load passes more than its displacement), times
+        ``faults.max_speed_factor`` (motor overspeed, relief and anti-cavitation flows)."""
+        u = self.unit(actuator)
+        speeds = [u.motor.speed_limit_rpm / 60.0 * pump.speed_ratio
+                  * pump.displacement_cm3_rev * 1e3 / (u.cylinders * area)
+                  / pump.volumetric_efficiency
+                  for pump, area in ((u.pump_a, u.area_a_mm2), (u.pump_b, u.area_b_mm2))]
+        return max(speeds) * self.faults.max_speed_factor
 
     def unit(self, actuator: str) -> UnitConfig:
         return self.units[actuator]  # type: ignore[index]
@@ -241,7 +299,7 @@ class Config:
     def physics_hash(self) -> str:
         """Hash of everything the physics and tables depend on (not the bus, not the source)."""
         data = dataclasses.asdict(self)
-        for key in ("bus", "can", "estimator", "source"):
+        for key in ("bus", "can", "estimator", "faults", "source"):
             data.pop(key)
         for unit in data["units"].values():
             for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm"):
@@ -251,6 +309,19 @@ class Config:
 
 
 # --- generic validation --------------------------------------------------------------------
+
+MAX_CONFIG_BYTES = 1_000_000     # a machine config is a few kB
+MAX_CONFIG_NODES = 100_000       # YAML nodes after alias expansion (a "billion laughs" bomb)
+MAX_CONFIG_DEPTH = 50
+MAX_MESSAGE_CHARS = 300
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxstring, _REPR.maxother, _REPR.maxlist, _REPR.maxdict = 2, 60, 60, 4, 4
+
+
+def _short(value: Any) -> str:
+    """A bounded repr for error messages (a value may be a huge or deeply nested YAML)."""
+    return _REPR.repr(value)
+
 
 def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
@@ -263,40 +334,40 @@ def _convert(value: Any, tp: Any, path: str, source: str) -> Any:
         return _build(tp, value, path, source)
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(source, path, f"expected a number, got {value!r}")
+            raise ConfigError(source, path, f"expected a number, got {_short(value)}")
         if value != value or value in (float("inf"), float("-inf")):
-            raise ConfigError(source, path, f"expected a finite number, got {value!r}")
+            raise ConfigError(source, path, f"expected a finite number, got {_short(value)}")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(source, path, f"expected a whole number, got {value!r}")
+            raise ConfigError(source, path, f"expected a whole number, got {_short(value)}")
         return value
     if origin is Literal:
         if value not in args:
-            raise ConfigError(source, path, f"{value!r} is not one of "
+            raise ConfigError(source, path, f"{_short(value)} is not one of "
                               f"{', '.join(map(str, args))}")
         return value
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(source, path, f"expected true or false, got {value!r}")
+            raise ConfigError(source, path, f"expected true or false, got {_short(value)}")
         return value
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(source, path, f"expected text, got {value!r}")
+            raise ConfigError(source, path, f"expected text, got {_short(value)}")
         return value
     if origin is tuple:
         if not isinstance(value, list):
-            raise ConfigError(source, path, f"expected a list, got {value!r}")
+            raise ConfigError(source, path, f"expected a list, got {_short(value)}")
         return tuple(_convert(v, args[0], f"{path}[{i}]", source) for i, v in enumerate(value))
     if origin is dict:
         if not isinstance(value, dict):
-            raise ConfigError(source, path, f"expected a mapping, got {value!r}")
+            raise ConfigError(source, path, f"expected a mapping, got {_short(value)}")
         key_tp, val_tp = args
         allowed = typing.get_args(key_tp) if typing.get_origin(key_tp) is Literal else None
         out = {}
         for k, v in value.items():
             if allowed is not None and k not in allowed:
-                raise ConfigError(source, f"{path}.{k}", f"unknown key (expected one of "
+                raise ConfigError(source, f"{path}.{_short(k)}", f"unknown key (expected one of "
                                   f"{', '.join(allowed)})")
             out[k] = v if val_tp is Any else _convert(v, val_tp, f"{path}.{k}", source)
         return out
@@ -317,18 +388,18 @@ def _check_bounds(value: Any, meta: typing.Mapping[str, Any], path: str, source:
               "le": (lambda v, b: v <= b, "at most")}
     for key, (ok, words) in bounds.items():
         if key in meta and not ok(value, meta[key]):
-            raise ConfigError(source, path, f"{value!r} is not physical here: must be {words} "
+            raise ConfigError(source, path, f"{_short(value)} is not physical here: must be {words} "
                               f"{meta[key]}")
 
 
 def _build(cls: type, data: Any, path: str, source: str) -> Any:
     if not isinstance(data, dict):
-        raise ConfigError(source, path or "(top level)", f"expected a mapping, got {data!r}")
+        raise ConfigError(source, path or "(top level)", f"expected a mapping, got {_short(data)}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
     for key in data:
         if key not in fields:
-            raise ConfigError(source, f"{path}.{key}" if path else str(key),
+            raise ConfigError(source, f"{path}.{_short(key)}" if path else _short(key),
                               f"unknown key (known: {', '.join(fields)})")
     kwargs = {}
     for name, f in fields.items():
@@ -355,16 +426,82 @@ def parse_config(data: Any, source: str = "<memory>") -> Config:
     return dataclasses.replace(cfg, source=source)
 
 
+def _read_bounded(path: Path, source: str) -> str:
+    """The file's text, refusing anything but a regular file of at most MAX_CONFIG_BYTES
+    (a FIFO or device would block or never end)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        raise ConfigError(source, "", f"cannot read: {exc.strerror or exc}") from None
+    with os.fdopen(fd, "rb") as fh:
+        st = os.fstat(fh.fileno())
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError(source, "", "not a regular file")
+        raw = fh.read(MAX_CONFIG_BYTES + 1)
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(source, "", f"larger than {MAX_CONFIG_BYTES} bytes: not a config")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(source, "", f"not UTF-8 text ({exc.reason} at byte {exc.start})") \
+            from None
+
+
+def _check_shape(node: yaml.Node, source: str) -> None:
+    """Refuse documents that expand (through aliases) into too many nodes or nest too
+    deeply, before anything walks them: counted with memoised sizes, no recursion."""
+    size: dict[int, int] = {}
+    stack: list[tuple[yaml.Node, int, bool]] = [(node, 1, False)]
+    while stack:
+        current, depth, children_done = stack.pop()
+        if depth > MAX_CONFIG_DEPTH:
+            raise ConfigError(source, "", f"nested deeper than {MAX_CONFIG_DEPTH} levels")
+        if id(current) in size:
+            continue
+        if isinstance(current, yaml.SequenceNode):
+            children = list(current.value)
+        elif isinstance(current, yaml.MappingNode):
+            children = [n for pair in current.value for n in pair]
+        else:
+            size[id(current)] = 1
+            continue
+        if children_done:
+            total = 1 + sum(size.get(id(c), 1) for c in children)
+            if total > MAX_CONFIG_NODES:
+                raise ConfigError(source, "", f"expands to more than {MAX_CONFIG_NODES} "
+                                  "values (aliases): not a config")
+            size[id(current)] = total
+            continue
+        stack.append((current, depth, True))
+        stack.extend((c, depth + 1, False) for c in children if id(c) not in size)
+
+
+def parse_yaml(text: str, source: str) -> Any:
+    """``yaml.safe_load`` with the document's size and depth bounded; every failure is a
+    ConfigError (never a traceback, however hostile the text)."""
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        if node is None:
+            return None
+        _check_shape(node, source)
+        return yaml.SafeLoader(text).construct_document(node)
+    except ConfigError:
+        raise
+    except yaml.YAMLError as exc:
+        raise ConfigError(source, "", f"not valid YAML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(source, "", "nested too deeply") from None
+    except (MemoryError, ValueError, TypeError, OverflowError) as exc:
+        raise ConfigError(source, "", f"cannot be read as YAML: {type(exc).__name__}") \
+            from None
+
+
 def load_config(path: str | Path | None = None) -> Config:
     """Load and validate a config file; ``None`` loads the embedded reference machine."""
     path = Path(path) if path is not None else DEFAULT_CONFIG
     source = str(path)
+    data = parse_yaml(_read_bounded(path, source), source)
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(source, "", f"cannot read: {exc.strerror or exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(source, "", f"not valid YAML: {exc}") from None
-    return parse_config(data, source)
+        return parse_config(data, source)
+    except RecursionError:
+        raise ConfigError(source, "", "nested too deeply") from None

@@ -82,3 +82,77 @@ def test_missing_and_malformed_files(tmp_path):
     broken.write_text("units: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_config(broken)
+
+
+@pytest.mark.parametrize("path,value,words", [
+    ("can.event_timer_ms", 65535.0, "event_timer"),
+    ("can.position_step_mm", 1e-12, "at least"),
+    ("estimator.max_gap_s", 1e300, "at most"),
+    ("estimator.state_save_interval_s", 1e9, "at most"),
+    ("units.boom.motor.speed_limit_rpm", 1e12, "at most"),
+    ("faults.preset", "sometimes", "not one of"),
+    ("faults.heartbeat_timeout_s", 0.0, "at least"),
+    ("faults.event_timer_max_ms", 1e9, "at most"),
+])
+def test_values_are_bounded_above_as_well(path, value, words):
+    with pytest.raises(ConfigError) as err:
+        parse_config(_mutate(path, value), source="machine.yaml")
+    assert path.split(".")[0] in str(err.value) and words in str(err.value), str(err.value)
+
+
+def test_faults_section_is_optional_with_documented_defaults(cfg):
+    data = copy.deepcopy(RAW)
+    del data["faults"]
+    bare = parse_config(data)
+    assert bare.faults.heartbeat_node_ids == {}          # nothing consumed unless configured
+    assert bare.faults.preset == cfg.faults.preset == "enabled"
+    assert bare.physics_hash() == cfg.physics_hash()     # saved states stay valid
+
+
+def test_max_speed_from_the_physics(cfg):
+    u = cfg.unit("boom")
+    side_a = (u.motor.speed_limit_rpm / 60 * u.pump_a.speed_ratio * u.pump_a.displacement_cm3_rev
+              * 1e3 / (u.cylinders * u.area_a_mm2) / u.pump_a.volumetric_efficiency)
+    assert cfg.max_speed_mm_s("boom") >= side_a * cfg.faults.max_speed_factor
+    assert 100.0 < cfg.max_speed_mm_s("boom") < 300.0
+
+
+def _bomb() -> str:
+    lines = ["a: &a [x, x, x, x, x, x, x, x, x]"]
+    for i in range(1, 10):
+        prev, cur = chr(ord("a") + i - 1), chr(ord("a") + i)
+        lines.append(f"{cur}: &{cur} [" + ", ".join([f"*{prev}"] * 9) + "]")
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("text,words", [
+    (_bomb(), "aliases"),
+    ("oil: " + "[" * 20000 + "]" * 20000, "nested"),
+    ("oil: " + "{a: " * 60 + "1" + "}" * 60, "nested deeper"),
+    ("x: !!python/object/apply:os.system [ls]", "not valid YAML"),
+])
+def test_hostile_yaml_is_one_short_error(tmp_path, text, words):
+    path = tmp_path / "hostile.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert words in str(err.value) and len(str(err.value)) <= 300, str(err.value)[:500]
+
+
+def test_huge_and_special_files_are_refused(tmp_path):
+    big = tmp_path / "big.yaml"
+    with open(big, "wb") as fh:
+        fh.truncate(2_000_000)
+    with pytest.raises(ConfigError, match="larger than"):
+        load_config(big)
+    import os
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)
+    with pytest.raises(ConfigError, match="not a regular file"):
+        load_config(fifo)
+
+
+def test_a_huge_bad_value_is_truncated_in_the_message():
+    with pytest.raises(ConfigError) as err:
+        parse_config(_mutate("units.boom.stroke_mm", "y" * 100_000), source="machine.yaml")
+    assert len(str(err.value)) <= 300

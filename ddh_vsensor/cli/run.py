@@ -17,6 +17,13 @@ from .common import (add_config_arg, add_extension_arg, config_from, extensions_
                      load_tables_for)
 
 
+# Stop cleanly (estimates saved as a clean stop). SIGKILL cannot be caught: the periodic save
+# is what a kill leaves, and a restart widens it by the time since.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGQUIT)
+# Would kill the process by default: save the estimates, log, carry on (no config reload).
+SAVE_SIGNALS = (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)
+
+
 def add_bus_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interface", metavar="I", help="python-can interface, overrides bus.interface "
                    "(socketcan, virtual, remote, ...)")
@@ -48,7 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="the service: Sevcon frames in, emulated position sensors out",
                        description="Reads the Sevcon controllers' frames, estimates each "
                        "cylinder's position and publishes it as a CiA 406 position sensor. "
-                       "Stops cleanly on SIGTERM/SIGINT (estimates saved, exit 0).")
+                       "Stops cleanly on SIGTERM/SIGINT/SIGQUIT (estimates saved, exit 0); "
+                       "SIGHUP/SIGUSR1/SIGUSR2 save the estimates and do not reload the "
+                       "configuration.")
     add_config_arg(p)
     add_bus_args(p)
     p.add_argument("--tables", metavar="DIR", help="movement tables (default: built at start, "
@@ -58,7 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_extension_arg(p)
     p.add_argument("--no-state", action="store_true", help="neither restore nor save estimates")
     p.add_argument("--heartbeat-timeout", type=float, default=None, metavar="S",
-                   help="Sevcon heartbeat consumer time (default 1.5 s)")
+                   help="Sevcon heartbeat consumer time (default: faults.heartbeat_timeout_s)")
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
     p.set_defaults(func=_run)
 
@@ -83,6 +92,12 @@ async def _serve(cfg: Config, tables: dict, bus: dict[str, Any], options: Any) -
     from ..service import Service
     service = Service(cfg, tables, bus, options)
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
+    for sig in STOP_SIGNALS:
         loop.add_signal_handler(sig, service.request_stop)
-    return await service.run()
+    for sig in SAVE_SIGNALS:
+        loop.add_signal_handler(sig, service.on_signal, sig.name)
+    try:
+        return await service.run()
+    finally:
+        for sig in (*STOP_SIGNALS, *SAVE_SIGNALS):
+            loop.remove_signal_handler(sig)

@@ -183,7 +183,8 @@ class Estimator:
                      and abs(error) <= self.resync_transient_mm and self.referenced)
         k = self.resync_gain_moving if transient else 1.0
         self.travel_mm, self.hold_s = 0.0, 0.0
-        self.u_base = self.u_ref + (1.0 - k) * abs(error)
+        # the edge lies somewhere within its sample's travel: that much is not known better
+        self.u_base = self.u_ref + abs(snap.dx) + (1.0 - k) * abs(error)
         self.referenced = True
         return self._clip(x_now - k * error), ReferenceEvent(
             index, snap.index, sw.name, rising, p, error, adapted)
@@ -363,6 +364,12 @@ class Estimator:
     def add_uncertainty(self, mm: float) -> None:
         """Motion the estimator could not integrate (e.g. input lost): widen the bound."""
         self.u_base += abs(mm)
+
+    def forget_switch_states(self) -> None:
+        """After motion not integrated: a switch state that changed meanwhile is no edge at
+        a known position; the next sample sets the state afresh."""
+        for deb in self._on.debouncers:
+            deb.state, deb.candidate_since_s = None, None
 
     # --- persistence -----------------------------------------------------------------------
 

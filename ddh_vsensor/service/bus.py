@@ -10,7 +10,8 @@ reader thread that hands frames to the loop in batches (one ``call_soon_threadsa
 batch, not per frame). No ``can.Notifier``: its listener chain stops at the first listener
 that raises, and its error path leaves a dead reader behind; here a receive error closes the
 bus and a new one is opened after a back-off (0.1 s doubling to 5 s), the service's state
-untouched.
+untouched. Every log line here is rate-limited (``log_interval_s``): error frames at
+thousands per second are counted, not each written.
 
 Kernel filters (``can_filters``) are set on socketcan, the interface that applies them in
 the kernel; elsewhere python-can would filter in Python anyway, so all frames are delivered
@@ -29,6 +30,7 @@ from typing import Any
 import can
 
 from ..errors import UserError
+from .inputs import RateLimitedLog
 
 log = logging.getLogger(__name__)
 
@@ -91,8 +93,10 @@ class BusLink:
                                   can.BusABC] = open_bus,
                  backoff_start_s: float = BACKOFF_START_S,
                  backoff_max_s: float = BACKOFF_MAX_S,
-                 watch_fd: bool | None = None, coalesce_s: float = 0.0) -> None:
+                 watch_fd: bool | None = None, coalesce_s: float = 0.0,
+                 log_interval_s: float = 5.0) -> None:
         self.settings, self.filters = settings, filters
+        self._log = RateLimitedLog(log, log_interval_s)
         # None: watch the bus's file descriptor on socketcan (a kernel socket, every readable
         # wake drained); True: on any bus with a fileno() whose recv(0) drains it; False: thread
         self.watch_fd = watch_fd
@@ -273,7 +277,8 @@ class BusLink:
                 self.error_frames += 1
                 if msg.arbitration_id & CAN_ERR_BUSOFF:
                     self.bus_off += 1
-                    log.warning("%s: bus-off reported by the controller", self.channel_info)
+                    self._log.warning("bus-off", "%s: bus-off reported by the controller "
+                                      "(%d so far)", self.channel_info, self.bus_off)
         try:
             self.on_frames(batch)
         except Exception:   # noqa: BLE001 - the consumer guards itself; belt and braces
@@ -285,7 +290,8 @@ class BusLink:
         if generation != self._generation or self._stopping:
             return
         self.bus_errors += 1
-        log.warning("%s: bus error: %s; reopening", self.channel_info or "CAN bus", exc)
+        self._log.warning("lost", "%s: bus error: %.200s; reopening",
+                          self.channel_info or "CAN bus", exc)
         self._set_state("reconnecting", str(exc))
         if self._reopen_task is None or self._reopen_task.done():
             assert self._loop is not None
@@ -299,14 +305,14 @@ class BusLink:
             try:
                 bus = self.opener(self.settings, self.filters)
             except Exception as exc:   # noqa: BLE001
-                log.info("bus still unavailable (%s); next try in %.1f s", exc,
-                         min(delay * 2, self.backoff_max_s))
+                self._log.info("unavailable", "bus still unavailable (%.200s); next try in "
+                               "%.1f s", exc, min(delay * 2, self.backoff_max_s))
                 self._set_state("reconnecting", str(exc))
                 delay = min(delay * 2, self.backoff_max_s)
                 continue
             self.reconnects += 1
             self._attach(bus)
-            log.info("%s: bus open again", self.channel_info)
+            self._log.info("open", "%s: bus open again", self.channel_info)
             return
 
     # --- sending -------------------------------------------------------------------------

@@ -1,9 +1,10 @@
 """NMT heartbeat consumer for the Sevcon controllers, on canopen's ``RemoteNode`` NMT master.
 
-As in CiA 301 the consumer becomes active with the first heartbeat it receives: before that
-the controller's state is unknown and nothing is flagged (a bus without heartbeats, e.g. a
-replayed log, is not stale for that alone). Once active, the unit is stale while the last
-heartbeat is older than the consumer time or reports a state other than OPERATIONAL.
+Which controllers are consumed is configuration (``faults.heartbeat_node_ids``), never decided
+by what appears on the bus: a consumed controller is "not operational" from the start until
+its first OPERATIONAL heartbeat, again whenever its last heartbeat is older than the consumer
+time or reports another state. The verdict only raises a flag (FLAG_CONTROLLER): the
+controller's frames are integrated whatever its heartbeat says.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import canopen
 from canopen.nmt import NMT_STATES
 from canopen.objectdictionary import ObjectDictionary
 
+from .inputs import RateLimitedLog
+
 log = logging.getLogger(__name__)
 
 OPERATIONAL = 5
@@ -27,7 +30,8 @@ class HeartbeatConsumer:
 
     def __init__(self, network: canopen.Network, node_id: int, name: str,
                  consumer_time_s: float = DEFAULT_CONSUMER_TIME_S,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 log_interval_s: float = 5.0) -> None:
         self.name, self.node_id = name, node_id
         self.consumer_time_s = consumer_time_s
         self.clock = clock
@@ -41,7 +45,8 @@ class HeartbeatConsumer:
         self.last_rx_s: float | None = None
         self.state: int | None = None
         self.count = 0
-        self._reported = "unknown"
+        self._reported = ""
+        self._log = RateLimitedLog(log, log_interval_s)
 
     def _on_heartbeat(self, state: int) -> None:
         self.last_rx_s = self.clock()
@@ -49,9 +54,9 @@ class HeartbeatConsumer:
         self.count += 1
 
     def status(self, now_s: float | None = None) -> tuple[bool, str]:
-        """(usable, why): usable while unknown, or fresh and OPERATIONAL."""
+        """(operational, why)."""
         if self.last_rx_s is None:
-            ok, why = True, "no heartbeat yet"
+            ok, why = False, "no heartbeat yet"
         else:
             now_s = self.clock() if now_s is None else now_s
             if now_s - self.last_rx_s > self.consumer_time_s:
@@ -62,7 +67,7 @@ class HeartbeatConsumer:
                 ok, why = True, "operational"
         key = why.split(" (")[0]
         if key != self._reported:
-            level = logging.INFO if ok else logging.WARNING
-            log.log(level, "%s controller (node %d): %s", self.name, self.node_id, why)
             self._reported = key
+            self._log.log(logging.INFO if ok else logging.WARNING, "state",
+                          "%s controller (node %d): %s", self.name, self.node_id, why)
         return ok, why

@@ -3,8 +3,11 @@
 Nothing here raises on bad input. A frame with the wrong length, an implausible value or
 arriving faster than any controller sends is *rejected*: counted (per unit for the Sevcon
 frames, they go out in the diagnostic frame) and logged at a limited rate. Frames on IDs the
-service does not read are counted as unknown; frames on the service's own output IDs mean
-another node uses the emulated sensors' node IDs and are counted as ID clashes.
+service does not read are counted as unknown (the first ``unknown_ids_max`` distinct IDs one
+by one, the rest together: a flood of random IDs costs no memory); frames on the service's own
+output IDs mean another node uses the emulated sensors' node IDs and are counted as ID
+clashes. :class:`LogLimiter` holds the lines of the libraries on the bus path (canopen, the
+emulated nodes) to the same rate.
 """
 
 from __future__ import annotations
@@ -32,6 +35,52 @@ FLOOD_RATE_HZ = 2500.0
 FLOOD_BURST = 50
 
 
+class LogLimiter(logging.Filter):
+    """A logging filter: one record per logger, message template and interval; the records
+    held back are counted into the next one let through. Attached to the loggers of the bus
+    path (canopen's and the nodes'), so that no frame, however often it comes, writes a line
+    each time."""
+
+    def __init__(self, interval_s: float = 5.0, max_keys: int = 1024) -> None:
+        super().__init__()
+        self.interval_s, self.max_keys = interval_s, max_keys
+        self._last: dict[tuple[str, str], float] = {}
+        self._held: Counter[tuple[str, str]] = Counter()
+        self.suppressed = 0
+        self._loggers: list[logging.Logger] = []
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = (record.name, str(record.msg)[:200])
+        now = time.monotonic()
+        if now - self._last.get(key, -math.inf) < self.interval_s:
+            self._held[key] += 1
+            self.suppressed += 1
+            return False
+        if len(self._last) >= self.max_keys and key not in self._last:
+            self._last.clear()                    # bounded: forget, then start counting again
+            self._held.clear()
+        self._last[key] = now
+        held = self._held.pop(key, 0)
+        if held:
+            record.msg = f"{record.msg} (+{held} more since the last report)"
+        return True
+
+    def attach(self, prefixes: tuple[str, ...]) -> None:
+        """Add to every existing logger whose name starts with one of ``prefixes``."""
+        names = [n for n in list(logging.Logger.manager.loggerDict)
+                 if n.startswith(prefixes)]
+        for name in {*names, *prefixes}:
+            logger = logging.getLogger(name)
+            if self not in logger.filters:
+                logger.addFilter(self)
+                self._loggers.append(logger)
+
+    def detach(self) -> None:
+        for logger in self._loggers:
+            logger.removeFilter(self)
+        self._loggers.clear()
+
+
 class RateLimitedLog:
     """One log line per key and interval; the lines held back are counted into the next."""
 
@@ -54,7 +103,7 @@ class RateLimitedLog:
         self._last[key] = now
         held = self._held.pop(key, 0)
         suffix = f" (+{held} more since the last report)" if held else ""
-        self.logger.log(level, message + suffix, *args)
+        self.logger.log(level, message + suffix, *args, stacklevel=3)
 
 
 @dataclass
@@ -94,10 +143,12 @@ class SevconSample:
 class Inputs:
     """Per-frame checks and the latest oil temperature and Hall input byte."""
 
-    def __init__(self, cfg: Config, codec: FrameCodec, *, log_interval_s: float = 5.0,
+    def __init__(self, cfg: Config, codec: FrameCodec, *, log_interval_s: float | None = None,
                  flood_rate_hz: float = FLOOD_RATE_HZ, flood_burst: int = FLOOD_BURST) -> None:
         self.cfg, self.codec = cfg, codec
-        self.log = RateLimitedLog(log, log_interval_s)
+        self.log = RateLimitedLog(log, cfg.faults.log_interval_s if log_interval_s is None
+                                  else log_interval_s)
+        self.unknown_ids_max = cfg.faults.unknown_ids_max
         ids = codec.ids
         self.sevcon_ids = {ids[message_name("sevcon", a)]: a for a in cfg.can.units}
         self.oil_id, self.io_id = ids[OIL_TEMP], ids[IO_MODULE]
@@ -225,7 +276,11 @@ class Inputs:
 
     def unknown(self, msg: can.Message) -> None:
         self.counts["unknown"] += 1
-        self.unknown_ids[msg.arbitration_id] += 1
+        if msg.arbitration_id in self.unknown_ids or \
+                len(self.unknown_ids) < self.unknown_ids_max:
+            self.unknown_ids[msg.arbitration_id] += 1
+        else:
+            self.counts["unknown_other_ids"] += 1
         self.log.warning("unknown", "frames on IDs the service does not read are ignored "
                          "(%d so far, latest 0x%03X)", self.counts["unknown"], msg.arbitration_id)
 

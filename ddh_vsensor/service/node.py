@@ -53,6 +53,7 @@ log = logging.getLogger(__name__)
 EDS_PATH = Path(__file__).resolve().parent.parent / "data" / "cia406_position_sensor.eds"
 
 ABORT_VALUE_RANGE = 0x06090030      # value range of parameter exceeded
+ABORT_VALUE_TOO_HIGH = 0x06090031
 ABORT_VALUE_TOO_LOW = 0x06090032
 ABORT_MAX_BELOW_MIN = 0x06090036
 ABORT_UNSUPPORTED_ACCESS = 0x06010000
@@ -142,6 +143,9 @@ class ServiceNetwork(canopen.Network):
 
 class SensorNode:
     """The emulated sensor of one cylinder."""
+
+    event_timer_bounds_ms: tuple[float, float] = (1.0, 1000.0)   # the service sets its config
+    _tick: int | None = None                                      # last tick index published
 
     def __init__(self, network: ServiceNetwork, cfg: Config, actuator: str,
                  live: Callable[[], Published],
@@ -299,13 +303,19 @@ class SensorNode:
 
     def set_tick(self, tick_ms: float) -> None:
         """The service ticks every ``tick_ms``: TPDO1 every round(event timer / tick)
-        ticks, TPDO2 every round(its timer / tick) ticks, in a tick that also sends TPDO1."""
+        ticks, TPDO2 every round(its timer / tick) ticks, in a tick that also sends TPDO1.
+        A shorter timer takes effect at once: nothing already scheduled waits longer than
+        the new interval from the last tick."""
         pos = max(1, round(self.event_timer_ms / tick_ms))
         diag = max(pos, round(self.diag_timer_ms / tick_ms / pos) * pos)
         self._every = (pos, diag)
+        if self._tick is not None:
+            self._next = (min(self._next[0], self._tick + pos),
+                          min(self._next[1], self._tick + diag))
 
     def publish(self, p: Published, tick_index: int) -> int:
         """TPDO1 (and TPDO2) if due at this tick; frames sent (none unless OPERATIONAL)."""
+        self._tick = tick_index
         if not self.operational:
             return 0
         next_pos, next_diag = self._next
@@ -390,8 +400,11 @@ class SensorNode:
             log.info("%s: position preset to %.3f mm over SDO", self.actuator, position_mm)
         elif index in (0x1800, 0x1801) and subindex == 5:
             ms = struct.unpack("<H", bytes(data))[0]
-            if ms == 0:
-                raise SdoAbortedError(ABORT_VALUE_TOO_LOW)   # this node only sends on a timer
+            lo, hi = self.event_timer_bounds_ms
+            if ms < lo or ms > hi:           # 0: this node only sends on a timer
+                log.warning("%s: TPDO%d event timer %d ms refused: outside %g..%g ms",
+                            self.actuator, 1 if index == 0x1800 else 2, ms, lo, hi)
+                raise SdoAbortedError(ABORT_VALUE_TOO_LOW if ms < lo else ABORT_VALUE_TOO_HIGH)
             if index == 0x1800:
                 self.event_timer_ms = float(ms)
             else:

@@ -86,6 +86,7 @@ class Ticker(_TimerFdUser):
         self._loop: asyncio.AbstractEventLoop | None = None
         self._anchor = 0.0     # deadline of tick number 0 of the current period setting
         self._count = 0        # ticks (including missed ones) since the anchor
+        self._wake: asyncio.Future | None = None   # the asyncio wait in progress
         self.missed_total = 0
 
     @property
@@ -122,7 +123,9 @@ class Ticker(_TimerFdUser):
             raise OSError(err, os.strerror(err))
 
     def set_period(self, period_s: float) -> None:
-        """New period from the next deadline on (e.g. an event timer written over SDO)."""
+        """New period at once: the next deadline is the last one plus the new period, or now
+        if that has passed (e.g. an event timer written over SDO); a wait in progress for
+        the old deadline is woken to follow the new one."""
         if period_s <= 0 or period_s == self.period_s:
             return
         last = self._anchor + (self._count - 1) * self.period_s if self._count else \
@@ -131,6 +134,8 @@ class Ticker(_TimerFdUser):
         self._anchor, self._count = max(last + period_s, time.monotonic()), 0
         if self._fd is not None:
             self._arm()
+        elif self._wake is not None and not self._wake.done():
+            self._wake.set_result(None)
 
     async def wait(self) -> Tick:
         if self._loop is None:
@@ -146,16 +151,20 @@ class Ticker(_TimerFdUser):
                     continue
                 break
         else:
-            deadline = self._anchor + self._count * self.period_s
-            now = time.monotonic()
-            if deadline > now:
-                future = self._loop.create_future()  # type: ignore[union-attr]
-                handle = self._loop.call_at(  # type: ignore[union-attr]
-                    self._loop.time() + (deadline - now), future.set_result, None)
+            assert self._loop is not None
+            while True:
+                deadline = self._anchor + self._count * self.period_s
+                now = time.monotonic()
+                if deadline <= now:
+                    break
+                future = self._wake = self._loop.create_future()
+                handle = self._loop.call_at(self._loop.time() + (deadline - now),
+                                            _resolve, future)
                 try:
                     await future
                 finally:
                     handle.cancel()
+                    self._wake = None
             # every deadline already passed counts as expired (late: they are skipped)
             expirations = int((time.monotonic() - self._anchor) / self.period_s) + 1 \
                 - self._count
@@ -165,6 +174,10 @@ class Ticker(_TimerFdUser):
         self.missed_total += missed
         return Tick(self._anchor + (self._count - 1) * self.period_s, missed)
 
+
+def _resolve(future: asyncio.Future) -> None:
+    if not future.done():
+        future.set_result(None)
 
 
 class Sleeper(_TimerFdUser):

@@ -66,3 +66,55 @@ def test_estimator_restart_carries_on(tmp_path, cfg, unit_tables):
     again.restore(load_state(tmp_path / "boom.json", "boom", cfg.physics_hash()))
     assert again.position_mm == pytest.approx(est.position_mm)
     assert again.uncertainty_mm == pytest.approx(est.uncertainty_mm)
+
+
+@pytest.mark.parametrize("kind", ["symlink", "fifo", "huge", "nested", "negative", "inf",
+                                  "bool", "list", "unknown_key", "big_int"])
+def test_hostile_files_are_reported_and_ignored(tmp_path, caplog, kind):
+    path = tmp_path / "boom.json"
+    good = {**_state().__dict__}
+    if kind == "symlink":
+        path.symlink_to("/dev/zero")
+    elif kind == "fifo":
+        os.mkfifo(path)                            # would block a plain open()
+    elif kind == "huge":
+        with open(path, "wb") as fh:
+            fh.truncate(300 * 1024 * 1024)         # sparse: no disk used
+    elif kind == "nested":
+        path.write_text("[" * 200_000 + "]" * 200_000)
+    elif kind == "negative":
+        path.write_text(json.dumps({**good, "uncertainty_mm": -1000.0}))
+    elif kind == "inf":
+        path.write_text(json.dumps({**good, "position_mm": float("inf")}))
+    elif kind == "bool":
+        path.write_text(json.dumps({**good, "position_mm": True}))
+    elif kind == "list":
+        path.write_text(json.dumps([good]))
+    elif kind == "unknown_key":
+        path.write_text(json.dumps({**good, "extra": 1}))
+    elif kind == "big_int":
+        path.write_text(json.dumps({**good, "position_mm": 10 ** 400}))
+    with caplog.at_level(logging.WARNING):
+        assert load_state(path, "boom", "abc") is None
+    assert "corrupt state file ignored" in caplog.text
+    assert len(caplog.text) < 1000                 # the reason is truncated
+
+
+def test_clean_flag_round_trip_and_default(tmp_path):
+    save_state(tmp_path / "a.json", _state(clean=True))
+    assert load_state(tmp_path / "a.json", "boom", "abc").clean is True
+    data = {**_state().__dict__}
+    del data["clean"]                              # written before the flag existed
+    (tmp_path / "b.json").write_text(json.dumps(data))
+    assert load_state(tmp_path / "b.json", "boom", "abc").clean is False
+
+
+def test_leftover_temp_files_are_removed(tmp_path):
+    from ddh_vsensor.atomic import remove_temp_files
+    path = tmp_path / "boom.json"
+    left = tmp_path / ".boom.json.0123abcd.tmp"
+    left.write_text("{half")
+    other = tmp_path / ".bucket.json.0123abcd.tmp"
+    other.write_text("{")
+    assert remove_temp_files(path) == [left]
+    assert not left.exists() and other.exists()

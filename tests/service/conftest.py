@@ -162,6 +162,7 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
                                    cfg.unit(actuator).stroke_mm))
     if preset_mm is not None:
         est.preset(preset_mm, cfg.estimator.uncertainty_reference_mm)
+        est.referenced = False      # the service's presets are provisional: never learned from
     result = est.run(t, n, tq, temp, refs if io is not None else None)
     return Offline(result.position_mm, held)
 

@@ -7,13 +7,14 @@ import asyncio
 import json
 import logging
 import threading
+import time
 
 import can
 import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.cli.main import main
-from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED, FLAG_STALE
+from ddh_vsensor.estimator.estimator import FLAG_CONTROLLER, FLAG_NOT_REFERENCED, FLAG_STALE
 from ddh_vsensor.estimator.state import EstimatorState, save_state
 from ddh_vsensor.service import ServiceOptions
 
@@ -35,7 +36,9 @@ def _boom(service):
     return service.published(service.units["boom"])
 
 
-def test_lost_and_non_operational_controller_mark_the_unit_stale(cfg, unit_tables) -> None:
+def test_controller_heartbeat_raises_a_flag_and_never_discards_motion(cfg, unit_tables) -> None:
+    """Consumed by configuration (boom: node 1, bucket: node 2): not OPERATIONAL or lost sets
+    FLAG_CONTROLLER; the frames are integrated all the same, nothing is stale for it."""
     channel = channel_name()
     codec = FrameCodec(cfg)
 
@@ -48,28 +51,53 @@ def test_lost_and_non_operational_controller_mark_the_unit_stale(cfg, unit_table
                 feeder.send(codec.encode_oil_temp(30.0, t0))
                 await _feed(feeder, codec, t0, 0, 15, heartbeat=5)
                 ok = _boom(service)
-                # pre-operational: frames keep coming, the unit is stale, position held
-                await _feed(feeder, codec, t0, 15, 15, heartbeat=127)
+                await _feed(feeder, codec, t0, 15, 15, heartbeat=127)     # pre-operational
                 preop = _boom(service)
-                held = service.units["boom"].held
-                # heartbeat lost altogether (frames without heartbeats)
                 await _feed(feeder, codec, t0, 30, 10, heartbeat=5)
-                await _feed(feeder, codec, t0, 40, 50)
+                await _feed(feeder, codec, t0, 40, 50)                     # heartbeat lost
                 lost = _boom(service)
-                lost_why = service.stale(service.units["boom"])[1]
+                lost_why = service.units["boom"].heartbeat.status()[1]
                 await _feed(feeder, codec, t0, 90, 10, heartbeat=5)
                 back = _boom(service)
                 bucket = service.published(service.units["bucket"])
+                unit = service.units["boom"]
             finally:
                 feeder.shutdown()
-            return ok, preop, held, lost, lost_why, back, bucket
+            return ok, preop, lost, lost_why, back, bucket, unit
 
-    ok, preop, held, lost, lost_why, back, bucket = asyncio.run(scenario())
-    assert not ok.flags & FLAG_STALE
-    assert preop.flags & FLAG_STALE and held >= 10
-    assert lost.flags & FLAG_STALE and "heartbeat lost" in lost_why
-    assert not back.flags & FLAG_STALE and back.position_mm > ok.position_mm
-    assert not bucket.flags & FLAG_STALE           # its controller sent no heartbeat at all
+    ok, preop, lost, lost_why, back, bucket, unit = asyncio.run(scenario())
+    assert not ok.flags & (FLAG_STALE | FLAG_CONTROLLER)
+    assert preop.flags & FLAG_CONTROLLER and not preop.flags & FLAG_STALE
+    assert preop.position_mm > ok.position_mm + 1.0            # integrated all the same
+    assert lost.flags & FLAG_CONTROLLER and "heartbeat lost" in lost_why
+    assert lost.position_mm > preop.position_mm + 1.0
+    assert not back.flags & (FLAG_STALE | FLAG_CONTROLLER)
+    assert unit.held == 0 and unit.integrated == 100
+    assert bucket.flags & FLAG_CONTROLLER and not bucket.flags & FLAG_STALE  # never heard
+
+
+def test_heartbeats_of_unconfigured_nodes_arm_nothing(cfg, unit_tables) -> None:
+    """Without a configured consumer a spoofed heartbeat is just an unknown frame."""
+    import dataclasses
+    quiet = dataclasses.replace(cfg, faults=dataclasses.replace(cfg.faults,
+                                                                heartbeat_node_ids={}))
+    channel = channel_name()
+    codec = FrameCodec(quiet)
+
+    async def scenario():
+        async with running_service(quiet, unit_tables, channel) as service:
+            feeder = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+            try:
+                feeder.send(codec.encode_oil_temp(30.0, 600.0))
+                await _feed(feeder, codec, 600.0, 0, 10, heartbeat=4)      # "stopped", spoofed
+                await _feed(feeder, codec, 600.0, 10, 10)
+                return _boom(service), service.units["boom"]
+            finally:
+                feeder.shutdown()
+
+    boom, unit = asyncio.run(scenario())
+    assert unit.heartbeat is None
+    assert not boom.flags & (FLAG_CONTROLLER | FLAG_STALE) and unit.integrated == 20
 
 
 def test_malformed_frames_are_counted_and_ignored(cfg, unit_tables, caplog) -> None:
@@ -279,3 +307,65 @@ def test_bad_config_and_bad_bus_settings_exit_2(tmp_path, capsys) -> None:
     assert "bad.yaml" in capsys.readouterr().err
     assert main(["run", "--interface", "no-such-interface", "--no-state"]) == 2
     assert "no-such-interface" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("mode", ["disabled", "pre-operational only", "enabled"])
+def test_preset_modes_and_their_abort_codes(cfg, unit_tables, mode) -> None:
+    """SDO presets per ``faults.preset``; the jump bound once referenced; FLAG_PRESET until a
+    reference confirms; every one counted in the status line."""
+    import dataclasses
+
+    import canopen
+
+    from ddh_vsensor.estimator.estimator import FLAG_PRESET
+    from ddh_vsensor.service.node import EDS_PATH
+    modal = dataclasses.replace(cfg, faults=dataclasses.replace(cfg.faults, preset=mode))
+    channel = channel_name()
+    node_id = cfg.can.units["boom"].sensor_node_id
+    step = cfg.can.position_step_mm
+
+    def client() -> dict:
+        bus = can.Bus(interface="virtual", channel=channel)
+        network = canopen.Network(bus)
+        notifier = can.Notifier(bus, network.listeners, 0.1)
+        out: dict = {}
+
+        def write(name: str, mm: float) -> None:
+            try:
+                node.sdo[0x6010][1].raw = round(mm / step)
+                out[name] = "accepted"
+            except canopen.SdoAbortedError as exc:
+                out[name] = exc.code
+        try:
+            node = network.add_node(node_id, str(EDS_PATH))
+            node.sdo.RESPONSE_TIMEOUT = 2.0
+            write("operational", 100.0)
+            bus.send(can.Message(arbitration_id=0, data=[0x80, node_id], is_extended_id=False))
+            time.sleep(0.1)                                   # -> PRE-OPERATIONAL
+            write("pre-operational", 100.0)
+            write("jump", 160.0)                              # 60 mm from a referenced 100
+            write("small", 103.0)
+        finally:
+            notifier.stop(1.0)
+            bus.shutdown()
+        return out
+
+    async def scenario():
+        async with running_service(modal, unit_tables, channel) as service:
+            out = await asyncio.get_running_loop().run_in_executor(None, client)
+            return out, service.published(service.units["boom"]), service.status_line()
+
+    out, boom, status = asyncio.run(scenario())
+    if mode == "disabled":
+        assert set(out.values()) == {0x06010002}
+    elif mode == "pre-operational only":
+        assert out == {"operational": 0x08000022, "pre-operational": "accepted",
+                       "jump": 0x06090030, "small": "accepted"}
+    else:
+        assert out == {"operational": "accepted", "pre-operational": "accepted",
+                       "jump": 0x06090030, "small": "accepted"}
+    if mode != "disabled":
+        assert boom.flags & FLAG_PRESET and not boom.flags & FLAG_NOT_REFERENCED
+        assert boom.position_mm == pytest.approx(103.0)
+        accepted = sum(v == "accepted" for v in out.values())
+        assert f"boom {accepted}/{len(out) - accepted}" in status
