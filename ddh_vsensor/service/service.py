@@ -645,6 +645,8 @@ class Service:
             raise SdoAbortedError(refusal[0])
         est.preset(position_mm, self.cfg.estimator.uncertainty_reference_mm)
         est.referenced = False                       # provisional: see Unit.provisional
+        if unit.stale_since_s is not None:
+            unit.stale_since_s = time.monotonic()    # worst-case travel counts from here
         unit.preset_pending = unit.provisional = True
         unit.presets_accepted += 1
         self._log.info(f"preset-{unit.actuator}", "%s: preset accepted: %.3f mm -> %.3f mm "

@@ -73,14 +73,18 @@ class Master:
 
 class FlaggedService(Service):
     """The real service with fault flags added at its boundary (``extra_flags``), for the
-    faults a test cannot provoke through inputs."""
+    faults a test cannot provoke through inputs, and flags hidden there (``masked_flags``)
+    where a test needs a clean start the inputs cannot give (a preset stays unconfirmed
+    until a Hall reference)."""
 
     extra_flags: dict[str, int]
+    masked_flags: int = 0
 
     def published(self, unit, now=None) -> Published:  # type: ignore[override]
         p = super().published(unit, now)
         extra = getattr(self, "extra_flags", {}).get(unit.actuator, 0)
-        return dataclasses.replace(p, flags=p.flags | extra) if extra else p
+        flags = (p.flags & ~self.masked_flags) | extra
+        return dataclasses.replace(p, flags=flags) if flags != p.flags else p
 
 
 @contextlib.contextmanager
@@ -155,8 +159,9 @@ def bus(cfg: Config, unit_tables: dict, channel: str) -> Iterator[tuple[Service,
 
 
 class Feeder:
-    """The machine's inputs: oil temperature and standstill Sevcon frames every 10 ms, from a
-    thread, with increasing timestamps, until stopped."""
+    """The machine's inputs: oil temperature and standstill Sevcon frames every 10 ms, and the
+    controllers' OPERATIONAL heartbeats every 100 ms, from a thread, with increasing
+    timestamps, until stopped."""
 
     def __init__(self, cfg: Config, channel: str) -> None:
         from ddh_vsensor.canbus.dbc import FrameCodec
@@ -167,12 +172,17 @@ class Feeder:
         self._thread = threading.Thread(target=self._run, name="feeder", daemon=True)
 
     def _run(self) -> None:
-        t = 1000.0
+        t, k = 1000.0, 0
+        heartbeats = [0x700 + n for n in self.cfg.faults.heartbeat_node_ids.values()]
         while not self._stop.is_set():
             self.bus.send(self.codec.encode_oil_temp(30.0, t))
             for actuator in self.cfg.can.units:
                 self.bus.send(self.codec.encode_sevcon(actuator, 0.0, 0.0, t))
-            t += 0.01
+            if k % 10 == 0:
+                for can_id in heartbeats:
+                    self.bus.send(can.Message(arbitration_id=can_id, data=[0x05],
+                                              is_extended_id=False, timestamp=t))
+            t, k = t + 0.01, k + 1
             self._stop.wait(0.01)
 
     def __enter__(self) -> Feeder:

@@ -29,34 +29,43 @@ def _codes(emcy, start: int = 0) -> list[int]:
     return [e.code for e in emcy.log[start:]]
 
 
+def _last_code(emcy, flag: int) -> int | None:
+    """The newest EMCY code concerning one flag (0: its error reset)."""
+    codes = [e.code for e in emcy.log if e.data[0] == flag]
+    return codes[-1] if codes else None
+
+
 def test_cold_start_faults_then_cleared_by_inputs_and_a_preset(cfg, unit_tables, channel) -> None:
     with master_on(cfg, channel) as master, \
             service_thread(cfg, unit_tables, channel, OPTIONS):
         node = master.nodes["boom"]
         emcy = node.emcy
-        wait_for(lambda: {0x8100, 0xFF02} <= set(_codes(emcy)), "EMCY stale + not referenced")
-        assert {e.register for e in emcy.active} == {0x91}     # both faults, one register
+        cold = {0x8100, 0xFF02, 0x8130}             # no input, never referenced, no heartbeat
+        wait_for(lambda: cold <= set(_codes(emcy)), "EMCY stale + not referenced + controller")
+        assert {e.register for e in emcy.active} == {0x91}     # all faults, one register
         assert node.sdo[0x1001].raw == 0x91            # generic, communication, manufacturer
-        assert node.sdo[0x1003][0].raw == 2
-        history = {node.sdo[0x1003][1].raw, node.sdo[0x1003][2].raw}
-        assert history == {0x8100 | FLAG_STALE << 16, 0xFF02 | FLAG_NOT_REFERENCED << 16}
+        assert node.sdo[0x1003][0].raw == 3
+        history = {node.sdo[0x1003][i].raw for i in (1, 2, 3)}
+        assert history == {0x8100 | FLAG_STALE << 16, 0xFF02 | FLAG_NOT_REFERENCED << 16,
+                           0x8130 | FLAG_CONTROLLER << 16}
         assert node.sdo[0x6503].raw == 0x0001          # CiA 406 alarm: position error
         assert node.sdo[0x6505].raw & 0x0020           # warning: reference point not reached
         frame = next(m for m in master.frames.since(0, 0xB1) if m.data[:2] == b"\x00\x81")
         assert frame.data[3] == FLAG_STALE             # the flag concerned
 
-        start = len(emcy.log)
         with Feeder(cfg, channel):
-            wait_for(lambda: 0x0000 in _codes(emcy, start), "error reset: inputs back")
-            reset = emcy.log[start + _codes(emcy, start).index(0)]
-            assert reset.register == 0x81              # not referenced remains
-            assert reset.data[0] == FLAG_STALE and reset.data[1] == FLAG_NOT_REFERENCED
+            wait_for(lambda: _last_code(emcy, FLAG_STALE) == 0
+                     and _last_code(emcy, FLAG_CONTROLLER) == 0,
+                     "error resets: inputs and heartbeats back")
+            assert emcy.log[-1].register == 0x81       # not referenced remains
+            assert emcy.log[-1].data[1] == FLAG_NOT_REFERENCED
             assert node.sdo[0x6503].raw == 0
-            start = len(emcy.log)
-            node.sdo[0x6010][1].raw = 10000            # preset: referenced
-            wait_for(lambda: 0x0000 in _codes(emcy, start), "error reset: referenced")
-            assert emcy.log[-1].register == 0 and emcy.active == []
-            assert node.sdo[0x1001].raw == 0
+            node.sdo[0x6010][1].raw = 10000            # preset: provisional until a switch
+            wait_for(lambda: _last_code(emcy, FLAG_NOT_REFERENCED) == 0
+                     and _last_code(emcy, FLAG_PRESET) == 0xFF20,
+                     "error reset of not referenced, preset unconfirmed raised")
+            assert node.sdo[0x1001].raw == 0x81
+            assert node.sdo[0x6505].raw & 0x0020       # still no reference point reached
         node.sdo[0x1003][0].raw = 0                    # a master clears the history
         assert node.sdo[0x1003][0].raw == 0
         with pytest.raises(Exception) as exc:
@@ -72,8 +81,11 @@ def test_each_fault_flag_has_its_emcy_and_error_reset(cfg, unit_tables, channel,
             service_thread(cfg, unit_tables, channel, OPTIONS, FlaggedService) as service:
         node = master.nodes["bucket"]
         service.extra_flags = {}
+        service.masked_flags = 0 if flag == FLAG_PRESET else FLAG_PRESET
         with Feeder(cfg, channel):
             node.sdo[0x6010][1].raw = 10000
+            if flag == FLAG_PRESET:
+                service.masked_flags = FLAG_PRESET     # the preset's own, until injected
             wait_for(lambda: _all_clear(node.emcy), "no fault left (error resets seen)")
             start = len(node.emcy.log)
             service.extra_flags = {"bucket": flag}
