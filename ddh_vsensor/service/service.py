@@ -39,7 +39,7 @@ import can
 
 from ..canbus.dbc import FrameCodec
 from ..config import Config
-from ..diagnosis.extension import Extension
+from ..estimator.extension import Extension
 from ..estimator.estimator import FLAG_CLAMPED, FLAG_NAMES, FLAG_STALE, Estimator, Step
 from ..estimator.state import EstimatorState, load_state, save_state
 from ..tables.lookup import UnitTables

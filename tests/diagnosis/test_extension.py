@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ddh_vsensor.cli.main import main
-from ddh_vsensor.diagnosis.extension import Extension, ExtensionError
+from ddh_vsensor.estimator.extension import Extension, ExtensionError
 from ddh_vsensor.estimator.estimator import Estimator
 from ddh_vsensor.measured import read_csv
 
