@@ -22,7 +22,10 @@ from .selection import (AMBIGUITY_RATIO, MAX_CAUSES, MAX_HETEROGENEITY, MIN_ADDE
 from .workbench import Workbench
 
 Progress = Callable[[str, float], None]
-CANDIDATES_PER_STEP = (4, 3)          # causes tried as the second and the third
+CANDIDATES_PER_STEP = (3, 2)          # causes tried as the second and the third
+# Causes fitted on both torques (a valve regime can hinge on a few N*m in a transient); the
+# others on the torque that suits the model without any cause.
+BOTH_TORQUES = ("pump_leakage", "belt_slip", "displacement", "time_offset")
 
 
 @dataclass
@@ -72,7 +75,8 @@ def _fit_either_torque(cause: Cause, bench: Workbench, target: list[np.ndarray],
 
     In a transient the tables' velocity can hinge on a few N*m (a valve regime), so which
     torque reads right depends on the runs and on the cause; the chamber model of
-    ``compressibility`` takes the inertia into account itself.
+    ``compressibility`` takes the inertia into account itself. The sensor causes are fitted
+    on the model's own choice only (time).
     """
     if cause.name == "none":
         bench.use(bench.default_inertia)
@@ -80,8 +84,8 @@ def _fit_either_torque(cause: Cause, bench: Workbench, target: list[np.ndarray],
         fit.motor_inertia = bench.default_inertia
         return fit
     best = None
-    for inertia in ((bench.default_inertia,) if cause.name == "compressibility"
-                    else (False, True)):
+    for inertia in ((False, True) if cause.name in BOTH_TORQUES
+                    else (bench.default_inertia,)):
         bench.use(inertia)
         own = [(x - r.position_mm)[m] for x, r, m in zip(bench.base, bench.runs, bench.masks)]
         fit = rescore(fit_cause(cause, bench, own, weights), target, weights)
@@ -167,7 +171,10 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
                 break
             report(f"joint fits ({len(s.causes) + 1} causes)", 0.6 + 0.15 * step)
             bench.use(s.motor_inertia)
-            others = [f.cause for f in parametric if f.cause.name not in s.names]
+            # the chamber model joins a set only as its first cause (its evaluations cost
+            # several times the tables')
+            others = [f.cause for f in parametric if f.cause.name not in s.names
+                      and f.cause.name != "compressibility"]
             trial = [c for _, c in screen(bench, s, others, weights)[:tries]]
             grown = []
             for c in trial:
