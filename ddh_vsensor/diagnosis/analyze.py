@@ -134,6 +134,32 @@ def diagnose(cfg: Config, actuator: str, runs: Sequence[AnalysisRun], mode: str 
     return diag
 
 
+def _prune(bench: Workbench, s: SetFit, shares: dict[str, float], fits: list[CauseFit],
+           weights: list[float], total: float) -> tuple[SetFit, dict[str, float]]:
+    """Drop a member that adds no resolved gain over the others (the set grown in another
+    order could have done without it): the set without it must leave at most 1/(1 -
+    :data:`MIN_ADDED`) times the set's held-out error, or it goes."""
+    while len(s.causes) > 1:
+        worst, worst_sub = None, None
+        for m in s.causes:
+            rest = tuple(c for c in s.causes if c is not m)
+            if len(rest) == 1:
+                sub = SetFit.single(next(f for f in fits if f.cause is rest[0]))
+            else:
+                bench.use(s.motor_inertia)
+                sub = fit_set(bench, rest, s.params, weights, total)
+            if sub.sse * (1.0 - MIN_ADDED) < s.sse and (worst_sub is None
+                                                        or sub.sse < worst_sub.sse):
+                worst, worst_sub = m, sub
+        if worst is None:
+            break
+        s = worst_sub
+        shares = {c.name: shares.get(c.name, 0.0) for c in s.causes}
+        if len(s.causes) == 1:
+            shares = {s.names[0]: s.explained}
+    return s, shares
+
+
 def _consistent(ev: TorqueEvidence | None, params: dict[str, float],
                 intervals: dict[str, tuple[float, float]] | None = None) -> bool:
     return ev is None or ev.consistent(params, intervals or {})
@@ -171,10 +197,7 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
                 break
             report(f"joint fits ({len(s.causes) + 1} causes)", 0.6 + 0.15 * step)
             bench.use(s.motor_inertia)
-            # the chamber model joins a set only as its first cause (its evaluations cost
-            # several times the tables')
-            others = [f.cause for f in parametric if f.cause.name not in s.names
-                      and f.cause.name != "compressibility"]
+            others = [f.cause for f in parametric if f.cause.name not in s.names]
             trial = [c for _, c in screen(bench, s, others, weights)[:tries]]
             grown = []
             for c in trial:
@@ -190,8 +213,10 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
                     ambiguous.append((grown[0].names[-1], other.names[-1]))
             shares[grown[0].names[-1]] = (s.sse - grown[0].sse) / total if total else 0.0
             s = grown[0]
+        s, shares = _prune(bench, s, shares, diag.fits, weights, total)
         if len(s.causes) == 1:
-            ambiguous = single_rivals
+            ambiguous = single_rivals if s.names[0] == first.cause.name else \
+                [p for p in ambiguous if s.names[0] in p]
     # the residual model: on top of the set (its held-out error as the target), and alone
     report("residual model", 0.9)
     bench.use(bench.default_inertia)

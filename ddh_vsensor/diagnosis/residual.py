@@ -2,7 +2,7 @@
 
 The velocity error is modelled as a linear combination of physical features of the inputs
 (:func:`estimator.extension.residual_features`: estimated velocity, torque over viscosity,
-torque, speed, velocity x |torque|, torque beyond two knots, a constant). Integrated over
+torque, speed, velocity x |torque|, torque beyond three knots on either side, a constant). Integrated over
 each run, they are fitted to the position error by ridge regression with the ridge weight
 chosen by leave-one-run-out cross-validation; the model is linear in its weights and its
 features do not depend on them, so the held-out error is exact. The weights are on
@@ -22,7 +22,7 @@ from ..estimator.extension import (RESIDUAL_FEATURES, ResidualModel, corrected_i
 from .workbench import Workbench
 
 ALPHAS = (1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1)
-KNOT_QUANTILES = (0.5, 0.85)
+KNOT_QUANTILES = (0.25, 0.5, 0.75)
 
 
 @dataclass
@@ -39,7 +39,7 @@ class ResidualFit:
         return sorted(zip(RESIDUAL_FEATURES, map(float, share)), key=lambda x: -x[1])
 
 
-def features(bench: Workbench, params: Mapping[str, float], knots: tuple[float, float]
+def features(bench: Workbench, params: Mapping[str, float], knots: tuple[float, ...]
              ) -> tuple[list[np.ndarray], np.ndarray]:
     """Integrated features per run (masked samples) under the extended model ``params``, and
     each feature's RMS over all samples (its scale)."""

@@ -28,12 +28,16 @@ from .runs import AnalysisRun
 Params = dict[str, float]
 
 
+TEMP_MARGIN_C = 30.0       # the oil temperature sensor's offset is searched within +-this
+
+
 def _table_config(cfg: Config, runs: Sequence[AnalysisRun]) -> Config:
-    """The config with its table temperatures cut to the runs' range (same grid nodes)."""
+    """The config with its table temperatures cut to the runs' range, widened by the range
+    a temperature sensor offset is searched over (same grid nodes)."""
     t0, t1, dt = cfg.tables.temperatures_c
     last = round((t1 - t0) / dt)
-    lo = min(float(np.min(r.oil_temp_c)) for r in runs)
-    hi = max(float(np.max(r.oil_temp_c)) for r in runs)
+    lo = min(float(np.min(r.oil_temp_c)) for r in runs) - TEMP_MARGIN_C
+    hi = max(float(np.max(r.oil_temp_c)) for r in runs) + TEMP_MARGIN_C
     k0 = min(max(0, math.floor((lo - t0) / dt)), last - 1)
     k1 = min(max(k0 + 1, math.ceil((hi - t0) / dt)), last)
     temps = (t0 + k0 * dt, t0 + k1 * dt, dt)

@@ -70,7 +70,8 @@ CAUSE_PARAMETER: dict[str, str | None] = {
     "torque_gain": "torque_gain", "torque_offset": "torque_offset_nm",
     "position_scale": "position_scale"}
 RESIDUAL_FEATURES = ("velocity", "torque_per_viscosity", "torque", "speed", "velocity_x_torque",
-                     "hinge_mid", "hinge_high", "constant")
+                     "torque_above_1", "torque_above_2", "torque_above_3", "torque_below_1",
+                     "torque_below_2", "torque_below_3", "constant")
 MU_REF_PA_S = 0.03                  # viscosity the torque-per-viscosity feature is scaled to
 
 
@@ -118,7 +119,7 @@ class ResidualModel:
 
     weights: tuple[float, ...]
     scale: tuple[float, ...]
-    knots_nm: tuple[float, float]
+    knots_nm: tuple[float, float, float]
 
     def as_dict(self) -> dict[str, Any]:
         return {"features": list(RESIDUAL_FEATURES), "weights": list(self.weights),
@@ -130,7 +131,7 @@ class ResidualModel:
             raise ValueError(f"residual features {d.get('features')} (this version: "
                              f"{list(RESIDUAL_FEATURES)})")
         w, s, k = (tuple(float(x) for x in d[key]) for key in ("weights", "scale", "knots_nm"))
-        if len(w) != len(RESIDUAL_FEATURES) or len(s) != len(w) or len(k) != 2:
+        if len(w) != len(RESIDUAL_FEATURES) or len(s) != len(w) or len(k) != 3:
             raise ValueError("residual model: wrong number of weights, scales or knots")
         return cls(w, s, k)
 
@@ -141,19 +142,18 @@ class ResidualModel:
 
 
 def residual_features(speed_rpm: ArrayLike, torque_nm: ArrayLike, mu_pa_s: ArrayLike,
-                      velocity_mm_s: ArrayLike, knots_nm: tuple[float, float]) -> np.ndarray:
+                      velocity_mm_s: ArrayLike, knots_nm: tuple[float, ...]) -> np.ndarray:
     """[samples, features] of :data:`RESIDUAL_FEATURES`: the estimated velocity (error ~
     travel), torque over viscosity (~ pressure / viscosity: leakage), torque (~ pressure),
-    motor speed, velocity x |torque| (slip), torque beyond two |torque| knots (a valve or seal
-    that gives way above a pressure), and a constant (drift)."""
+    motor speed, velocity x |torque| (slip), torque above +knot and below -knot for three
+    knots (a valve or seal that gives way above a pressure, on one side), a constant."""
     n = np.atleast_1d(np.asarray(speed_rpm, dtype=float))
     tau = np.atleast_1d(np.asarray(torque_nm, dtype=float))
     v = np.atleast_1d(np.asarray(velocity_mm_s, dtype=float))
     mu = np.broadcast_to(np.asarray(mu_pa_s, dtype=float), tau.shape)
-    sign = np.sign(tau)
     return np.stack([v, tau * (MU_REF_PA_S / mu), tau, n * 1e-3, v * np.abs(tau) * 1e-2,
-                     sign * np.maximum(np.abs(tau) - knots_nm[0], 0.0),
-                     sign * np.maximum(np.abs(tau) - knots_nm[1], 0.0), np.ones_like(tau)],
+                     *(np.maximum(tau - k, 0.0) for k in knots_nm),
+                     *(np.minimum(tau + k, 0.0) for k in knots_nm), np.ones_like(tau)],
                     axis=-1)
 
 

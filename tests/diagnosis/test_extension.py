@@ -24,8 +24,8 @@ def _ext(cfg, cause, causes=(), residual=None, **params) -> Extension:
 
 
 # a residual model that takes 2 % of the velocity off and drifts with the torque
-RESIDUAL = ResidualModel((0.02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.05, 0.0),
-                         (1.0,) * len(RESIDUAL_FEATURES), (10.0, 25.0))
+RESIDUAL = ResidualModel((0.02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0),
+                         (1.0,) * len(RESIDUAL_FEATURES), (5.0, 10.0, 25.0))
 
 
 def test_file_round_trip_and_refusals(cfg, tmp_path):

@@ -57,9 +57,12 @@ def test_names_a_faulty_sensor(campaigns):
 
 
 def test_names_both_causes_of_a_pair(campaigns):
+    """On the boom, unless the pair has air in it: the boom's chambers stay pressurised and
+    air errs by 1-2 mm there (diagnosis/README.md); the bucket's A chamber shows it."""
     trial, _ = campaigns.get("pair")
-    truth = hidden(trial, "boom")
-    report = campaigns.analyze("pair", "boom")
+    actuator = "bucket" if "compressibility" in trial.effects else "boom"
+    truth = hidden(trial, actuator)
+    report = campaigns.analyze("pair", actuator)
     assert _named(report) == set(truth), f"named {_named(report)}, ambiguous " \
         f"{report['ambiguous']}: {_where(trial)}"
     assert report["cause"] == max(report["causes"], key=lambda c: c["share"])["cause"]
