@@ -25,6 +25,7 @@ Progress = Callable[[str, float], None]
 CANDIDATES_PER_STEP = (3, 2)          # causes tried as the second and the third
 # Causes fitted on both torques (a valve regime can hinge on a few N*m in a transient); the
 # others on the torque that suits the model without any cause.
+PRESSURE_CAUSES = ("torque_gain", "torque_offset", "displacement")   # what pressures measure
 BOTH_TORQUES = ("pump_leakage", "belt_slip", "displacement", "time_offset")
 
 
@@ -134,6 +135,58 @@ def diagnose(cfg: Config, actuator: str, runs: Sequence[AnalysisRun], mode: str 
     return diag
 
 
+def _grow(diag: Diagnosis, first: CauseFit, stepwise: bool, weights: list[float],
+          total: float, report: Progress
+          ) -> tuple[SetFit | None, dict[str, float], list[tuple[str, str]]]:
+    """Grow a set from ``first`` (:mod:`.selection`, rule 2); ``stepwise``: every step must
+    agree with the pressures, else only the final set (None if it does not)."""
+    bench, ev = diag.bench, diag.evidence
+    s = SetFit.single(first)
+    shares = {first.cause.name: first.explained}
+    ambiguous: list[tuple[str, str]] = []
+    parametric = [f for f in diag.fits if f.cause.parameter is not None]
+    for step, tries in enumerate(CANDIDATES_PER_STEP):
+        if len(s.causes) >= MAX_CAUSES:
+            break
+        report(f"joint fits ({len(s.causes) + 1} causes)", 0.6 + 0.15 * step)
+        bench.use(s.motor_inertia)
+        others = [f.cause for f in parametric if f.cause.name not in s.names]
+        trial = [c for _, c in screen(bench, s, others, weights)[:tries]]
+        grown = []
+        for c in trial:
+            j = fit_set(bench, s.causes + (c,), s.params, weights, total)
+            if j.resolved() and (not stepwise or _consistent(ev, j.params, j.intervals)) \
+                    and j.sse <= (1.0 - MIN_ADDED) * s.sse:
+                grown.append(j)
+        if not grown:
+            break
+        grown.sort(key=lambda j: j.sse)
+        for other in grown[1:]:
+            if other.sse <= AMBIGUITY_RATIO * grown[0].sse:
+                ambiguous.append((grown[0].names[-1], other.names[-1]))
+        shares[grown[0].names[-1]] = (s.sse - grown[0].sse) / total if total else 0.0
+        s = grown[0]
+    s, shares = _prune(bench, s, shares, diag.fits, weights, total)
+    if not _consistent(ev, s.params, s.intervals) and len(s.causes) < MAX_CAUSES:
+        # the pressures measure the torque chain: the cause they point at joins on their
+        # evidence (it need not halve the error left: leakage can hide much of it)
+        for name in PRESSURE_CAUSES:
+            c = ALL_CAUSES[name]
+            if name in s.names:
+                continue
+            bench.use(s.motor_inertia)
+            value, interval = ev.measured(c.parameter, s.params)
+            j = fit_set(bench, s.causes, s.params, weights, total,
+                        fixed={c: (c.clip(value), interval)})
+            if j.resolved() and _consistent(ev, j.params, j.intervals) and j.sse <= s.sse:
+                shares[name] = (s.sse - j.sse) / total if total else 0.0
+                s = j
+                break
+    if not _consistent(ev, s.params, s.intervals):
+        return None, {}, []
+    return s, shares, [p for p in ambiguous if any(n in p for n in s.names)]
+
+
 def _prune(bench: Workbench, s: SetFit, shares: dict[str, float], fits: list[CauseFit],
            weights: list[float], total: float) -> tuple[SetFit, dict[str, float]]:
     """Drop a member that adds no resolved gain over the others (the set grown in another
@@ -178,45 +231,30 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
                                  f"{100 * best.score:.0f} % of the held-out squared error",
                                  before, rms(best.heldout, weights))
         return
-    eligible = [f for f in diag.fits if f.cause.parameter is not None
-                and f.cause.resolved(f.value)
-                and _consistent(ev, f.parameters, {f.cause.parameter: f.interval})]
+    resolved = [f for f in diag.fits if f.cause.parameter is not None
+                and f.cause.resolved(f.value)]
+    eligible = [f for f in resolved
+                if _consistent(ev, f.parameters, {f.cause.parameter: f.interval})]
+    # Start from the best pressure-consistent single cause; where the best of all is not
+    # consistent on its own (a leakage next to a torque error), also from it: a set grown
+    # from there counts if it ends consistent.
+    starts = eligible[:1]
+    if resolved and resolved[0] not in eligible:
+        starts.append(resolved[0])
     ambiguous: list[tuple[str, str]] = []
     s: SetFit | None = None
     shares: dict[str, float] = {}
-    if eligible:
-        first = eligible[0]
-        s = SetFit.single(first)
-        shares[first.cause.name] = first.explained
-        rivals = [f for f in eligible[1:] if f.score >= MIN_SCORE
-                  and (1.0 - f.explained) <= AMBIGUITY_RATIO * (1.0 - first.explained)]
-        single_rivals = [(first.cause.name, f.cause.name) for f in rivals]
-        parametric = [f for f in diag.fits if f.cause.parameter is not None]
-        for step, tries in enumerate(CANDIDATES_PER_STEP):
-            if len(s.causes) >= MAX_CAUSES:
-                break
-            report(f"joint fits ({len(s.causes) + 1} causes)", 0.6 + 0.15 * step)
-            bench.use(s.motor_inertia)
-            others = [f.cause for f in parametric if f.cause.name not in s.names]
-            trial = [c for _, c in screen(bench, s, others, weights)[:tries]]
-            grown = []
-            for c in trial:
-                j = fit_set(bench, s.causes + (c,), s.params, weights, total)
-                if j.resolved() and _consistent(ev, j.params, j.intervals) \
-                        and j.sse <= (1.0 - MIN_ADDED) * s.sse:
-                    grown.append(j)
-            if not grown:
-                break
-            grown.sort(key=lambda j: j.sse)
-            for other in grown[1:]:
-                if other.sse <= AMBIGUITY_RATIO * grown[0].sse:
-                    ambiguous.append((grown[0].names[-1], other.names[-1]))
-            shares[grown[0].names[-1]] = (s.sse - grown[0].sse) / total if total else 0.0
-            s = grown[0]
-        s, shares = _prune(bench, s, shares, diag.fits, weights, total)
-        if len(s.causes) == 1:
-            ambiguous = single_rivals if s.names[0] == first.cause.name else \
-                [p for p in ambiguous if s.names[0] in p]
+    for first in starts:
+        got, got_shares, got_amb = _grow(diag, first, first in eligible, weights, total,
+                                         report)
+        if got is None or (s is not None and got.sse >= s.sse):
+            continue
+        s, shares, ambiguous = got, got_shares, got_amb
+        if first in eligible and len(got.causes) == 1:
+            rivals = [f for f in eligible if f is not first and f.score >= MIN_SCORE
+                      and (1.0 - f.explained) <= AMBIGUITY_RATIO * (1.0 - first.explained)]
+            ambiguous = [(first.cause.name, f.cause.name) for f in rivals] \
+                if got.names[0] == first.cause.name else got_amb
     # the residual model: on top of the set (its held-out error as the target), and alone
     report("residual model", 0.9)
     bench.use(bench.default_inertia)

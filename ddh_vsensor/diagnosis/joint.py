@@ -121,16 +121,20 @@ def screen(bench: Workbench, base: SetFit, candidates: Sequence[Cause],
 
 
 def fit_set(bench: Workbench, causes: Sequence[Cause], start: Mapping[str, float],
-            weights: Sequence[float], total: float) -> SetFit:
+            weights: Sequence[float], total: float,
+            fixed: Mapping[Cause, tuple[float, tuple[float, float]]] | None = None) -> SetFit:
     """Fit ``causes`` jointly from ``start`` (parameter -> value; absent: neutral) and
-    cross-validate; ``total`` is the baseline's held-out SSE the share is taken of."""
+    cross-validate; ``total`` is the baseline's held-out SSE the share is taken of.
+    ``fixed``: further causes held at a measured value (with its 90 % interval)."""
     causes = tuple(causes)
+    fixed = dict(fixed or {})
+    held_at = {c.parameter: v for c, (v, _) in fixed.items()}
     names = [c.parameter for c in causes]
     u = np.array([_u(c, start.get(c.parameter, c.neutral)) for c in causes])
     h = np.array([_step_u(c) for c in causes])
 
     def params(uu: np.ndarray) -> dict[str, float]:
-        return {p: _v(c, x) for p, c, x in zip(names, causes, uu)}
+        return {**held_at, **{p: _v(c, x) for p, c, x in zip(names, causes, uu)}}
 
     r0 = _residuals(bench, [params(u)])[0]
     s0 = _sse(r0, weights)
@@ -182,6 +186,7 @@ def fit_set(bench: Workbench, causes: Sequence[Cause], start: Mapping[str, float
     se = np.sqrt((k - 1) / k * np.sum((fu - fu.mean(axis=0)) ** 2, axis=0))
     half = np.hypot(Z90 * se, h)
     intervals = {p: (_v(c, x - d), _v(c, x + d)) for p, c, x, d in zip(names, causes, u, half)}
+    intervals.update({c.parameter: iv for c, (_, iv) in fixed.items()})
     explained = 1.0 - _sse(held, weights) / total if total > 0 else 0.0
-    return SetFit(causes, params(u), folds, held, explained, min(own, _sse(held, weights)),
+    return SetFit(causes + tuple(fixed), params(u), folds, held, explained, min(own, _sse(held, weights)),
                   tuple(weights), bench.inertia, intervals)

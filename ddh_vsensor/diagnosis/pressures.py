@@ -55,6 +55,22 @@ class TorqueEvidence:
                                                                          False)
         return abs(np.log(g / self.gain)) <= tol_g and abs(o - self.offset_nm) <= tol_o
 
+    def measured(self, parameter: str, params: Mapping[str, float]
+                 ) -> tuple[float, tuple[float, float]] | None:
+        """The value the pressures give ``parameter`` (torque_gain, displacement_factor,
+        torque_offset_nm) next to the others of ``params``, with a 90 % interval (their
+        spread and tolerance); None for another parameter."""
+        if parameter == "torque_offset_nm":
+            half = max(1.645 * self.offset_se_nm, OFFSET_TOLERANCE_NM / 2.0)
+            return self.offset_nm, (self.offset_nm - half, self.offset_nm + half)
+        other = {"torque_gain": "displacement_factor",
+                 "displacement_factor": "torque_gain"}.get(parameter)
+        if other is None:
+            return None
+        v = self.gain / params.get(other, 1.0)
+        half = max(1.645 * self.gain_se, GAIN_TOLERANCE / 2.0)
+        return v, (float(v * np.exp(-half)), float(v * np.exp(half)))
+
     def describe(self) -> str:
         return (f"chamber pressures: drive torque = {self.gain:.3f} x pressure torque "
                 f"{self.offset_nm:+.2f} N*m ({self.runs} runs)")
