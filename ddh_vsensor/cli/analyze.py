@@ -19,9 +19,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "analyze", help="diagnose the model on measured runs: what is wrong, why, the fix",
         description="Compares the estimate with the reference position of each run, breaks "
                     "the error down by motion phase, direction, load, speed and temperature, "
-                    "fits each candidate cause (a physical extension of the model), ranks "
-                    "them on runs left out of the fit, names one only if it explains "
-                    "significantly more than none, and saves the extended model.")
+                    "fits each candidate cause (a physical extension of the model, the "
+                    "sensors included) and sets of up to three jointly, judges them on runs "
+                    "left out of the fit, names a set only if each cause adds a resolved "
+                    "gain, says which causes the runs cannot tell apart, answers "
+                    "'unexplained' (with a residual model) when nothing in the catalogue "
+                    "fits, and saves the extended model.")
     p.add_argument("runs", nargs="+", metavar="RUN",
                    help="measured runs of one actuator: CSV (measured-data format) or CAN log; "
                         "at least two")
@@ -39,6 +42,7 @@ def _run(args: argparse.Namespace) -> int:
     from ..diagnosis.analyze import diagnose
     from ..diagnosis.report import prepare_report_dir, write_report
     from ..diagnosis.runs import load_analysis_run
+    from ..diagnosis.selection import separation
 
     cfg = config_from(args)
     # the diagnosis extends the tables' modes; a `dynamic` default is diagnosed as `full`
@@ -56,6 +60,13 @@ def _run(args: argparse.Namespace) -> int:
     b, e = data["baseline"], data["extended"]
     print(f"{args.actuator} ({mode} mode), {len(runs)} runs: cause {diag.cause}")
     print(f"  {diag.decision.reason}")
+    for c in data["causes"]:
+        params = ", ".join(f"{k}={v:.4g} (90 %: {lo:.4g}..{hi:.4g})"
+                           for (k, v), (lo, hi) in zip(c["parameters"].items(),
+                                                       c["interval"].values()))
+        print(f"  + {c['cause']:<17} share {c['share']:.3f}  {params}")
+    for a, b in data["ambiguous"]:
+        print(f"  ? {a} or {b}: to tell them apart, {separation(a, b)}")
     for item in data["ranking"]:
         params = ", ".join(f"{k}={v:.4g}" for k, v in item["parameters"].items())
         print(f"  {item['cause']:<18} score {item['score']:+.3f}  {params}")

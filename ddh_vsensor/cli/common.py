@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 from ..config import ACTUATORS, Config, load_config
 
 if TYPE_CHECKING:
-    from ..diagnosis.extension import Extension
+    from ..estimator.extension import Extension
     from ..measured import Run
     from ..tables.lookup import UnitTables
 
@@ -55,7 +55,7 @@ def add_extension_arg(parser: argparse.ArgumentParser) -> None:
 
 def extensions_from(args: argparse.Namespace, cfg: Config) -> dict[str, "Extension"]:
     """The ``--extension`` files by actuator (each file says which actuator it is for)."""
-    from ..diagnosis.extension import Extension
+    from ..estimator.extension import Extension
     from ..errors import UserError
     out: dict[str, Extension] = {}
     for path in args.extension:

@@ -45,7 +45,7 @@ def estimate_run(args: argparse.Namespace, cfg: Config, run: Run, actuator: str)
     """Estimator and result for one run, as the CLI options say."""
     extension = None
     if getattr(args, "extension", None):
-        from ..diagnosis.extension import Extension
+        from ..estimator.extension import Extension
         extension = Extension.load(args.extension, cfg, actuator)
     tables = (load_tables_for(args, cfg, actuator)
               if extension is None or not extension.changes_tables() else None)

@@ -7,7 +7,7 @@ extensions fitted and cross-validated), and the extended model (see README.md he
 
 from .analyze import Diagnosis, diagnose
 from .causes import CAUSE_NAMES
-from .extension import ExtendedEstimator, Extension, ExtensionError
+from ..estimator.extension import ExtendedEstimator, Extension, ExtensionError
 from .runs import AnalysisRun, load_analysis_run, prepare_run
 
 __all__ = ["AnalysisRun", "CAUSE_NAMES", "Diagnosis", "ExtendedEstimator", "Extension",

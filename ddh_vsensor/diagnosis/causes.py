@@ -21,6 +21,14 @@ analysed mode). They are computed with the extended model itself, not a linearis
     pressure air makes that volume large. The model also holds the nominal oil's
     compression, which the tables leave out, so without any air it already fits better than
     the tables: an air fraction is named only beyond its resolution (see ``selection``).
+``oil_temp_offset`` (degC the tank sensor reads above the oil the pumps see)
+    the estimator takes logged temperature minus the offset: viscosity, hence leakage.
+``torque_gain``, ``torque_offset`` (the drive's torque reads g x true + o)
+    the estimator takes (logged - o) / g: the pressures it infers, hence leakage and valves.
+``position_scale`` (the reference sensor reads s x true position)
+    the comparison takes s x the estimate (started from the first reading / s). A constant
+    offset of that sensor cannot be seen: the estimate starts at its first reading, so the
+    offset cancels from every comparison (the Hall switches would show it).
 ``low_speed_leakage`` (no parameter; ``paper`` mode only)
     the speed-continuous tables instead of the paper's three speed ranges: the ranges' mm
     per revolution is wrong where leakage dominates, i.e. at low speed, and a held load
@@ -98,38 +106,12 @@ class _LowSpeedLeakage(Cause):
         return [_minus(bench.full_estimate, base)]
 
 
-class _PumpLeakage(Cause):
+class _Parametric(Cause):
+    """A cause evaluated by the workbench's extended model with its one parameter set."""
+
     def deltas(self, bench, base, values):
-        return [_minus(bench.estimate(bench.tables(bench.unit.with_pumps(leakage=v))), base)
-                for v in values]
-
-
-class _Displacement(Cause):
-    def deltas(self, bench, base, values):
-        return [_minus(bench.estimate(bench.tables(bench.unit.with_pumps(displacement=v))),
-                       base) for v in values]
-
-
-def slipped_speed(speed_rpm: np.ndarray, torque_nm: np.ndarray, slip: float) -> np.ndarray:
-    """Motor speed the pumps see with a belt slip of ``slip`` % per 100 N*m."""
-    return speed_rpm * np.maximum(1.0 - slip * 1e-4 * np.abs(torque_nm), 0.0)
-
-
-class _BeltSlip(Cause):
-    def deltas(self, bench, base, values):
-        return [_minus(bench.estimate(speed_rpm=[slipped_speed(r.speed_rpm, r.torque_nm, v)
-                                                 for r in bench.runs]), base)
-                for v in values]
-
-
-class _TimeOffset(Cause):
-    def deltas(self, bench, base, values):
-        return [_minus(bench.estimate(time_shift_s=v), base) for v in values]
-
-
-class _Compressibility(Cause):
-    def deltas(self, bench, base, values):
-        return [_minus(x, base) for x in bench.chambers(values)]
+        sets = [{self.parameter: float(v)} for v in values]
+        return [_minus(x, base) for x in bench.evaluate_many(sets)]
 
 
 NONE = _None("none", None, "", None, None, (), False,
@@ -139,35 +121,59 @@ CAUSES: dict[str, Cause] = {c.name: c for c in (
         "low_speed_leakage", None, "", None, None, (), False,
         "three speed ranges cannot represent the leakage at low speed",
         "creep while a load is held (motor turning at the leakage speed)"),
-    _PumpLeakage(
+    _Parametric(
         "pump_leakage", "leakage_factor", "x nominal", 1.0, (0.05, 50.0),
         (0.05, 0.1, 0.2, 0.35, 0.5, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0),
         True, "pump leakage differs from the nominal efficiencies (wear, oil)",
         "error rate ~ pressure / viscosity; creep while holding; larger when warm",
         resolution=0.10),
-    _Compressibility(
+    _Parametric(
         "compressibility", "air_fraction", "volume fraction at 1 atm", 0.0, (0.0, 0.19),
         (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.19), False,
         "entrained air: the oil compresses more than modelled at low pressure",
         "offsets at pressure changes from low pressure; does not grow with travel",
         resolution=0.005),
-    _BeltSlip(
+    _Parametric(
         "belt_slip", "slip_percent_per_100nm", "% per 100 N*m", 0.0, (0.0, 30.0),
         (0.0, 0.5, 1.0, 2.0, 3.5, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0), False,
         "the belt's speed ratio drops with transmitted torque",
         "error rate ~ speed x |torque|: lifting loaded, not lowering", resolution=1.0),
-    _Displacement(
+    _Parametric(
         "displacement", "displacement_factor", "x nominal", 1.0, (0.7, 1.4),
         (0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 1.0, 1.01, 1.02, 1.05, 1.1, 1.2, 1.4), True,
         "the pumps' effective displacement differs from nominal",
         "error ~ travel, both directions, any load or temperature", resolution=0.005),
-    _TimeOffset(
+    _Parametric(
         "time_offset", "time_offset_s", "s (motor signals lag the position)", 0.0, (-1.0, 1.0),
         (-1.0, -0.5, -0.25, -0.12, -0.06, -0.03, -0.01, 0.0, 0.01, 0.03, 0.06, 0.12, 0.25, 0.5,
          1.0), False,
         "the motor signals and the position are not aligned in time",
         "error ~ -velocity x offset; vanishes at rest, does not accumulate",
         resolution=0.010),
+    _Parametric(
+        "oil_temp_offset", "oil_temp_offset_c", "degC (the tank sensor reads true + offset)",
+        0.0, (-30.0, 30.0), (-30.0, -20.0, -12.0, -6.0, -3.0, 0.0, 3.0, 6.0, 12.0, 20.0, 30.0),
+        False, "the oil temperature sensor reads off (or the pumps run warmer than the tank)",
+        "as a leakage factor that changes with temperature (viscosity ~ exp(-b T))",
+        resolution=3.0),
+    _Parametric(
+        "torque_gain", "torque_gain", "x true (the drive's torque estimate)", 1.0, (0.5, 2.0),
+        (0.5, 0.7, 0.8, 0.9, 0.95, 1.0, 1.05, 1.1, 1.25, 1.4, 2.0), True,
+        "the drive's torque (an estimate from current) is off by a factor",
+        "as leakage (pressure inferred wrong); chamber pressures give it away at once",
+        resolution=0.03),
+    _Parametric(
+        "torque_offset", "torque_offset_nm", "N*m (added to the true torque)", 0.0,
+        (-20.0, 20.0), (-20.0, -10.0, -5.0, -2.0, -1.0, 0.0, 1.0, 2.0, 5.0, 10.0, 20.0), False,
+        "the drive's torque reads an offset",
+        "creep while holding unloaded, in the offset's direction; no change with load",
+        resolution=1.0),
+    _Parametric(
+        "position_scale", "position_scale", "x true (the reference sensor)", 1.0, (0.8, 1.25),
+        (0.8, 0.9, 0.95, 0.98, 0.99, 1.0, 1.01, 1.02, 1.05, 1.1, 1.25), True,
+        "the reference position sensor's scale is off (the estimate may be right)",
+        "error ~ distance from the sensor's zero; as displacement without pressure data",
+        resolution=0.005),
 )}
 ALL_CAUSES: dict[str, Cause] = {NONE.name: NONE, **CAUSES}
 CAUSE_NAMES = tuple(ALL_CAUSES)

@@ -41,12 +41,41 @@ class CauseFit:
     score: float
     evaluations: int = 0
     motor_inertia: bool = True              # fitted with the estimator's inertia compensation
+    own_sse: float = 0.0                    # sum over runs of each run's own best fit's SSE
+    interval: tuple[float, float] | None = None     # 90 %, see :func:`interval_90`
+
+    @property
+    def heterogeneity(self) -> float:
+        """Held-out SSE over the SSE of each run fitted on its own: near 1 when one value
+        describes every run, large when each run wants its own (the cause only mimics)."""
+        held = sum(float(np.dot(h, h)) * w for h, w in zip(self.heldout, self.weights))
+        return held / self.own_sse if self.own_sse > 0 else 1.0
+
+    weights: tuple[float, ...] = ()
 
     @property
     def parameters(self) -> dict[str, float]:
         if self.cause.parameter is None or self.value is None:
             return {}
         return {self.cause.parameter: float(self.value)}
+
+
+Z90 = 1.645
+
+
+def interval_90(cause: Cause, value: float, fold_values: Sequence[float]) -> tuple[float, float]:
+    """90 % interval of a fitted parameter: the jackknife spread of the leave-one-run-out fits
+    combined with half the cause's resolution (what the model's own error can mimic), in the
+    search's scale (log for factors), clipped to the physical range."""
+    to_u = np.log if cause.log else (lambda x: np.asarray(x, dtype=float))
+    u = to_u(np.asarray([value if v is None else v for v in fold_values], dtype=float))
+    k = len(u)
+    se = float(np.sqrt((k - 1) / k * np.sum((u - u.mean()) ** 2))) if k > 1 else 0.0
+    floor = (np.log1p(cause.resolution) if cause.log else cause.resolution) / 2.0
+    half = float(np.hypot(Z90 * se, floor))
+    u0 = float(to_u(value))
+    lo, hi = (np.exp([u0 - half, u0 + half]) if cause.log else (u0 - half, u0 + half))
+    return cause.clip(float(lo)), cause.clip(float(hi))
 
 
 def _weighted_sse(residuals: Sequence[np.ndarray], weights: Sequence[float]) -> float:
@@ -97,7 +126,8 @@ def fit_cause(cause: Cause, bench: Workbench, target: Sequence[np.ndarray],
         delta = [x[m] for x, m in zip(cause.deltas(bench, bench.base, [0.0])[0], bench.masks)]
         held = [t + d for t, d in zip(target, delta)]
         explained = 1.0 - _weighted_sse(held, weights) / total if total > 0 else 0.0
-        return CauseFit(cause, None, [None] * k, held, explained, explained, 1)
+        return CauseFit(cause, None, [None] * k, held, explained, explained, 1,
+                        own_sse=_weighted_sse(held, weights), weights=tuple(weights))
 
     s = _Search(cause, bench, target, weights)
     s.evaluate(cause.grid)
@@ -131,9 +161,12 @@ def fit_cause(cause: Cause, bench: Workbench, target: Sequence[np.ndarray],
     held = [target[j] + np.vander([u], deg + 1, increasing=True)[0] @ coef[j]
             for j, u in enumerate(fold_u)]
     explained = 1.0 - _weighted_sse(held, weights) / total if total > 0 else 0.0
-    return CauseFit(cause, cause.clip(s.from_u(u0 + u_all)),
-                    [cause.clip(s.from_u(u0 + u)) for u in fold_u], held, explained,
-                    explained - PENALTY_PER_PARAMETER * cause.parameters, len(s.deltas))
+    value = cause.clip(s.from_u(u0 + u_all))
+    folds = [cause.clip(s.from_u(u0 + u)) for u in fold_u]
+    return CauseFit(cause, value, folds, held, explained,
+                    explained - PENALTY_PER_PARAMETER * cause.parameters, len(s.deltas),
+                    own_sse=float(sse_runs.min(axis=1).sum()), weights=tuple(weights),
+                    interval=interval_90(cause, value, folds))
 
 
 def rescore(fit: CauseFit, target: Sequence[np.ndarray], weights: Sequence[float]) -> CauseFit:

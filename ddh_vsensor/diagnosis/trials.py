@@ -25,7 +25,9 @@ from ..config import ACTUATORS, Config
 from ..measured import Run, write_csv
 
 EFFECT_NAMES = ("none", "pump_leakage", "compressibility", "belt_slip", "displacement",
-                "time_offset")
+                "time_offset", "oil_temp_offset", "torque_gain", "torque_offset", "position_scale")
+# Deviations of the simulator that the diagnosis' catalogue does not contain (open set).
+OUTSIDE_NAMES = ("valve_leak",)
 PAYLOADS_KG = (0.0, 1040.0)
 # Oil temperatures: around the paper's 25-30 degC, and warm. Below about 20 degC the model's
 # own error (transients of the chamber pressures the steady-state tables cannot follow) grows
@@ -39,18 +41,25 @@ class Trial:
     """One drawn campaign."""
 
     seed: int
-    effect: str                     # catalogue name or "none"
+    effect: str                     # catalogue name (the first, for pairs) or "none"
     value: float | None             # the effect's parameter (None for none)
     speeds: tuple[int, ...]         # paper cycle speeds (random cycles: one per "speed")
     oil_temps_c: tuple[float, float]
     cycle: str = "paper"            # "paper" or "random"
+    more: tuple[tuple[str, float], ...] = ()    # further effects (pairs)
+
+    @property
+    def effects(self) -> dict[str, float]:
+        out = {} if self.value is None else {self.effect: self.value}
+        out.update(dict(self.more))
+        return out
 
     @property
     def effect_arg(self) -> list[str]:
-        return [] if self.value is None else [f"{self.effect}={self.value:.6g}"]
+        return [f"{k}={v:.6g}" for k, v in self.effects.items()]
 
     def describe(self) -> str:
-        what = "none" if self.value is None else f"{self.effect}={self.value:.4g}"
+        what = ", ".join(f"{k}={v:.4g}" for k, v in self.effects.items()) or "none"
         cycles = (f"paper cycle at speeds {', '.join(map(str, self.speeds))}"
                   if self.cycle == "paper" else f"{len(self.speeds)} random cycles")
         return (f"seed {self.seed}: {what}; {cycles}; oil "
@@ -74,21 +83,39 @@ def draw_magnitude(effect: str, rng: np.random.Generator) -> float | None:
         return float(sign * rng.uniform(0.03, 0.3))
     if effect == "compressibility":
         return float(math.exp(rng.uniform(math.log(0.02), math.log(0.08))))
+    if effect == "oil_temp_offset":
+        return float(sign * rng.uniform(6.0, 15.0))
+    if effect == "torque_gain":
+        return float(1.0 + sign * rng.uniform(0.06, 0.15))
+    if effect == "torque_offset":
+        return float(sign * rng.uniform(3.0, 8.0))
+    if effect == "position_scale":
+        return float(1.0 + sign * rng.uniform(0.015, 0.05))
+    if effect == "valve_leak":
+        return float(rng.uniform(2.0, 8.0))
     raise ValueError(f"unknown effect {effect!r}")
 
 
 def draw_trial(seed: int, effect: str | None = None, speeds: tuple[int, ...] | None = None,
-               cycle: str = "paper") -> Trial:
-    """A trial from ``seed``: the effect (drawn unless given), its magnitude, two speeds of
-    the paper cycle (drawn from 2..4 unless given) and two oil temperatures."""
+               cycle: str = "paper", pair: bool = False) -> Trial:
+    """A trial from ``seed``: the effect (drawn unless given; with ``pair`` a second one,
+    another catalogue cause), its magnitude, two speeds of the paper cycle (drawn from 2..4
+    unless given) and two oil temperatures."""
     rng = np.random.default_rng(seed)
+    causes = EFFECT_NAMES[1:]
     if effect is None:
-        effect = EFFECT_NAMES[int(rng.integers(len(EFFECT_NAMES)))]
+        effect = (causes if pair else EFFECT_NAMES)[int(rng.integers(len(causes) if pair
+                                                                     else len(EFFECT_NAMES)))]
     value = draw_magnitude(effect, rng)
+    more: tuple[tuple[str, float], ...] = ()
+    if pair:
+        others = [c for c in causes if c != effect]
+        second = others[int(rng.integers(len(others)))]
+        more = ((second, draw_magnitude(second, rng)),)
     if speeds is None:
         speeds = tuple(sorted(int(s) for s in rng.choice([2, 3, 4], size=2, replace=False)))
     temps = (round(float(rng.uniform(*COOL_OIL_C)), 1), round(float(rng.uniform(*WARM_OIL_C)), 1))
-    return Trial(seed, effect, value, speeds, temps, cycle)
+    return Trial(seed, effect, value, speeds, temps, cycle, more)
 
 
 def random_cycle(rng: np.random.Generator, duration_s: float = 40.0):

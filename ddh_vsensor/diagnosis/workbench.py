@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -21,16 +21,23 @@ from ..physics.unit import DDHUnit
 from ..tables.build import build_unit_tables
 from ..tables.lookup import UnitTables
 from ..estimator.chambers import ChamberRow, track_chambers
-from .inertia import with_inertia_compensation
+from ..estimator.extension import (NEUTRAL, corrected_inputs, shift_signal,
+                                   with_inertia_compensation)
 from .runs import AnalysisRun
+
+Params = dict[str, float]
+
+
+TEMP_MARGIN_C = 30.0       # the oil temperature sensor's offset is searched within +-this
 
 
 def _table_config(cfg: Config, runs: Sequence[AnalysisRun]) -> Config:
-    """The config with its table temperatures cut to the runs' range (same grid nodes)."""
+    """The config with its table temperatures cut to the runs' range, widened by the range
+    a temperature sensor offset is searched over (same grid nodes)."""
     t0, t1, dt = cfg.tables.temperatures_c
     last = round((t1 - t0) / dt)
-    lo = min(float(np.min(r.oil_temp_c)) for r in runs)
-    hi = max(float(np.max(r.oil_temp_c)) for r in runs)
+    lo = min(float(np.min(r.oil_temp_c)) for r in runs) - TEMP_MARGIN_C
+    hi = max(float(np.max(r.oil_temp_c)) for r in runs) + TEMP_MARGIN_C
     k0 = min(max(0, math.floor((lo - t0) / dt)), last - 1)
     k1 = min(max(k0 + 1, math.ceil((hi - t0) / dt)), last)
     temps = (t0 + k0 * dt, t0 + k1 * dt, dt)
@@ -65,6 +72,12 @@ class Workbench:
         self.default_inertia = bool(inertia)
         self.use(self.default_inertia)
         self._chamber_cache: dict[float, list[np.ndarray]] = {}
+        self._table_cache: dict[tuple[float, float], UnitTables] = {}
+
+    @property
+    def estimator_config(self) -> Config:
+        """The configuration the estimator runs under (inertia compensation as in use)."""
+        return self._cfg_inertia[self.inertia]
 
     def use(self, inertia: bool) -> None:
         """Evaluate with (or without) the motor's inertia taken off the motor torque."""
@@ -111,6 +124,67 @@ class Workbench:
             out.append(est.run(r.time_s, n, tau, r.oil_temp_c).position_mm)
         return out
 
+    def evaluate(self, params: Params | Sequence[Params], mode: str | None = None
+                 ) -> list[np.ndarray]:
+        """What the reference sensor would read (mm), per run, under the extended model of
+        ``params`` (one set for all runs, or one per run): the sensor corrections of
+        :func:`corrected_inputs`, tables of scaled pumps, the compressible-chamber model when
+        ``air_fraction`` is given (even 0), and a reference sensor reading
+        ``position_scale`` x the true position."""
+        return self.evaluate_many([params], mode)[0]
+
+    def evaluate_many(self, sets: Sequence[Params | Sequence[Params]], mode: str | None = None
+                      ) -> list[list[np.ndarray]]:
+        """:meth:`evaluate` for several parameter sets (chamber models run in one batch)."""
+        k = len(self.runs)
+        per = [[s] * k if isinstance(s, Mapping) else list(s) for s in sets]
+        out: list[list[np.ndarray | None]] = [[None] * k for _ in sets]
+        rows, where = [], []
+        for j, ps in enumerate(per):
+            for i, (p, r) in enumerate(zip(ps, self.runs)):
+                n, pumps, tau, temp = corrected_inputs(p, r.time_s, r.speed_rpm, r.torque_nm,
+                                                       r.oil_temp_c)
+                scale = p.get("position_scale", 1.0)
+                x0 = r.initial_position_mm / scale
+                if "air_fraction" in p:
+                    rows.append(ChamberRow(r.time_s, pumps, tau, temp, x0, p["air_fraction"]))
+                    where.append((j, i, scale))
+                    continue
+                if mode is None and all(v == NEUTRAL[key] for key, v in p.items()):
+                    out[j][i] = self.base[i]
+                    continue
+                est = Estimator(self._cfg_inertia[self.inertia], self.actuator,
+                                self.scaled_tables(p), mode=mode or self.mode,
+                                references=False, adaptation=False, initial_position_mm=x0)
+                out[j][i] = scale * est.run(r.time_s, pumps, tau, temp).position_mm
+        if rows:
+            units: dict[tuple[float, float], list[int]] = {}
+            for m, (j, i, _) in enumerate(where):
+                p = per[j][i]
+                key = (p.get("leakage_factor", 1.0), p.get("displacement_factor", 1.0))
+                units.setdefault(key, []).append(m)
+            for (leak, disp), members in units.items():
+                unit = self.unit.with_pumps(leakage=leak, displacement=disp) \
+                    if (leak, disp) != (1.0, 1.0) else self.unit
+                tracks = track_chambers(unit, [rows[m] for m in members],
+                                        max_gap_s=self.cfg.estimator.max_gap_s)
+                for m, tr in zip(members, tracks):
+                    j, i, scale = where[m]
+                    out[j][i] = scale * tr.position_mm
+        return out  # type: ignore[return-value]
+
+    def scaled_tables(self, p: Params) -> UnitTables:
+        """Tables of the unit with the pumps of ``p`` (cached)."""
+        key = (float(p.get("leakage_factor", 1.0)), float(p.get("displacement_factor", 1.0)))
+        if key == (1.0, 1.0):
+            return self.nominal_tables
+        if key not in self._table_cache:
+            if len(self._table_cache) > 64:
+                self._table_cache.clear()
+            self._table_cache[key] = self.tables(self.unit.with_pumps(leakage=key[0],
+                                                                      displacement=key[1]))
+        return self._table_cache[key]
+
     def chambers(self, air_fractions: Sequence[float]) -> list[list[np.ndarray]]:
         """Compressible-chamber positions (mm): [air fraction][run] (cached)."""
         todo = sorted({float(x) for x in air_fractions} - set(self._chamber_cache))
@@ -123,7 +197,3 @@ class Workbench:
                 self._chamber_cache[x] = [tr.position_mm for tr in tracks[j * k:(j + 1) * k]]
         return [self._chamber_cache[float(x)] for x in air_fractions]
 
-
-def shift_signal(time_s: np.ndarray, signal: np.ndarray, shift_s: float) -> np.ndarray:
-    """The signal ``shift_s`` seconds later, by linear interpolation (held at the ends)."""
-    return np.interp(time_s + shift_s, time_s, signal)

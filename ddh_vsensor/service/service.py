@@ -55,15 +55,14 @@ from pathlib import Path
 from typing import Any
 
 import can
-
-from ..canbus.dbc import FrameCodec
-from ..config import Config
-from ..diagnosis.extension import Extension
 from canopen.sdo import SdoAbortedError
 
 from ..atomic import remove_temp_files
+from ..canbus.dbc import FrameCodec
+from ..config import Config
 from ..estimator.estimator import (FLAG_CLAMPED, FLAG_CONTROLLER, FLAG_NAMES,
                                    FLAG_NOT_REFERENCED, FLAG_PRESET, FLAG_STALE, Estimator, Step)
+from ..estimator.extension import Extension
 from ..estimator.state import EstimatorState, load_state, save_state
 from ..tables.lookup import UnitTables
 from .bus import BusLink, exact_filters

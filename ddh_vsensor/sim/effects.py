@@ -23,6 +23,22 @@ every effect at its neutral value.
 ``time_offset`` (s, -1 <= t <= 1, neutral 0)
     Logging only, not the plant: the logged motor speed and torque lag the logged position
     (and the other channels) by t seconds (t < 0: they lead).
+
+The measurement chain (logging only, not the plant; applied in ``sensors.measure``):
+
+``oil_temp_offset`` (degC, -30..30, neutral 0)
+    The tank sensor reads the oil the pumps see plus this offset.
+``torque_gain`` (factor, 0.5..2, neutral 1) and ``torque_offset`` (N*m, -20..20, neutral 0)
+    The drive's torque (an estimate from current) reads gain x true + offset.
+``position_scale`` (factor, 0.8..1.25, neutral 1) and ``position_offset`` (mm, -50..50,
+neutral 0)
+    The draw-wire reads scale x true + offset.
+
+A deviation the diagnosis' catalogue does not have (for testing it on the unknown):
+
+``valve_leak`` (L/min at 100 bar above 40 bar, 0..20, neutral 0)
+    Each chamber's relief valve seeps from 40 bar on, its flow growing linearly with the
+    pressure above that and independent of the oil's viscosity (unlike pump leakage).
 """
 
 from __future__ import annotations
@@ -34,6 +50,8 @@ from typing import Callable, Iterable, Mapping
 from ..config import ACTUATORS
 from ..errors import UserError
 from ..physics.unit import DDHUnit
+from ..physics.units import BAR_PA, LPM_M3S
+from ..physics.valves import ReliefValve
 from .plant import RowSpec
 
 
@@ -59,7 +77,21 @@ EFFECTS: dict[str, EffectDef] = {e.name: e for e in (
               "factor on every pump displacement"),
     EffectDef("time_offset", "s", 0.0, lambda v: -1.0 <= v <= 1.0, "-1 <= t <= 1 s",
               "logged speed and torque lag the logged position by t seconds"),
+    EffectDef("oil_temp_offset", "degC", 0.0, lambda v: -30.0 <= v <= 30.0, "-30 <= degC <= 30",
+              "the oil temperature sensor reads true + offset"),
+    EffectDef("torque_gain", "factor", 1.0, lambda v: 0.5 <= v <= 2.0, "0.5 <= factor <= 2",
+              "the drive's torque reads gain x true"),
+    EffectDef("torque_offset", "N*m", 0.0, lambda v: -20.0 <= v <= 20.0, "-20 <= N*m <= 20",
+              "the drive's torque reads true + offset"),
+    EffectDef("position_scale", "factor", 1.0, lambda v: 0.8 <= v <= 1.25,
+              "0.8 <= factor <= 1.25", "the draw-wire reads scale x true position"),
+    EffectDef("position_offset", "mm", 0.0, lambda v: -50.0 <= v <= 50.0, "-50 <= mm <= 50",
+              "the draw-wire reads true position + offset"),
+    EffectDef("valve_leak", "L/min at 100 bar above 40 bar", 0.0, lambda v: 0.0 <= v <= 20.0,
+              "0 <= L/min <= 20", "relief valves seep above 40 bar, viscosity-independent"),
 )}
+
+VALVE_LEAK_OPEN_BAR = 40.0
 
 
 @dataclass(frozen=True)
@@ -71,6 +103,12 @@ class UnitEffects:
     belt_slip: float = 0.0
     displacement: float = 1.0
     time_offset: float = 0.0
+    oil_temp_offset: float = 0.0
+    torque_gain: float = 1.0
+    torque_offset: float = 0.0
+    position_scale: float = 1.0
+    position_offset: float = 0.0
+    valve_leak: float = 0.0
 
     def non_neutral(self) -> dict[str, float]:
         return {f.name: getattr(self, f.name) for f in fields(self)
@@ -80,6 +118,10 @@ class UnitEffects:
         """The plant row of ``unit`` with these effects applied."""
         if self.pump_leakage != 1.0 or self.displacement != 1.0:
             unit = unit.with_pumps(leakage=self.pump_leakage, displacement=self.displacement)
+        if self.valve_leak:
+            seep = ReliefValve(VALVE_LEAK_OPEN_BAR * BAR_PA,
+                               self.valve_leak * LPM_M3S / (100.0 * BAR_PA))
+            unit = replace(unit, a=replace(unit.a, relief=seep), b=replace(unit.b, relief=seep))
         return RowSpec(unit=unit, payload_kg=payload_kg, air_fraction=self.compressibility,
                        belt_slip_per_nm=self.belt_slip / 100.0 / 100.0)
 

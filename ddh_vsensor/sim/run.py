@@ -231,7 +231,7 @@ def _simulate_group(cfg: Config, runs: list[_Prepared],
                           oil_temp_c=t0s[i] + drifts[i] * t, reservoir_pa=plant.reservoir[i])
             rng = np.random.default_rng(np.random.SeedSequence([p.spec.seed, ai]))
             run = measure(truth, cfg.unit(a), p.spec.sensors, rng, cfg.can.position_step_mm,
-                          p.effects[a].time_offset, comments=_comments(cfg, p, a),
+                          p.effects[a], comments=_comments(cfg, p, a),
                           source=f"simulated:{a}")
             per_unit[a] = (run, truth)
         out.append(per_unit)

@@ -13,20 +13,27 @@ Sampled at a configurable rate (default 100 Hz, the draw-wire sensors' 10 ms eve
 - Hall reference switches ``ref_<name>`` from the true position: on when within the
   configured window of the switch position, off only beyond window + hysteresis.
 
-The ``time_offset`` effect is applied here: the logged speed and torque are the true ones
-``time_offset`` seconds earlier (linear interpolation between samples), i.e. they lag the
-logged position.
+The effects of the measurement chain are applied here (``effects.UnitEffects``): the
+logged speed and torque are the true ones ``time_offset`` seconds earlier (linear
+interpolation between samples), i.e. they lag the logged position; the torque reads
+``torque_gain`` x true + ``torque_offset``, the oil temperature true + ``oil_temp_offset``,
+the draw-wire ``position_scale`` x true + ``position_offset`` (the Hall switches see the
+true position).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config import UnitConfig
 from ..measured import Run
 from ..physics.units import BAR_PA
+
+if TYPE_CHECKING:
+    from .effects import UnitEffects
 
 
 @dataclass(frozen=True)
@@ -83,21 +90,26 @@ def lagged(time_s: np.ndarray, signal: np.ndarray, lag_s: float) -> np.ndarray:
 
 
 def measure(truth: Truth, unit_cfg: UnitConfig, settings: SensorSettings,
-            rng: np.random.Generator, position_step_mm: float, time_offset_s: float = 0.0,
-            comments: list[str] | None = None, source: str = "<simulated>") -> Run:
-    """The logged run of one unit."""
+            rng: np.random.Generator, position_step_mm: float,
+            chain: "UnitEffects | None" = None, comments: list[str] | None = None,
+            source: str = "<simulated>") -> Run:
+    """The logged run of one unit (``chain``: its measurement-chain effects, if any)."""
+    from .effects import NOMINAL
+    e = chain or NOMINAL
     t = truth.time_s
-    speed = quantise(lagged(t, truth.speed_rpm, time_offset_s), settings.speed_step_rpm)
-    torque = quantise(lagged(t, truth.torque_nm, time_offset_s), settings.torque_step_nm)
+    speed = quantise(lagged(t, truth.speed_rpm, e.time_offset), settings.speed_step_rpm)
+    torque = quantise(e.torque_gain * lagged(t, truth.torque_nm, e.time_offset)
+                      + e.torque_offset, settings.torque_step_nm)
     x_mm = truth.x_m * 1e3
     noise = rng.standard_normal(len(t)) * settings.position_noise_mm
-    position = quantise(x_mm + noise, position_step_mm)
+    position = quantise(e.position_scale * x_mm + e.position_offset + noise, position_step_mm)
     refs = {name: hall_switch(x_mm, pos, unit_cfg.reference_window_mm,
                               unit_cfg.reference_hysteresis_mm)
             for name, pos in unit_cfg.references_mm.items()}
     p_a = quantise((truth.dp_a_pa + truth.reservoir_pa) / BAR_PA, settings.pressure_step_bar)
     p_b = quantise((truth.dp_b_pa + truth.reservoir_pa) / BAR_PA, settings.pressure_step_bar)
     return Run(time_s=np.round(t, 9), speed_rpm=speed, torque_nm=torque,
-               oil_temp_c=quantise(truth.oil_temp_c, settings.oil_temp_step_c),
+               oil_temp_c=quantise(truth.oil_temp_c + e.oil_temp_offset,
+                                   settings.oil_temp_step_c),
                position_mm=position, p_a_bar=p_a, p_b_bar=p_b, refs=refs,
                comments=list(comments or []), source=source)

@@ -1,75 +1,99 @@
-"""The tests that hide an effect: the simulator draws an effect (or none) and a magnitude, the
-diagnosis sees only the runs (comment lines stripped) and must name it and halve the held-out
-maximum error with its extension."""
+"""The tests that hide effects the way real data does: the simulator hides a measurement-chain
+cause, a pair of causes, a deviation the catalogue does not have; the diagnosis sees only the
+runs (comment lines stripped) and must name what is there, all of it, or say it cannot,
+and its extension must halve the held-out maximum error."""
 
 from __future__ import annotations
 
-import json
+from ddh_vsensor.diagnosis.causes import ALL_CAUSES
 
-import pytest
+from .conftest import BASE_SEED, hidden
 
-from ddh_vsensor.cli.main import main
-from ddh_vsensor.diagnosis.trials import EFFECT_NAMES
-
-from .conftest import BASE_SEED, effect_seed
-
-# The actuator each effect is judged on. Air shows on the bucket, whose A chamber works near
-# the reservoir pressure; the boom's chambers stay pressurised (its air error is ~1-2 mm).
-ACTUATOR = {"none": "boom", "pump_leakage": "bucket", "compressibility": "bucket",
-            "belt_slip": "boom", "displacement": "bucket", "time_offset": "boom"}
+KEYS = {"actuator", "mode", "runs", "cause", "ranking", "baseline", "extended", "holdout_runs",
+        "extension_file", "causes", "ambiguous"}
 
 
-def analyze(paths, actuator, out, *extra) -> dict:
-    code = main(["analyze", *map(str, paths), "--actuator", actuator, "--report", str(out),
-                 *extra])
-    assert code == 0
-    return json.loads((out / "report.json").read_text())
+def _where(trial) -> str:
+    return f"{trial.describe()} (DDH_DIAGNOSIS_SEED={BASE_SEED})"
 
 
-def check(report: dict, effect: str, trial) -> None:
-    where = f"{trial.describe()} (DDH_DIAGNOSIS_SEED={BASE_SEED})"
-    assert report["cause"] == effect, f"named {report['cause']}, hidden {effect}: {where}; " \
-        f"ranking {report['ranking'][:3]}"
-    if effect != "none":
-        before = report["baseline"]["max_abs_error_mm"]
-        after = report["extended"]["max_abs_error_mm"]
-        assert after <= 0.5 * before, f"held-out max error {before:.2f} -> {after:.2f} mm: " \
-            f"{where}"
+def _halved(report: dict, trial) -> None:
+    before = report["baseline"]["max_abs_error_mm"]
+    after = report["extended"]["max_abs_error_mm"]
+    assert after <= 0.5 * before, f"held-out max error {before:.2f} -> {after:.2f} mm: " \
+        f"{_where(trial)}"
 
 
-@pytest.mark.parametrize("effect", EFFECT_NAMES)
-def test_names_the_hidden_effect_and_halves_the_error(effect, campaigns, tmp_path):
-    trial, paths = campaigns.get(effect_seed(effect), effect)
-    actuator = ACTUATOR[effect]
-    report = analyze(paths[actuator], actuator, tmp_path / "report")
-    check(report, effect, trial)
-    assert set(report) == {"actuator", "mode", "runs", "cause", "ranking", "baseline",
-                           "extended", "holdout_runs", "extension_file"}
-    assert report["ranking"][0]["cause"] == report["cause"] or report["cause"] == "none"
-    assert sorted(report["holdout_runs"]) == sorted(map(str, paths[actuator]))
+def _named(report: dict) -> set[str]:
+    return {c["cause"] for c in report["causes"]}
 
 
-def test_a_random_draw_on_random_cycles_on_both_actuators(campaigns, tmp_path):
-    """The effect too is drawn from the seed, and the work cycles are not the paper's:
-    random point-to-point moves, with hard starts and stops."""
-    seed = BASE_SEED + 7
-    trial, paths = campaigns.get(seed, cycle="random")
-    for actuator in ("boom", "bucket"):
-        report = analyze(paths[actuator], actuator, tmp_path / actuator)
-        if trial.effect == "compressibility" and actuator == "boom":
-            assert report["cause"] in ("compressibility", "none")   # 1-2 mm on the boom
-            continue
-        check(report, trial.effect, trial)
+def _covers(report: dict, truth: dict[str, float]) -> None:
+    for c in report["causes"]:
+        if c["cause"] in truth:
+            (lo, hi), = c["interval"].values()
+            assert lo <= truth[c["cause"]] <= hi, f"{c}: true {truth[c['cause']]}"
 
 
-def test_paper_mode_names_low_speed_leakage_and_reaches_full_mode(campaigns, tmp_path):
-    trial, paths = campaigns.get(effect_seed("none"), "none")
-    for actuator in ("boom", "bucket"):
-        full = analyze(paths[actuator], actuator, tmp_path / f"{actuator}-full")
-        paper = analyze(paths[actuator], actuator, tmp_path / f"{actuator}-paper",
-                        "--mode", "paper")
-        assert paper["mode"] == "paper" and paper["cause"] == "low_speed_leakage", trial
-        assert paper["baseline"]["max_abs_error_mm"] > 5.0       # the paper's creep
-        assert paper["extended"]["max_abs_error_mm"] <= \
-            full["baseline"]["max_abs_error_mm"] + 0.05
-        assert paper["extended"]["rms_error_mm"] <= full["baseline"]["rms_error_mm"] + 0.05
+def test_no_effect_is_none(campaigns):
+    trial, paths = campaigns.get("sensor")
+    report = campaigns.analyze("sensor", "boom")
+    assert set(report) == KEYS
+    assert report["cause"] == "none", f"{report['cause']}: {_where(trial)}; " \
+        f"{report['ranking'][:3]}"
+    assert report["causes"] == [] and report["ambiguous"] == []
+    assert sorted(report["holdout_runs"]) == sorted(map(str, paths["boom"]))
+
+
+def test_names_a_faulty_sensor(campaigns):
+    trial, _ = campaigns.get("sensor")
+    truth = hidden(trial, "bucket")
+    report = campaigns.analyze("sensor", "bucket")
+    assert report["cause"] in truth and _named(report) == set(truth), \
+        f"named {report['cause']} {_named(report)}: {_where(trial)}"
+    assert report["ranking"][0]["cause"] in ALL_CAUSES
+    _halved(report, trial)
+    _covers(report, truth)
+
+
+def test_names_both_causes_of_a_pair(campaigns):
+    """On the boom, unless the pair has air in it: the boom's chambers stay pressurised and
+    air errs by 1-2 mm there (diagnosis/README.md); the bucket's A chamber shows it."""
+    trial, _ = campaigns.get("pair")
+    actuator = "bucket" if "compressibility" in trial.effects else "boom"
+    truth = hidden(trial, actuator)
+    report = campaigns.analyze("pair", actuator)
+    assert _named(report) == set(truth), f"named {_named(report)}, ambiguous " \
+        f"{report['ambiguous']}: {_where(trial)}"
+    assert report["cause"] == max(report["causes"], key=lambda c: c["share"])["cause"]
+    _halved(report, trial)
+
+
+def test_a_deviation_outside_the_catalogue_is_not_given_a_wrong_name(campaigns):
+    """A relief valve that seeps above 40 bar (not viscous, not a pump): the answer must be
+    unexplained, or an ambiguity that says so; the residual model still halves the error."""
+    trial, _ = campaigns.get("open")
+    report = campaigns.analyze("open", "boom")
+    named = _named(report) - {"unexplained"}
+    in_ambiguity = any("unexplained" in pair for pair in report["ambiguous"])
+    assert report["cause"] == "unexplained" or in_ambiguity, \
+        f"confident {report['cause']} {named}: {_where(trial)}"
+    _halved(report, trial)
+
+
+def test_names_a_catalogued_cause(campaigns):
+    trial, _ = campaigns.get("open")
+    truth = hidden(trial, "bucket")
+    report = campaigns.analyze("open", "bucket")
+    assert _named(report) == set(truth), f"named {_named(report)}: {_where(trial)}"
+    _halved(report, trial)
+
+
+def test_paper_mode_names_low_speed_leakage_and_reaches_full_mode(campaigns):
+    trial, _ = campaigns.get("sensor")
+    full = campaigns.analyze("sensor", "boom")
+    paper = campaigns.analyze("sensor", "boom", "--mode", "paper")
+    assert paper["mode"] == "paper" and paper["cause"] == "low_speed_leakage", trial
+    assert paper["baseline"]["max_abs_error_mm"] > 5.0       # the paper's creep
+    assert paper["extended"]["max_abs_error_mm"] <= full["baseline"]["max_abs_error_mm"] + 0.05
+    assert paper["extended"]["rms_error_mm"] <= full["baseline"]["rms_error_mm"] + 0.05

@@ -14,8 +14,6 @@ from ddh_vsensor.diagnosis.runs import AnalysisRun, prepare_run
 from ddh_vsensor.measured import MeasuredDataError, Run, read_csv
 from ddh_vsensor.physics.steady import steady_state, steady_state_at_torque
 
-from .conftest import effect_seed
-
 
 def test_air_law_collapses_the_bulk_modulus_at_low_pressure(cfg):
     beta = cfg.oil.bulk_modulus_pa
@@ -44,7 +42,7 @@ def test_chamber_model_settles_to_the_tables_steady_state(boom):
 def test_chamber_model_follows_a_simulated_run_closely(cfg, boom, campaigns):
     """Nominal oil, measured speed and torque: within 0.4 mm of the draw wire (the tables,
     which hold steady states, err by about 1 mm on the same run)."""
-    _, paths = campaigns.get(effect_seed("none"), "none")
+    _, paths = campaigns.get("sensor")           # the boom has no effect
     run = read_csv(paths["boom"][-1])
     track = track_chambers(boom, [ChamberRow(run.time_s, run.speed_rpm, run.torque_nm,
                                              run.oil_temp_c, float(run.position_mm[0]))])[0]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ddh_vsensor.diagnosis.extension import Extension, ExtendedEstimator
+from ddh_vsensor.estimator.extension import Extension, ExtendedEstimator
 from ddh_vsensor.estimator.estimator import Estimator
 from ddh_vsensor.service import Service, ServiceOptions
 

@@ -18,6 +18,9 @@ CASES = {
     "compressibility": ["boom.compressibility=0.02"],
     "belt_slip": ["boom.belt_slip=5"],
     "time_offset": ["time_offset=0.1"],
+    "sensors": ["boom.torque_gain=0.9", "boom.torque_offset=2", "boom.oil_temp_offset=-10",
+                "boom.position_scale=1.02", "boom.position_offset=3"],
+    "valve_leak": ["boom.valve_leak=5"],
 }
 TRUTH_FIELDS = ("x_m", "v_m_s", "dp_a_pa", "dp_b_pa", "speed_rpm", "torque_nm")
 
@@ -116,6 +119,8 @@ def test_effects_compose():
     ("belt_slip=abc", "not a number"),
     ("time_offset=2", "out of range"),
     ("wear=2", "known: pump_leakage, compressibility, belt_slip, displacement, time_offset"),
+    ("torque_gain=0.2", "out of range"),
+    ("valve_leak=-1", "out of range"),
     ("stick.pump_leakage=2", "unknown unit"),
     ("pump_leakage", "NAME=VALUE"),
 ])
@@ -128,4 +133,32 @@ def test_same_effect_twice_is_an_error():
     with pytest.raises(UserError, match="twice"):
         build_effects(["pump_leakage=2", "boom.pump_leakage=3"])
     assert set(EFFECTS) == {"pump_leakage", "compressibility", "belt_slip", "displacement",
-                            "time_offset"}
+                            "time_offset", "oil_temp_offset", "torque_gain", "torque_offset",
+                            "position_scale", "position_offset", "valve_leak"}
+
+
+def test_measurement_chain_effects_change_the_log_not_the_plant(runs):
+    nominal, chain = runs["nominal"], runs["sensors"]
+    assert _same_truth(chain["boom"][1], nominal["boom"][1])
+    assert _same_log(chain["bucket"][0], nominal["bucket"][0])
+    log, ref, truth = chain["boom"][0], nominal["boom"][0], nominal["boom"][1]
+    np.testing.assert_allclose(log.torque_nm, 0.9 * truth.torque_nm + 2.0, atol=1 / 32 + 1e-9)
+    np.testing.assert_allclose(log.oil_temp_c, ref.oil_temp_c - 10.0, atol=0.051)
+    np.testing.assert_allclose(log.position_mm, 1.02 * ref.position_mm + 3.0, atol=0.03)
+    assert np.array_equal(log.speed_rpm, ref.speed_rpm)
+    assert np.array_equal(log.p_a_bar, ref.p_a_bar)
+    for name, state in ref.refs.items():        # the Hall switches see the true position
+        assert np.array_equal(log.refs[name], state)
+
+
+def test_valve_leak_needs_pump_flow_only_above_its_opening(runs):
+    nominal, leaky = runs["nominal"], runs["valve_leak"]
+    assert _same_truth(leaky["bucket"][1], nominal["bucket"][1])
+    t_nom, t_leak = nominal["boom"][1], leaky["boom"][1]
+    np.testing.assert_allclose(t_leak.x_m, t_nom.x_m, atol=2e-3)
+    # holding the boom (A at ~58 bar) the pumps make up for the seepage above 40 bar:
+    # 5 L/min per 100 bar x 18 bar is ~0.9 L/min, some 40 rpm more
+    hold = (t_nom.time_s > 0.1) & (t_nom.time_s < 0.45)
+    assert 50e5 < np.mean(t_nom.dp_a_pa[hold]) < 70e5
+    extra = np.mean(t_leak.speed_rpm[hold]) - np.mean(t_nom.speed_rpm[hold])
+    assert 20.0 < extra < 80.0

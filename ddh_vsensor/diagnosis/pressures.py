@@ -1,0 +1,110 @@
+"""What the chamber pressures say, where the runs carry them (``p_a_bar``, ``p_b_bar``).
+
+The pumps' torque at the motor follows from the two chamber pressures through the physics'
+torque gains and efficiencies (``DDHUnit.motor_torque_nm``). Against the drive's torque less
+the rotor's inertia torque, in quasi-steady samples, a straight line tau = g tau_p + o gives
+the drive's torque gain times the pumps' displacement factor (g) and the torque offset (o)
+directly, whatever the leakage, the temperature sensor or the position sensor do. That is
+what separates a torque or displacement error from leakage: a candidate set whose g and o
+disagree with the pressures is not an answer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from .workbench import Workbench
+
+RPM_RAD_S = 2.0 * np.pi / 60.0
+MAX_ACCEL_RPM_S = 2000.0       # quasi-steady: the rotor's inertia torque is small
+MIN_SHARE_OF_MAX = 0.15        # samples with |pump torque| above this share of the maximum
+MIN_SAMPLES = 200
+# The pressures' line is the physics' own: its efficiencies and friction are not exactly
+# the machine's; a set is refused only beyond these (gain relative, offset N*m).
+GAIN_TOLERANCE = 0.02
+OFFSET_TOLERANCE_NM = 1.5
+
+
+@dataclass(frozen=True)
+class TorqueEvidence:
+    gain: float                 # drive torque per pressure torque (torque gain x displacement)
+    offset_nm: float
+    gain_se: float
+    offset_se_nm: float
+    runs: int
+
+    def consistent(self, params: Mapping[str, float],
+                   intervals: Mapping[str, tuple[float, float]] = {}) -> bool:
+        """Whether a candidate set's torque gain x displacement and torque offset agree,
+        within the pressures' tolerance plus the candidate's own 90 % intervals."""
+        g = params.get("torque_gain", 1.0) * params.get("displacement_factor", 1.0)
+        o = params.get("torque_offset_nm", 0.0)
+
+        def half(key: str, log: bool) -> float:
+            if key not in intervals:
+                return 0.0
+            lo, hi = intervals[key]
+            return (np.log(hi / lo) if log else hi - lo) / 2.0
+
+        tol_g = max(2.5 * self.gain_se, GAIN_TOLERANCE) + half("torque_gain", True) \
+            + half("displacement_factor", True)
+        tol_o = max(2.5 * self.offset_se_nm, OFFSET_TOLERANCE_NM) + half("torque_offset_nm",
+                                                                         False)
+        return abs(np.log(g / self.gain)) <= tol_g and abs(o - self.offset_nm) <= tol_o
+
+    def measured(self, parameter: str, params: Mapping[str, float]
+                 ) -> tuple[float, tuple[float, float]] | None:
+        """The value the pressures give ``parameter`` (torque_gain, displacement_factor,
+        torque_offset_nm) next to the others of ``params``, with a 90 % interval (their
+        spread and tolerance); None for another parameter."""
+        if parameter == "torque_offset_nm":
+            half = max(1.645 * self.offset_se_nm, OFFSET_TOLERANCE_NM / 2.0)
+            return self.offset_nm, (self.offset_nm - half, self.offset_nm + half)
+        other = {"torque_gain": "displacement_factor",
+                 "displacement_factor": "torque_gain"}.get(parameter)
+        if other is None:
+            return None
+        v = self.gain / params.get(other, 1.0)
+        half = max(1.645 * self.gain_se, GAIN_TOLERANCE / 2.0)
+        return v, (float(v * np.exp(-half)), float(v * np.exp(half)))
+
+    def describe(self) -> str:
+        return (f"chamber pressures: drive torque = {self.gain:.3f} x pressure torque "
+                f"{self.offset_nm:+.2f} N*m ({self.runs} runs)")
+
+
+def torque_evidence(bench: Workbench) -> TorqueEvidence | None:
+    """The line through the runs' quasi-steady samples (None without pressure columns)."""
+    unit = bench.unit
+    j = unit.motor.inertia_kg_m2
+    fits = []
+    for r in bench.runs:
+        if r.p_a_bar is None or r.p_b_bar is None:
+            continue
+        ok = np.isfinite(r.p_a_bar) & np.isfinite(r.p_b_bar)
+        if ok.sum() < MIN_SAMPLES:
+            continue
+        dp_a = np.where(ok, r.p_a_bar, 0.0) * 1e5 - unit.reservoir_pa
+        dp_b = np.where(ok, r.p_b_bar, 0.0) * 1e5 - unit.reservoir_pa
+        tau_p = np.asarray(unit.motor_torque_nm(dp_a, dp_b, r.speed_rpm), dtype=float)
+        accel = np.gradient(r.speed_rpm, r.time_s)
+        tau = r.torque_nm - j * RPM_RAD_S * accel
+        use = ok & (np.abs(accel) < MAX_ACCEL_RPM_S)
+        big = np.abs(tau_p) > MIN_SHARE_OF_MAX * max(float(np.max(np.abs(tau_p[use]), initial=0.0)),
+                                                     1e-9)
+        use &= big
+        if use.sum() < MIN_SAMPLES:
+            continue
+        a = np.stack([tau_p[use], np.ones(int(use.sum()))], axis=1)
+        coef, *_ = np.linalg.lstsq(a, tau[use], rcond=None)
+        fits.append(coef)
+    if len(fits) < 2:
+        return None
+    c = np.array(fits)
+    k = len(c)
+    se = c.std(axis=0, ddof=1) / np.sqrt(k)
+    return TorqueEvidence(float(np.median(c[:, 0])), float(np.median(c[:, 1])),
+                          float(se[0] / abs(np.median(c[:, 0]))), float(se[1]), k)
