@@ -12,7 +12,7 @@ from ..errors import UserError
 
 # Subcommand modules under ddh_vsensor.cli, each exposing register(subparsers).
 SUBCOMMANDS = ("tables", "steady", "simulate", "estimate", "analyze",
-               "run", "replay", "monitor", "status", "demo")
+               "run", "replay", "monitor", "status", "demo", "fleet")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,6 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:2] == ["simulate", "fleet"]:             # the fleet simulator's own parser
+        argv = ["simulate-fleet", *argv[2:]]
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
