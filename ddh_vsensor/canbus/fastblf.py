@@ -138,10 +138,20 @@ def encode_signals(message, signals: Mapping[str, np.ndarray]) -> np.ndarray:
     return raw.astype("<u8").view(np.uint8).reshape(-1, 8)
 
 
+_CODECS: dict[int, tuple[Config, FrameCodec]] = {}
+
+
+def _codec(cfg: Config) -> FrameCodec:
+    """One codec per config object (parsing the DBC costs ~30 ms)."""
+    if id(cfg) not in _CODECS:
+        _CODECS[id(cfg)] = (cfg, FrameCodec(cfg))       # holds cfg: its id stays its own
+    return _CODECS[id(cfg)][1]
+
+
 def frames_to_runs(frames: Frames, cfg: Config, source: str,
                    actuators: tuple[str, ...] | None = None) -> dict[str, Run]:
     """Each actuator's run from the frames, as :func:`.log.read_can_log` builds it."""
-    codec = FrameCodec(cfg)
+    codec = _codec(cfg)
     msgs = codec._messages
     ids = frames.arbitration_id
     order = np.argsort(frames.timestamp_s, kind="stable")

@@ -66,14 +66,16 @@ class ReferenceRun:
         return len(self.edges) - 1
 
 
-_TABLES: dict[tuple[str, str], UnitTables] = {}
+_TABLES: dict[tuple[int, str], tuple[Config, UnitTables]] = {}
 
 
 def _nominal_tables(cfg: Config, actuator: str) -> UnitTables:
-    key = (cfg.physics_hash(), actuator)
+    """Per config object (held, so its id stays its own) and actuator, built once."""
+    key = (id(cfg), actuator)
     if key not in _TABLES:
-        _TABLES[key] = build_unit_tables(cfg, actuator, DDHUnit.from_config(cfg, actuator))
-    return _TABLES[key]
+        _TABLES[key] = (cfg, build_unit_tables(cfg, actuator,
+                                               DDHUnit.from_config(cfg, actuator)))
+    return _TABLES[key][1]
 
 
 def nominal_velocity_mm_s(cfg: Config, actuator: str, run: Run) -> np.ndarray:

@@ -15,7 +15,10 @@ error it puts into the estimate between references: the expected position error)
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import os
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -29,6 +32,7 @@ from ..measured import MeasuredDataError
 from ..physics.unit import DDHUnit
 from ..tables.build import build_unit_tables
 from ..tables.lookup import UnitTables
+from ..tables.store import TableError, load_unit_tables, save_unit_tables
 from .ingest import config_of, run_of
 from .store import Store
 
@@ -59,22 +63,36 @@ class FleetBench(Workbench):
     range, so every log's lookups are those of the same tables), keyed by the pumps: the
     only part of the unit the catalogue's causes change."""
 
-    def __init__(self, cfg: Config, actuator: str, runs, mode: str) -> None:
+    def __init__(self, cfg: Config, actuator: str, runs, mode: str,
+                 table_dir: Path | None = None) -> None:
         self._key = cfg.physics_hash()
+        self._table_dir = table_dir
         self._fixed = _fixed_range(cfg)
         super().__init__(cfg, actuator, runs, mode, inertia=cfg.estimator.inertia_compensation)
 
     def tables(self, unit: DDHUnit) -> UnitTables:
         key = (self._key, self.actuator, repr(unit.a.pump), repr(unit.b.pump))
         if key not in _TABLE_CACHE:
-            _TABLE_CACHE[key] = build_unit_tables(self._fixed, self.actuator, unit)
+            _TABLE_CACHE[key] = self._load_or_build(key, unit)
         return _TABLE_CACHE[key]
+
+    def _load_or_build(self, key: tuple, unit: DDHUnit) -> UnitTables:
+        """Tables are shared between worker processes through the store (DIR/tables/)."""
+        if self._table_dir is None:
+            return build_unit_tables(self._fixed, self.actuator, unit)
+        where = self._table_dir / hashlib.sha1(repr(key).encode()).hexdigest()[:16]
+        try:
+            return load_unit_tables(where, self.actuator)
+        except (OSError, TableError, ValueError, KeyError):
+            tables = build_unit_tables(self._fixed, self.actuator, unit)
+            save_unit_tables(where, tables)
+            return tables
 
 
 def fit_log(cfg: Config, rr: ReferenceRun, actuator: str,
-            causes: Sequence[str] = tuple(GRIDS)) -> list[dict]:
+            causes: Sequence[str] = tuple(GRIDS), table_dir: Path | None = None) -> list[dict]:
     """One log's rows: per cause its grid, squared error and largest increment change."""
-    bench = FleetBench(cfg, actuator, [rr.run], cfg.estimator.mode)
+    bench = FleetBench(cfg, actuator, [rr.run], cfg.estimator.mode, table_dir)
     nominal = rr.observe(bench.base[0])
     n_inc = rr.n_increments
     rows = []
@@ -116,7 +134,7 @@ def analyse_machine(args: tuple[str, str, str | None]) -> dict:
                 rr = reference_run(cfg, actuator, run_of(store, log_id, actuator, cfg))
             except MeasuredDataError:
                 continue
-            for row in fit_log(cfg, rr, actuator):
+            for row in fit_log(cfg, rr, actuator, table_dir=store.root / "tables"):
                 rows.append({"machine": machine, "log_id": log_id, "actuator": actuator,
                              "time_s": meta[log_id]["start_time_s"],
                              "operating_hours": meta[log_id]["operating_hours"], **row})
@@ -125,7 +143,8 @@ def analyse_machine(args: tuple[str, str, str | None]) -> dict:
                  "time_s": meta[log_id]["start_time_s"], "operating_hours": float("nan"),
                  "grid": [], "sse": [], "emax_mm": [], "n_obs": 0, "n_increments": 0,
                  "sse_nominal": 0.0, "max_increment_mm": 0.0} for log_id in logs]
-    tmp = path.with_suffix(".tmp")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
     pq.write_table(pa.Table.from_pylist(rows), tmp)
     tmp.replace(path)
     return {"machine": machine, "logs": len(logs), "cached": False}

@@ -83,7 +83,7 @@ def _features(cfg: Config, machine: str, log_id: str, actuator: str, run: Run,
     events = [{"machine": machine, "log_id": log_id, "actuator": actuator,
                "time_s": float(rr.run.time_s[k] - t0), "switch": sw, "rising": bool(up),
                "position_mm": float(p),
-               "nominal_increment_mm": float(obs[i - 1]) if i else float("nan")}
+               "nominal_increment_mm": float(obs[i - 1]) if i else None}
               for i, (k, sw, up, p) in enumerate(zip(rr.edges, rr.switch, rr.rising,
                                                      rr.edge_mm))]
     holds = [{"machine": machine, "log_id": log_id, "actuator": actuator,

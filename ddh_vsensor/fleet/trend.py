@@ -8,13 +8,17 @@ for factors) and a 90 % profile interval (squared error within F(1, n-1)/(n-1) o
 Across the last :data:`WINDOW` logs the cause is judged held out, day by day: each log's
 parameter is predicted by the linear trend fitted to the *other* logs, and the score is the
 share of the references' squared error that prediction removes (minus a penalty per trend
-parameter). The best cause is named when it scores :data:`MIN_SCORE` or more.
+parameter). The best cause is named when it scores :data:`MIN_SCORE` or more (the
+position-truth analysis's threshold).
 
 The expected position error of a parameter value is the largest change it makes to an
 edge-to-edge increment on the unit's recent work (median over the last three logs; linear
-beyond the grid). An alarm is raised when the named cause's trend (slope significant at
-:data:`SLOPE_T`) takes that error past the tolerance within the horizon, or it is there
-already.
+beyond the grid). An alarm is raised when the best cause's trend (slope significant at
+:data:`SLOPE_T`, the cause scoring at least :data:`TREND_SCORE`) takes that error past the
+tolerance within the horizon, or when a named cause has it there already. A trend is caught
+while the error is still small against the nominal model's own ~1 mm at the references, so
+its cause cannot yet explain the :data:`MIN_SCORE` share that naming a cause asks for; the
+significant slope, the positive held-out score and the projected error together do.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from ..diagnosis.selection import MIN_SCORE
 WINDOW = 7                      # logs the naming and the trend look back over
 MIN_LOGS = 4                    # before that nothing is named
 SLOPE_T = 3.0                   # |slope| / its standard error for a trend to count
+TREND_SCORE = 0.2               # held-out score a trending cause needs for an alarm
 PENALTY_PER_PARAMETER = 0.02
 LEVEL = 0.90
 DAY_S = 86400.0
@@ -181,19 +186,20 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
                 scores[cause] = heldout_score(fits[max(0, i + 1 - WINDOW):i + 1])
         out.scores.append(scores)
         best = max(scores, key=scores.get) if scores else None
-        if best is None or scores[best] < MIN_SCORE:
+        if best is None or scores[best] < TREND_SCORE:
             out.named.append("none")
             out.error_now_mm.append(float("nan"))
             out.error_projected_mm.append(float("nan"))
             out.alarms.append(None)
             continue
-        out.named.append(best)
         window = by_cause[best][max(0, i + 1 - WINDOW):i + 1]
         t = np.array([f.time_s for f in window]) / DAY_S
         u = np.array([f.u for f in window])
         a, b, se = _line(t, u)
         trending = abs(b) > SLOPE_T * se
         u_now = a + b * t[-1] if trending else float(np.median(u[-3:]))
+        named = scores[best] >= MIN_SCORE and ALL_CAUSES[best].resolved(from_u(best, u_now))
+        out.named.append(best if named or trending else "none")
         now = expected_error_mm(window, u_now)
         days = np.arange(0.0, horizon_days + 0.5, 0.5)
         path = [expected_error_mm(window, a + b * (t[-1] + d)) if trending else now
@@ -201,8 +207,7 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
         out.error_now_mm.append(now)
         out.error_projected_mm.append(path[-1])
         over = [d for d, e in zip(days, path) if e > tolerance_mm]
-        if over and ALL_CAUSES[best].resolved(from_u(best, u_now if now > tolerance_mm else
-                                                     a + b * (t[-1] + over[0]))):
+        if over and (trending or named):
             out.alarms.append(Alarm(t_now, best, from_u(best, u_now), now, path[-1],
                                     t_now + over[0] * DAY_S))
         else:
