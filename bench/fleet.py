@@ -125,23 +125,30 @@ def main() -> None:
     ap.add_argument("--machines", type=int, default=20)
     ap.add_argument("--days", type=int, default=30)
     ap.add_argument("--seed", type=int, default=2026)
+    ap.add_argument("--log-s", type=float, default=30.0, help="work logged per day (s)")
+    ap.add_argument("--part", type=int, nargs=2, default=None, metavar=("I", "N"),
+                    help="only simulate every N-th missing day from the I-th, then stop")
     ap.add_argument("--logs", default="/tmp/ddh_fleet_bench/logs")
     ap.add_argument("--work", default="/tmp/ddh_fleet_bench")
     ap.add_argument("--no-simulate", action="store_true",
                     help="use the days already simulated in --logs")
     args = ap.parse_args()
     cfg = load_config(None)
-    plan = plan_fleet(args.machines, args.days, args.seed)
+    plan = plan_fleet(args.machines, args.days, args.seed, args.log_s)
     logs_dir, work = Path(args.logs), Path(args.work)
     present = {p.name for p in logs_dir.glob("*.blf")} if logs_dir.is_dir() else set()
     hours = {m.name: 1000.0 * (int(m.name[1:]) % 3) for m in plan.machines}
     missing = [d for d in range(args.days) if any(
         log_name(m.name, d, hours[m.name] + 7.5 * d) not in present for m in plan.machines)]
+    if args.part:
+        missing = missing[args.part[0]::args.part[1]]
     if missing and not args.no_simulate:
         started = time.perf_counter()
-        simulate_fleet(cfg, plan, logs_dir, days=missing,
+        simulate_fleet(cfg, plan, logs_dir, days=missing, days_per_batch=5,
                        progress=lambda f: print(f"simulate {100 * f:.0f} %", flush=True))
         print(f"simulated {len(missing)} days in {time.perf_counter() - started:.0f} s")
+    if args.part:
+        return
     truth = json.loads((logs_dir / "truth.json").read_text())
     logs = sorted(logs_dir.glob("*.blf"))
     days = len({p.name.split("_")[1] for p in logs})

@@ -35,7 +35,7 @@ from ..diagnosis.selection import MIN_SCORE
 WINDOW = 7                      # logs the naming and the trend look back over
 MIN_LOGS = 4                    # before that nothing is named
 SLOPE_T = 3.0                   # |slope| / its standard error for a trend to count
-TREND_SCORE = 0.2               # held-out score a trending cause needs for an alarm
+TREND_SCORE = 0.1               # held-out score a trending cause needs for an alarm
 PENALTY_PER_PARAMETER = 0.02
 LEVEL = 0.90
 DAY_S = 86400.0
