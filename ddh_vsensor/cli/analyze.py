@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print report.json to stdout")
     p.add_argument("--truth", choices=("auto", "position", "references"), default="auto",
                    help="what the estimate is compared with: the reference position, or the "
-                        "Hall edges and holds (auto: references when a run has no position)")
+                        "Hall edges and holds (auto: references when no run has a position)")
     p.set_defaults(func=_run)
 
 

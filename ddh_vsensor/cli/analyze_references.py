@@ -20,7 +20,8 @@ def read_any(path: str, actuator: str, cfg: Config) -> Run:
 
 
 def lacks_position(runs: list[Run]) -> bool:
-    return any(not (r.position_mm == r.position_mm).any() for r in runs)
+    """No run has a reference position (a mix is an error of the runs without one)."""
+    return all(not (r.position_mm == r.position_mm).any() for r in runs)
 
 
 def run_references(args: argparse.Namespace, cfg: Config, mode: str,
