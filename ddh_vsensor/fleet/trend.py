@@ -131,17 +131,28 @@ def _cross(g, s, i, j, level) -> float:
     return float(g[i] + (g[j] - g[i]) * (level - s[i]) / (s[j] - s[i]))
 
 
-def _line(t: np.ndarray, u: np.ndarray) -> tuple[float, float, float]:
-    """Least-squares line u = a + b t: (a, b, standard error of b)."""
+def _line(t: np.ndarray, u: np.ndarray, w: np.ndarray | None = None
+          ) -> tuple[float, float, float]:
+    """Weighted least-squares line u = a + b t: (a, b, standard error of b). Weights are
+    1 / interval width squared: a log with few edges says less about the parameter."""
+    w = np.ones(len(t)) if w is None else np.asarray(w, float)
     if len(t) < 2 or np.ptp(t) == 0:
-        return float(np.mean(u)), 0.0, float("inf")
-    b, a = np.polyfit(t, u, 1)
+        return float(np.average(u, weights=w)), 0.0, float("inf")
+    tm = float(np.average(t, weights=w))
+    um = float(np.average(u, weights=w))
+    sxx = float(np.sum(w * (t - tm) ** 2))
+    b = float(np.sum(w * (t - tm) * (u - um))) / sxx
+    a = um - b * tm
     if len(t) < 3:
-        return float(a), float(b), float("inf")
+        return a, b, float("inf")
     res = u - (a + b * t)
-    s2 = float(res @ res) / (len(t) - 2)
-    se = float(np.sqrt(s2 / np.sum((t - t.mean()) ** 2)))
-    return float(a), float(b), se
+    s2 = float(np.sum(w * res ** 2)) / (len(t) - 2)
+    return a, b, float(np.sqrt(s2 / sxx))
+
+
+def _weights(fits: Sequence[LogFit]) -> np.ndarray:
+    width = np.array([max(f.hi_u - f.lo_u, 1e-6) for f in fits])
+    return 1.0 / width ** 2
 
 
 def heldout_score(fits: Sequence[LogFit]) -> float:
@@ -149,10 +160,11 @@ def heldout_score(fits: Sequence[LogFit]) -> float:
     predicted by the trend of the other logs, less the trend's penalty."""
     t = np.array([f.time_s for f in fits]) / DAY_S
     u = np.array([f.u for f in fits])
+    w = _weights(fits)
     held = total = 0.0
     for j, f in enumerate(fits):
         others = np.arange(len(fits)) != j
-        a, b, _ = _line(t[others], u[others])
+        a, b, _ = _line(t[others], u[others], w[others])
         held += max(_interp(a + b * t[j], f.grid_u, f.sse), 0.0)
         total += f.sse_nominal
     return 1.0 - held / total - 2 * PENALTY_PER_PARAMETER if total > 0 else 0.0
@@ -195,7 +207,7 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
         window = by_cause[best][max(0, i + 1 - WINDOW):i + 1]
         t = np.array([f.time_s for f in window]) / DAY_S
         u = np.array([f.u for f in window])
-        a, b, se = _line(t, u)
+        a, b, se = _line(t, u, _weights(window))
         trending = abs(b) > SLOPE_T * se
         u_now = a + b * t[-1] if trending else float(np.median(u[-3:]))
         named = scores[best] >= MIN_SCORE and ALL_CAUSES[best].resolved(from_u(best, u_now))
