@@ -53,7 +53,7 @@ def compile_pattern(pattern: str) -> re.Pattern:
     return rx
 
 
-def read_log(path: str, data: bytes, cfg: Config) -> tuple[dict[str, Run], int, float | None]:
+def read_log(path: str, cfg: Config) -> tuple[dict[str, Run], int, float | None]:
     """Runs per actuator, the number of frames and the log's wall-clock start (if any)."""
     if path.lower().endswith(".blf"):
         from ..canbus.fastblf import frames_to_runs, read_frames
@@ -130,7 +130,7 @@ def ingest_one(job: IngestJob) -> dict:
         hours = float(m.group("hours")) if "hours" in m.re.groupindex and m.group("hours") \
             else float("nan")
         cfg = config_of(job.config)
-        runs, n_frames, t0 = read_log(job.path, data, cfg)
+        runs, n_frames, t0 = read_log(job.path, cfg)
         if t0 is None or t0 < _EPOCH_1990_S:
             if "date" not in m.re.groupindex or not m.group("date"):
                 raise MeasuredDataError(job.path, "no wall-clock time in the log and no "

@@ -18,7 +18,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -62,9 +62,9 @@ class MachinePlan:
         for a in ACTUATORS:
             values = dict(self.base[a])
             if self.wear is not None and self.wear.actuator == a:
+                neutral = getattr(UnitEffects(), self.wear.effect)
                 values[self.wear.effect] = self.wear.value(
-                    day, values.get(self.wear.effect, UnitEffects().__getattribute__(
-                        self.wear.effect)))
+                    day, values.get(self.wear.effect, neutral))
             out[a] = UnitEffects(**values)
         return out
 
@@ -75,7 +75,6 @@ class FleetPlan:
     days: int
     seed: int
     log_s: float = LOG_S
-    extra: dict = field(default_factory=dict)
 
 
 def plan_fleet(machines: int, days: int, seed: int = 0, log_s: float = LOG_S,
