@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "is dynamic)")
     p.add_argument("--report", required=True, metavar="DIR", help="report directory")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")
+    p.add_argument("--truth", choices=("auto", "position", "references"), default="auto",
+                   help="what the estimate is compared with: the reference position, or the "
+                        "Hall edges and holds (auto: references when no run has a position)")
     p.set_defaults(func=_run)
 
 
@@ -47,6 +50,11 @@ def _run(args: argparse.Namespace) -> int:
     cfg = config_from(args)
     # the diagnosis extends the tables' modes; a `dynamic` default is diagnosed as `full`
     mode = args.mode or (cfg.estimator.mode if cfg.estimator.mode != "dynamic" else "full")
+    if args.truth != "position":
+        from .analyze_references import lacks_position, read_any, run_references
+        raw = [read_any(path, args.actuator, cfg) for path in args.runs]
+        if args.truth == "references" or lacks_position(raw):
+            return run_references(args, cfg, mode, raw)
     runs = [load_analysis_run(path, args.actuator, cfg) for path in args.runs]
     prepare_report_dir(args.report)
     bar = ProgressBar("analyze")

@@ -13,7 +13,7 @@ from .logs import configure_logging
 
 # Subcommand modules under ddh_vsensor.cli, each exposing register(subparsers).
 SUBCOMMANDS = ("tables", "steady", "simulate", "estimate", "analyze",
-               "run", "replay", "monitor", "status", "demo", "config", "install")
+               "run", "replay", "monitor", "status", "demo", "config", "install", "fleet")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,6 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:2] == ["simulate", "fleet"]:             # the fleet simulator's own parser
+        argv = ["simulate-fleet", *argv[2:]]
     args = parser.parse_args(argv)
     # A subcommand's --log-level (run, demo) is the base; elsewhere warnings and errors.
     configure_logging(getattr(args, "log_level", None), args.verbose - args.quiet)

@@ -1,0 +1,53 @@
+"""``analyze --truth references``: the diagnosis from Hall edges and holds (no position)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from ..config import Config
+from ..measured import Run, read_csv
+from .progress import ProgressBar
+
+
+def read_any(path: str, actuator: str, cfg: Config) -> Run:
+    """A CSV of the measured-data format or a CAN log, position optional."""
+    if path.lower().endswith(".csv"):
+        return read_csv(path)
+    from ..canbus.log import read_can_log
+    return read_can_log(path, actuator, cfg)
+
+
+def lacks_position(runs: list[Run]) -> bool:
+    """No run has a reference position (a mix is an error of the runs without one)."""
+    return all(not (r.position_mm == r.position_mm).any() for r in runs)
+
+
+def run_references(args: argparse.Namespace, cfg: Config, mode: str,
+                   runs: list[Run]) -> int:
+    from ..diagnosis.reference_fit import diagnose_references
+    from ..diagnosis.reference_report import write_reference_report
+    from ..diagnosis.references import reference_run
+
+    rruns = [reference_run(cfg, args.actuator, r) for r in runs]
+    bar = ProgressBar("analyze")
+    diag = diagnose_references(cfg, args.actuator, rruns, mode,
+                               progress=lambda stage, f: bar.update(f, stage))
+    data = write_reference_report(diag, args.report, cfg.physics_hash())
+    bar.close(f"cause: {diag.cause}")
+    if args.json:
+        print(json.dumps(data, indent=2))
+        return 0
+    b, e = data["baseline"], data["extended"]
+    print(f"{args.actuator} ({mode} mode), {len(runs)} runs, {data['references']} reference "
+          f"increments, {data['holds']} holds: cause {diag.cause}")
+    print(f"  {diag.decision.reason}")
+    for item in data["causes"]:
+        params = ", ".join(f"{k}={v:.4g}" for k, v in item["parameters"].items())
+        ivs = ", ".join(f"[{lo:.4g}, {hi:.4g}]" for lo, hi in item["interval"].values())
+        print(f"  {item['cause']:<18} score {item['score']:+.3f}  {params} {ivs}")
+    print(f"  held-out max |error| at the references {b['max_abs_error_mm']:.2f} -> "
+          f"{e['max_abs_error_mm']:.2f} mm")
+    print(f"  report: {Path(args.report) / 'report.html'}; extension: {data['extension_file']}")
+    return 0

@@ -1,0 +1,171 @@
+"""``ddh-vsensor fleet ingest|report`` and ``ddh-vsensor simulate fleet``: CAN logs of many
+machines into a Parquet store, analysed per machine on Dask, trends and alarms in HTML.
+
+Needs the ``fleet`` extra (dask[distributed], pyarrow, duckdb).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from ..errors import UserError
+from .common import add_config_arg
+from .progress import ProgressBar
+
+LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc", ".csv")
+
+
+def _cluster_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="an existing Dask scheduler (tcp://host:port); default: a local "
+                        "cluster on 127.0.0.1")
+    p.add_argument("--workers", type=int, default=2,
+                   help="worker processes of the local cluster (default 2)")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("fleet", help="fleet diagnosis: ingest CAN logs, report trends/alarms",
+                       description="CAN logs of many machines (no position sensor) into a "
+                                   "columnar store; per-machine diagnosis from the Hall "
+                                   "references and holds; trends and alarms.")
+    fs = p.add_subparsers(dest="fleet_command", required=True, metavar="ACTION")
+    i = fs.add_parser("ingest", help="extract machine, time, hours, references, holds into "
+                                     "the store (idempotent, resumable)")
+    i.add_argument("logs", nargs="+", metavar="LOG", help="CAN logs (BLF) or directories")
+    i.add_argument("--store", required=True, metavar="DIR")
+    i.add_argument("--name-pattern", default=None, metavar="REGEX",
+                   help="regular expression on the file name with a group (?P<machine>...) "
+                        "and optionally (?P<hours>...) and (?P<date>YYYY-MM-DD); default: "
+                        "MACHINE_YYYY-MM-DD_HOURSh.blf")
+    add_config_arg(i)
+    _cluster_args(i)
+    i.set_defaults(func=_ingest)
+    r = fs.add_parser("report", help="per-machine analysis, trends, alarms: HTML report")
+    r.add_argument("--store", required=True, metavar="DIR")
+    r.add_argument("--out", required=True, metavar="FILE.html")
+    r.add_argument("--tolerance-mm", type=float, default=3.0,
+                   help="position error that must not be exceeded (default 3)")
+    r.add_argument("--horizon-days", type=float, default=14.0,
+                   help="alarm when a trend crosses the tolerance within this (default 14)")
+    add_config_arg(r)
+    _cluster_args(r)
+    r.set_defaults(func=_report)
+
+    s = sub.add_parser("simulate-fleet", help="simulated fleet of daily CAN logs (also: "
+                                              "'simulate fleet')",
+                       description="Per machine one BLF per day of varied work, without "
+                                   "position frames; some machines wear; truth.json holds "
+                                   "the truth (the analysis never reads it).")
+    s.add_argument("--machines", type=int, required=True)
+    s.add_argument("--days", type=int, required=True)
+    s.add_argument("--out", required=True, metavar="DIR")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--log-s", type=float, default=None, metavar="SECONDS",
+                   help="work logged per day (default 60)")
+    add_config_arg(s)
+    s.set_defaults(func=_simulate)
+
+
+def _expand(items: list[str]) -> list[str]:
+    out = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            out += sorted(str(f) for f in p.iterdir() if f.suffix.lower() in LOG_SUFFIXES)
+        else:
+            out.append(item)          # a missing file is reported as rejected, not fatal
+    if not out:
+        raise UserError("no logs given (directories hold no .blf/.asc/.log/.trc files)")
+    return out
+
+
+def _ingest(args: argparse.Namespace) -> int:
+    from ..config import load_config
+    from ..fleet.cluster import dask_client, run_tasks
+    from ..fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, compile_pattern, ingest_one
+    from ..fleet.store import Store
+    pattern = args.name_pattern or DEFAULT_NAME_PATTERN
+    compile_pattern(pattern)
+    load_config(args.config)                      # a bad config fails here, once
+    store = Store(args.store, create=True)
+    if store.clean_partial():
+        print("removed a crashed ingestion's partial files")
+    logs = _expand(args.logs)
+    jobs = [IngestJob(str(Path(p).resolve()) if Path(p).exists() else p,
+                      str(store.root.resolve()), args.config, pattern) for p in logs]
+    bar = ProgressBar("ingest")
+    started = time.monotonic()
+    with dask_client(args.scheduler, args.workers) as client:
+        results = run_tasks(client, ingest_one, jobs,
+                            lambda d, n, r: bar.update(d / n, Path(r["path"]).name))
+    wall = time.monotonic() - started
+    counts = {s: sum(r["status"] == s for r in results)
+              for s in ("ingested", "present", "rejected")}
+    frames = sum(r["frames"] for r in results if r["status"] == "ingested")
+    hours = sum(r["duration_s"] for r in results if r["status"] == "ingested") / 3600.0
+    bar.close(f"{counts['ingested']} ingested, {counts['present']} already present, "
+              f"{counts['rejected']} rejected")
+    for r in results:
+        if r["status"] == "rejected":
+            print(f"rejected: {r['problem']}")
+    print(f"{frames} frames, {hours:.3f} log-hours in {wall:.1f} s: "
+          f"{frames / max(wall, 1e-9):.0f} frames/s, {hours * 3600 / max(wall, 1e-9):.1f} "
+          "log-seconds/s")
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from ..config import load_config
+    from ..fleet.analysis import analyse_machine
+    from ..fleet.cluster import dask_client, run_tasks
+    from ..fleet.report import write_report
+    from ..fleet.store import Store
+    from ..fleet.trend import unit_trend
+    if not args.tolerance_mm > 0 or not args.horizon_days > 0:
+        raise UserError("--tolerance-mm and --horizon-days must be positive")
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise UserError(f"--out {args.out}: directory {out.parent} does not exist")
+    cfg = load_config(args.config)
+    store = Store(args.store)
+    machines = sorted(store.machine_logs())
+    if not machines:
+        raise UserError(f"--store {args.store}: no ingested logs")
+    bar = ProgressBar("analyse")
+    with dask_client(args.scheduler, args.workers) as client:
+        run_tasks(client, analyse_machine,
+                  [(str(store.root.resolve()), m, args.config) for m in machines],
+                  lambda d, n, r: bar.update(d / n, r["machine"]))
+    bar.close(f"{len(machines)} machines")
+    rows = store.query("SELECT * FROM fits").to_pylist()
+    trends = []
+    for m in machines:
+        for a in cfg.can.units:
+            mine = [r for r in rows if r["machine"] == m and r["actuator"] == a]
+            if mine:
+                trends.append(unit_trend(m, a, mine, args.tolerance_mm, args.horizon_days))
+    meta = store.query("SELECT count(*) AS logs, count(DISTINCT machine) AS machines, "
+                       "sum(duration_s) / 3600 AS log_hours FROM meta").to_pylist()[0]
+    meta["rejected"] = len(store.rejected())
+    data = write_report(trends, out, args.tolerance_mm, args.horizon_days, cfg, meta)
+    alarms = [u for u in data["units"] if u["alarm"]]
+    for u in alarms:
+        print(f"ALARM {u['machine']} {u['actuator']}: {u['cause']} {u.get('parameter')}, "
+              f"expected error {u['expected_error_mm']} mm, {u['projected_error_mm']} mm in "
+              f"{args.horizon_days:g} days; load {u['extension_file']}")
+    print(f"{len(data['units'])} units, {len(alarms)} alarms: {out}")
+    return 0
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    from ..config import load_config
+    from ..sim.fleet import LOG_S, plan_fleet, simulate_fleet
+    cfg = load_config(args.config)
+    plan = plan_fleet(args.machines, args.days, args.seed, args.log_s or LOG_S)
+    bar = ProgressBar("simulate fleet")
+    written = simulate_fleet(cfg, plan, args.out, progress=bar.update)
+    bar.close(f"{len(written)} logs")
+    print(f"{len(written)} logs and truth.json in {args.out}")
+    return 0

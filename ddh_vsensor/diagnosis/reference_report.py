@@ -1,0 +1,115 @@
+"""The report of a diagnosis from references and holds: ``report.json`` (the position-truth
+report's nine keys, the errors taken at the references, plus ``truth``, ``causes`` and
+``unexplained``), ``extension.json`` and a self-contained ``report.html``."""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..atomic import output_dir
+from .causes import ALL_CAUSES
+from .extension import Extension
+from .figures import ranking_figure
+from .reference_fit import ReferenceDiagnosis
+from .report import _img, _table
+from .selection import MIN_SCORE
+
+
+def _split(diag: ReferenceDiagnosis, obs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    inc = np.concatenate([o[:r.n_increments] for o, r in zip(obs, diag.rruns)])
+    creep = np.concatenate([o[r.n_increments:] for o, r in zip(obs, diag.rruns)])
+    return inc, creep
+
+
+def _errors(inc: np.ndarray) -> dict[str, float]:
+    return {"max_abs_error_mm": round(float(np.max(np.abs(inc))), 4),
+            "rms_error_mm": round(float(np.sqrt(np.mean(inc ** 2))), 4)}
+
+
+def extension_of(diag: ReferenceDiagnosis, cfg_hash: str) -> Extension:
+    named = diag.cause not in ("none", "unexplained")
+    fit = diag.chosen if named else next(f for f in diag.fits if f.cause.name == "none")
+    return Extension(cause=fit.cause.name, parameters=fit.parameters, actuator=diag.actuator,
+                     config_hash=cfg_hash, mode=diag.mode, motor_inertia=fit.motor_inertia,
+                     fitted_on=tuple(r.name for r in diag.rruns),
+                     notes={"truth": "references and holds", "score": round(fit.score, 4),
+                            "reason": diag.decision.reason})
+
+
+def report_data(diag: ReferenceDiagnosis, extension_file: Path) -> dict[str, Any]:
+    named = diag.cause not in ("none", "unexplained")
+    base_inc, _ = _split(diag, diag.baseline)
+    ext_inc, _ = _split(diag, diag.chosen.heldout if named else diag.model)
+    causes = []
+    for f in diag.fits:
+        iv = diag.intervals.get(f.cause.name)
+        causes.append({"cause": f.cause.name, "score": round(float(f.score), 4),
+                       "parameters": {k: round(v, 6) for k, v in f.parameters.items()},
+                       "interval": ({f.cause.parameter: [round(iv[0], 6), round(iv[1], 6)]}
+                                    if iv else {})})
+    return {
+        "actuator": diag.actuator,
+        "mode": diag.mode,
+        "runs": [r.name for r in diag.rruns],
+        "cause": diag.cause,
+        "ranking": [{"cause": c["cause"], "score": c["score"], "parameters": c["parameters"]}
+                    for c in causes],
+        "baseline": _errors(base_inc),
+        "extended": _errors(ext_inc),
+        "holdout_runs": [r.name for r in diag.rruns],
+        "extension_file": str(extension_file),
+        "truth": "references",
+        "causes": causes,
+        "unexplained": diag.cause == "unexplained",
+        "references": sum(r.n_increments for r in diag.rruns),
+        "holds": sum(len(r.holds) for r in diag.rruns),
+    }
+
+
+def write_reference_report(diag: ReferenceDiagnosis, out_dir: str | Path,
+                           cfg_hash: str) -> dict[str, Any]:
+    out = output_dir(out_dir, "report directory")
+    ext = extension_of(diag, cfg_hash).save(out / "extension.json").resolve()
+    data = report_data(diag, ext)
+    (out / "report.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    (out / "report.html").write_text(_html(diag, data), encoding="utf-8")
+    return data
+
+
+def _html(diag: ReferenceDiagnosis, data: dict[str, Any]) -> str:
+    b, e = data["baseline"], data["extended"]
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>ddh-vsensor diagnosis "
+             f"from references: {diag.actuator}</title></head><body>",
+             f"<h1>Diagnosis from references and holds: {diag.actuator}</h1>",
+             f"<p><b>Cause: {html.escape(diag.cause)}</b></p>",
+             f"<p>{html.escape(diag.decision.reason)}.</p>"]
+    if diag.cause in ALL_CAUSES and diag.cause != "none":
+        parts.append(f"<p>{html.escape(ALL_CAUSES[diag.cause].summary)}. Extension: "
+                     f"<code>{html.escape(data['extension_file'])}</code></p>")
+    parts.append("<h2>Error at the references (edge to edge, held-out runs)</h2>" + _table(
+        ["", "max |error| (mm)", "RMS (mm)"],
+        [["model as it is", b["max_abs_error_mm"], b["rms_error_mm"]],
+         [f"extended ({diag.cause})", e["max_abs_error_mm"], e["rms_error_mm"]]]))
+    parts.append("<h2>Candidate causes</h2>" + _table(
+        ["cause", "score", "fitted", "90 % interval"],
+        [[c["cause"], c["score"], ", ".join(f"{k}={v:.4g}" for k, v in c["parameters"].items()),
+          ", ".join(f"{v[0]:.4g}..{v[1]:.4g}" for v in c["interval"].values())]
+         for c in data["causes"]]))
+    parts.append(_img(ranking_figure([f.cause.name for f in diag.fits],
+                                     [f.score for f in diag.fits], MIN_SCORE,
+                                     diag.cause if diag.cause in ALL_CAUSES else "none"),
+                      "ranking"))
+    parts.append("<h2>Runs</h2>" + _table(
+        ["run", "duration (s)", "edges", "holds", "mean holding speed (rpm)",
+         "model holding speed (rpm)"],
+        [[Path(r.name).name, r.run.duration_s, len(r.edges), len(r.holds),
+          float(np.mean([h.speed_rpm for h in r.holds])) if r.holds else float("nan"),
+          float(np.nanmean([h.model_speed_rpm for h in r.holds])) if r.holds else float("nan")]
+         for r in diag.rruns]))
+    parts.append("</body></html>")
+    return "\n".join(parts)

@@ -1,0 +1,149 @@
+"""Runs without a position sensor: the Hall reference edges and the holds are the truth.
+
+At each accepted edge of a switch the rod's position is known (the switching position for the
+direction of travel, :class:`estimator.references.Switch`); in service the estimator resyncs
+there, so the error it shows at an edge is the integral of every cause over the travel since
+the previous edge. The diagnosis therefore observes, per run, the *increments* of the
+estimate's error from edge to edge, and per hold the creep of the estimate (mm over
+:data:`HOLD_WEIGHT_S`, truth 0: see :mod:`.holds`). Both are linear in the estimate, so a
+cause's change of the estimate maps to a change of the observations exactly.
+
+A run is cut to start at its first usable edge (the estimate starts there, at the known
+position); ``position_mm`` of the cut run holds the edge positions and NaN elsewhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import numpy as np
+
+from ..config import Config
+from ..estimator.estimator import Estimator
+from ..estimator.references import DIRECTION_SPEED_MM_S, accepted_edges, switches_from_config
+from ..measured import MeasuredDataError, Run
+from ..physics.unit import DDHUnit
+from ..tables.build import build_unit_tables
+from ..tables.lookup import UnitTables
+from .holds import Hold, describe_holds, find_holds
+from .runs import AnalysisRun
+
+HOLD_WEIGHT_S = 10.0         # a hold's creep rate counts as the mm it would creep in this long
+MIN_EDGES = 3                # two increments at least: one edge starts, the others observe
+
+
+@dataclass(frozen=True, eq=False)
+class ReferenceRun:
+    """A run seen through its references and holds (cut at its first usable edge)."""
+
+    run: AnalysisRun
+    edges: np.ndarray            # sample index of each used edge (the first is 0)
+    edge_mm: np.ndarray          # the rod's position there
+    switch: tuple[str, ...]
+    rising: np.ndarray
+    holds: tuple[Hold, ...]
+
+    @property
+    def name(self) -> str:
+        return self.run.name
+
+    def observe(self, position_mm: np.ndarray) -> np.ndarray:
+        """Error increments from edge to edge (mm), then each hold's creep (mm)."""
+        err = position_mm[self.edges] - self.edge_mm
+        inc = np.diff(err)
+        creep = [(position_mm[h.stop] - position_mm[h.start]) / h.duration_s * HOLD_WEIGHT_S
+                 for h in self.holds]
+        return np.concatenate([inc, np.asarray(creep, dtype=float)])
+
+    def observe_delta(self, delta_mm: np.ndarray) -> np.ndarray:
+        """The observations' change for a change of the estimate (the map is linear)."""
+        inc = np.diff(delta_mm[self.edges])
+        creep = [(delta_mm[h.stop] - delta_mm[h.start]) / h.duration_s * HOLD_WEIGHT_S
+                 for h in self.holds]
+        return np.concatenate([inc, np.asarray(creep, dtype=float)])
+
+    @property
+    def n_increments(self) -> int:
+        return len(self.edges) - 1
+
+
+_TABLES: dict[tuple[int, str], tuple[Config, UnitTables]] = {}
+
+
+def _nominal_tables(cfg: Config, actuator: str) -> UnitTables:
+    """Per config object (held, so its id stays its own) and actuator, built once."""
+    key = (id(cfg), actuator)
+    if key not in _TABLES:
+        _TABLES[key] = (cfg, build_unit_tables(cfg, actuator,
+                                               DDHUnit.from_config(cfg, actuator)))
+    return _TABLES[key][1]
+
+
+def nominal_velocity_mm_s(cfg: Config, actuator: str, run: Run) -> np.ndarray:
+    """The nominal model's velocity at each sample (position-free: direction and holds)."""
+    unit = cfg.unit(actuator)
+    est = Estimator(cfg, actuator, _nominal_tables(cfg, actuator), references=False,
+                    adaptation=False, initial_position_mm=0.5 * unit.stroke_mm)
+    return est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c).velocity_mm_s
+
+
+def _check(run: Run) -> None:
+    for name in ("time_s", "speed_rpm", "torque_nm", "oil_temp_c"):
+        bad = ~np.isfinite(getattr(run, name))
+        if bad.any():
+            raise MeasuredDataError(run.source, f"column {name!r}: missing value at row "
+                                    f"{int(np.argmax(bad)) + 1}")
+    step = np.diff(run.time_s)
+    if (step <= 0.0).any():
+        row = int(np.argmax(step <= 0.0)) + 1
+        raise MeasuredDataError(run.source, f"time_s does not increase at row {row + 1}")
+
+
+def edge_events(cfg: Config, actuator: str, run: Run,
+                velocity_mm_s: np.ndarray) -> list[tuple[int, str, bool, float]]:
+    """(sample, switch, rising, rod position mm) of every edge met in motion, in time order.
+
+    The state changes at the first sample past the switching position: on average half a
+    sample period after the rod crossed it, so the position there is the switching
+    position plus half a period of travel.
+    """
+    t = run.time_s
+    out = []
+    for sw in switches_from_config(cfg.unit(actuator)):
+        if sw.name not in run.refs:
+            continue
+        for _, c, rising in accepted_edges(t, run.refs[sw.name], cfg.estimator.debounce_s):
+            v = float(velocity_mm_s[c])
+            if c == 0 or abs(v) < DIRECTION_SPEED_MM_S:
+                continue                          # direction unknown: the edge says nothing
+            x = sw.switching_position_mm(rising, v > 0) + 0.5 * v * float(t[c] - t[c - 1])
+            out.append((int(c), sw.name, bool(rising), x))
+    out.sort()
+    return out
+
+
+def reference_run(cfg: Config, actuator: str, run: Run) -> ReferenceRun:
+    """The run's usable edges and holds; MeasuredDataError when there are too few edges."""
+    _check(run)
+    velocity = nominal_velocity_mm_s(cfg, actuator, run)
+    events = edge_events(cfg, actuator, run, velocity)
+    if len(events) < MIN_EDGES:
+        raise MeasuredDataError(run.source, f"{len(events)} reference edge(s) met in motion; "
+                                f"the analysis from references needs at least {MIN_EDGES} "
+                                "(the rod must pass the Hall switches)")
+    first = events[0][0]
+    idx = np.array([e[0] for e in events]) - first
+    keep = np.concatenate([[True], np.diff(idx) > 0])          # one edge per sample
+    idx = idx[keep]
+    edge_mm = np.array([e[3] for e in events])[keep]
+    cut = slice(first, None)
+    position = np.full(len(run.time_s) - first, np.nan)
+    position[idx] = edge_mm
+    arun = AnalysisRun(name=run.source, time_s=run.time_s[cut].astype(float),
+                       speed_rpm=run.speed_rpm[cut].astype(float),
+                       torque_nm=run.torque_nm[cut].astype(float),
+                       oil_temp_c=run.oil_temp_c[cut].astype(float), position_mm=position)
+    ranges = find_holds(arun.time_s, arun.speed_rpm, velocity[cut], idx)
+    holds = describe_holds(DDHUnit.from_config(cfg, actuator), arun.time_s, arun.speed_rpm,
+                           arun.torque_nm, arun.oil_temp_c, ranges)
+    return ReferenceRun(arun, idx, edge_mm, tuple(e[1] for e, k in zip(events, keep) if k),
+                        np.array([e[2] for e, k in zip(events, keep) if k]), tuple(holds))

@@ -1,0 +1,60 @@
+"""Running the fleet's tasks on Dask: a small LocalCluster on 127.0.0.1 by default, or an
+existing scheduler. Results come back in the order of the inputs, whichever worker ran them,
+so a local run and a cluster run give the same store and the same report.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+from ..errors import UserError
+
+Progress = Callable[[int, int, Any], None]
+DEFAULT_WORKERS = 2
+
+
+@contextmanager
+def dask_client(scheduler: str | None = None, workers: int = DEFAULT_WORKERS) -> Iterator[Any]:
+    """A Dask client: to ``scheduler`` (``tcp://host:port``) or to a LocalCluster of
+    ``workers`` single-threaded processes bound to 127.0.0.1, without dashboard."""
+    import logging
+
+    from dask.distributed import Client, LocalCluster
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout="10s")
+        except (OSError, TimeoutError) as exc:
+            raise UserError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    if not 1 <= workers <= 64:
+        raise UserError(f"--workers {workers}: 1..64")
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
+    client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
+
+
+def run_tasks(client: Any, fn: Callable[[Any], Any], items: Sequence[Any],
+              progress: Progress | None = None) -> list[Any]:
+    """``fn`` over ``items`` on the cluster; results in input order; ``progress(done, total,
+    result)`` as each one finishes."""
+    from dask.distributed import as_completed
+    futures = client.map(fn, list(items), pure=False)
+    index = {f.key: i for i, f in enumerate(futures)}
+    results: list[Any] = [None] * len(futures)
+    for done, future in enumerate(as_completed(futures), start=1):
+        results[index[future.key]] = future.result()
+        if progress is not None:
+            progress(done, len(futures), results[index[future.key]])
+    return results

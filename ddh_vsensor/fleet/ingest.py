@@ -1,0 +1,188 @@
+"""Ingesting one CAN log into the store: machine, time, operating hours, the samples, the
+reference events and the holds with their features.
+
+Runs as one task per log (on Dask workers, :mod:`.cluster`); a log that cannot be read, or
+whose name says no machine, is recorded as rejected with the reason and never stops the
+others. The machine and the operating hours come from the file name through a regular
+expression with the groups ``machine`` (required) and ``hours`` (optional); the time from
+the log's own timestamps (the BLF header), else a ``date`` group.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from ..config import Config, load_config
+from ..estimator.estimator import Estimator
+from ..measured import MeasuredDataError, Run
+from .store import Store, log_id_of
+
+DEFAULT_NAME_PATTERN = r"^(?P<machine>[A-Za-z0-9-]+)_(?P<date>\d{4}-\d{2}-\d{2})_(?P<hours>[0-9.]+)h"
+_EPOCH_1990_S = 631152000.0
+
+
+@dataclass(frozen=True)
+class IngestJob:
+    path: str
+    store: str
+    config: str | None = None
+    name_pattern: str = DEFAULT_NAME_PATTERN
+
+
+@lru_cache(maxsize=4)
+def config_of(path: str | None) -> Config:
+    return load_config(path)
+
+
+def compile_pattern(pattern: str) -> re.Pattern:
+    from ..errors import UserError
+    try:
+        rx = re.compile(pattern)
+    except re.error as exc:
+        raise UserError(f"--name-pattern {pattern!r}: {exc}") from None
+    if "machine" not in rx.groupindex:
+        raise UserError(f"--name-pattern {pattern!r}: needs a group (?P<machine>...)")
+    return rx
+
+
+def read_log(path: str, cfg: Config) -> tuple[dict[str, Run], int, float | None]:
+    """Runs per actuator, the number of frames and the log's wall-clock start (if any)."""
+    if path.lower().endswith(".blf"):
+        from ..canbus.fastblf import frames_to_runs, read_frames
+        frames = read_frames(path)
+        runs = frames_to_runs(frames, cfg, path)
+        t0 = float(frames.timestamp_s.min()) if len(frames) else None
+        return runs, len(frames), t0
+    from ..canbus.log import _frames, read_can_log
+    runs = {a: read_can_log(path, a, cfg) for a in cfg.can.units}
+    n = sum(1 for _ in _frames(path))
+    return runs, n, float(min(r.time_s[0] for r in runs.values()))
+
+
+def _features(cfg: Config, machine: str, log_id: str, actuator: str, run: Run,
+              t0: float) -> tuple[list[dict], list[dict]]:
+    """Reference events and holds of one actuator, with the nominal model's errors there."""
+    from ..diagnosis.references import _nominal_tables, reference_run
+    try:
+        rr = reference_run(cfg, actuator, run)
+    except MeasuredDataError:
+        return [], []                       # too few edges today: nothing to observe
+    est = Estimator(cfg, actuator, _nominal_tables(cfg, actuator), references=False,
+                    adaptation=False, initial_position_mm=rr.run.initial_position_mm)
+    x = est.run(rr.run.time_s, rr.run.speed_rpm, rr.run.torque_nm,
+                rr.run.oil_temp_c).position_mm
+    obs = rr.observe(x)
+    events = [{"machine": machine, "log_id": log_id, "actuator": actuator,
+               "time_s": float(rr.run.time_s[k] - t0), "switch": sw, "rising": bool(up),
+               "position_mm": float(p),
+               "nominal_increment_mm": float(obs[i - 1]) if i else None}
+              for i, (k, sw, up, p) in enumerate(zip(rr.edges, rr.switch, rr.rising,
+                                                     rr.edge_mm))]
+    holds = [{"machine": machine, "log_id": log_id, "actuator": actuator,
+              "time_s": float(rr.run.time_s[h.start] - t0), "duration_s": h.duration_s,
+              "speed_rpm": h.speed_rpm, "model_speed_rpm": h.model_speed_rpm,
+              "torque_nm": h.torque_nm, "oil_temp_c": h.oil_temp_c,
+              "nominal_creep_mm": float(obs[rr.n_increments + j])}
+             for j, h in enumerate(rr.holds)]
+    return events, holds
+
+
+_EVENT_SCHEMA = pa.schema([("machine", pa.string()), ("log_id", pa.string()),
+                           ("actuator", pa.string()), ("time_s", pa.float64()),
+                           ("switch", pa.string()), ("rising", pa.bool_()),
+                           ("position_mm", pa.float64()),
+                           ("nominal_increment_mm", pa.float64())])
+_HOLD_SCHEMA = pa.schema([("machine", pa.string()), ("log_id", pa.string()),
+                          ("actuator", pa.string()), ("time_s", pa.float64()),
+                          ("duration_s", pa.float64()), ("speed_rpm", pa.float64()),
+                          ("model_speed_rpm", pa.float64()), ("torque_nm", pa.float64()),
+                          ("oil_temp_c", pa.float64()), ("nominal_creep_mm", pa.float64())])
+
+
+def ingest_one(job: IngestJob) -> dict:
+    """Ingest one log; returns what happened (never raises for a bad log)."""
+    started = time.perf_counter()
+    store = Store(job.store)
+    name = Path(job.path).name
+    try:
+        data = Path(job.path).read_bytes()
+    except OSError as exc:
+        return {"path": job.path, "status": "rejected", "problem": f"cannot read: {exc}",
+                "frames": 0, "duration_s": 0.0, "seconds": time.perf_counter() - started}
+    log_id = log_id_of(data)
+    base = {"path": job.path, "log_id": log_id, "frames": 0, "duration_s": 0.0}
+    if store.has(log_id):
+        return {**base, "status": "present", "seconds": time.perf_counter() - started}
+    try:
+        m = re.search(job.name_pattern, name)
+        if m is None:
+            raise MeasuredDataError(job.path, "the file name does not match the name "
+                                    f"pattern {job.name_pattern!r} (no machine)")
+        machine = m.group("machine")
+        hours = float(m.group("hours")) if "hours" in m.re.groupindex and m.group("hours") \
+            else float("nan")
+        cfg = config_of(job.config)
+        runs, n_frames, t0 = read_log(job.path, cfg)
+        if t0 is None or t0 < _EPOCH_1990_S:
+            if "date" not in m.re.groupindex or not m.group("date"):
+                raise MeasuredDataError(job.path, "no wall-clock time in the log and no "
+                                        "date in its name")
+            date = dt.datetime.fromisoformat(m.group("date")).replace(tzinfo=dt.timezone.utc)
+            start_time_s = date.timestamp() + (t0 or 0.0)
+        else:
+            start_time_s = t0
+        t_ref = min(float(r.time_s[0]) for r in runs.values())
+        events, holds, samples = [], [], []
+        for actuator, run in runs.items():
+            e, h = _features(cfg, machine, log_id, actuator, run, t_ref)
+            events += e
+            holds += h
+            switches = list(cfg.unit(actuator).references_mm)
+            hall = np.zeros(len(run.time_s), np.uint8)
+            for i, sw in enumerate(switches):
+                if sw in run.refs:
+                    hall |= run.refs[sw].astype(np.uint8) << i
+            samples.append(pa.table({
+                "actuator": pa.array([actuator] * len(run.time_s), pa.string()),
+                "time_s": run.time_s - t_ref, "speed_rpm": run.speed_rpm,
+                "torque_nm": run.torque_nm, "oil_temp_c": run.oil_temp_c, "hall": hall}))
+        duration = max(float(r.time_s[-1] - r.time_s[0]) for r in runs.values())
+        meta = pa.table({"log_id": [log_id], "machine": [machine], "file": [name],
+                         "path": [str(Path(job.path).resolve())],
+                         "start_time_s": [start_time_s], "duration_s": [duration],
+                         "operating_hours": [hours], "frames": [n_frames],
+                         "events": [len(events)], "holds": [len(holds)]})
+        store.put_log(log_id, {"samples": pa.concat_tables(samples),
+                               "events": pa.Table.from_pylist(events, _EVENT_SCHEMA),
+                               "holds": pa.Table.from_pylist(holds, _HOLD_SCHEMA),
+                               "meta": meta})
+        return {**base, "status": "ingested", "machine": machine, "frames": n_frames,
+                "duration_s": duration, "seconds": time.perf_counter() - started}
+    except Exception as exc:           # any problem with one log: reported, never fatal
+        problem = str(exc) if isinstance(exc, MeasuredDataError) else \
+            f"{Path(job.path).name}: {type(exc).__name__}: {exc}"
+        store.reject(log_id, job.path, problem)
+        return {**base, "status": "rejected", "problem": problem,
+                "seconds": time.perf_counter() - started}
+
+
+def run_of(store: Store, log_id: str, actuator: str, cfg: Config) -> Run:
+    """An actuator's run back from the store's samples (times relative to the log)."""
+    import pyarrow.compute as pc
+    t = store.read(log_id, "samples")
+    t = t.filter(pc.equal(t["actuator"], actuator))
+    col = {k: t[k].to_numpy() for k in ("time_s", "speed_rpm", "torque_nm", "oil_temp_c",
+                                        "hall")}
+    switches = list(cfg.unit(actuator).references_mm)
+    refs = {sw: ((col["hall"] >> i) & 1).astype(np.uint8) for i, sw in enumerate(switches)}
+    return Run(time_s=col["time_s"], speed_rpm=col["speed_rpm"], torque_nm=col["torque_nm"],
+               oil_temp_c=col["oil_temp_c"], position_mm=np.full(len(col["time_s"]), np.nan),
+               refs=refs, source=f"{log_id}:{actuator}")

@@ -1,0 +1,164 @@
+"""The fleet report: per machine and unit the fitted parameters over time with their
+intervals, the expected position error now and projected, alarms naming the cause, and the
+extension file to load; HTML (figures embedded, readable from disk) plus a JSON summary."""
+
+from __future__ import annotations
+
+import base64
+import datetime as dt
+import html
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import Config
+from ..diagnosis.causes import ALL_CAUSES
+from ..diagnosis.extension import Extension
+from .trend import DAY_S, UnitTrend, from_u
+
+
+def _date(t: float) -> str:
+    return dt.datetime.fromtimestamp(t, dt.timezone.utc).date().isoformat()
+
+
+def _figure(tr: UnitTrend, tolerance_mm: float) -> bytes:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    days = (np.array(tr.times_s) - tr.times_s[0]) / DAY_S
+    shown = [c for c in dict.fromkeys(n for n in tr.named if n != "none")] or \
+        [max(tr.series, key=lambda c: tr.scores[-1].get(c, -9) if tr.scores else 0)]
+    fig, axes = plt.subplots(len(shown) + 1, 1, figsize=(7.5, 2.2 * (len(shown) + 1)),
+                             sharex=True)
+    for ax, cause in zip(axes, shown):
+        fits = tr.series[cause]
+        x = (np.array([f.time_s for f in fits]) - tr.times_s[0]) / DAY_S
+        v = [from_u(cause, f.u) for f in fits]
+        lo = [from_u(cause, f.lo_u) for f in fits]
+        hi = [from_u(cause, f.hi_u) for f in fits]
+        ax.fill_between(x, lo, hi, alpha=0.3, label="90 % interval")
+        ax.plot(x, v, "o-", ms=3, label="fitted per log")
+        ax.axhline(ALL_CAUSES[cause].neutral, color="k", lw=0.7)
+        ax.set_ylabel(f"{cause}\n{ALL_CAUSES[cause].parameter}", fontsize=8)
+        ax.legend(fontsize=7, loc="upper left")
+    ax = axes[-1]
+    ax.plot(days, tr.reference_error_mm, ".", color="0.5", label="nominal model, max at refs")
+    ax.plot(days, tr.error_now_mm, "o-", ms=3, label="expected error of the cause")
+    ax.plot(days, tr.error_projected_mm, "--", label="projected at the horizon")
+    ax.axhline(tolerance_mm, color="r", lw=1, label="tolerance")
+    for a in tr.alarms:
+        if a is not None:
+            ax.axvline((a.time_s - tr.times_s[0]) / DAY_S, color="r", alpha=0.15)
+    ax.set_ylabel("mm", fontsize=8)
+    ax.set_xlabel(f"days since {_date(tr.times_s[0])}")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle(f"{tr.machine} {tr.actuator}")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=80)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def summary(trends: list[UnitTrend], tolerance_mm: float, horizon_days: float,
+            ext_dir: Path, cfg: Config) -> list[dict[str, Any]]:
+    """One entry per machine and unit (the JSON summary); writes the alarms' extensions."""
+    out = []
+    for tr in trends:
+        if not tr.times_s:
+            continue
+        cause = tr.named[-1]
+        alarm = tr.alarms[-1]
+        entry: dict[str, Any] = {
+            "machine": tr.machine, "actuator": tr.actuator, "logs": len(tr.times_s),
+            "last_log": _date(tr.times_s[-1]), "cause": cause,
+            "reference_error_mm": round(tr.reference_error_mm[-1], 3),
+            "expected_error_mm": None if cause == "none" else round(tr.error_now_mm[-1], 3),
+            "projected_error_mm": None if cause == "none" else round(
+                tr.error_projected_mm[-1], 3),
+            "alarm": alarm is not None, "first_alarm": None, "extension_file": None}
+        if cause != "none":
+            f = tr.series[cause][-1]
+            entry["parameter"] = {ALL_CAUSES[cause].parameter: round(from_u(cause, f.u), 5)}
+            entry["interval"] = [round(from_u(cause, f.lo_u), 5), round(from_u(cause, f.hi_u), 5)]
+        first = tr.first_alarm
+        if first is not None:
+            entry["first_alarm"] = {"date": _date(first.time_s), "cause": first.cause}
+        if alarm is not None:
+            entry["crossing"] = _date(alarm.crossing_time_s) if alarm.crossing_time_s else None
+            ext = Extension(cause=alarm.cause,
+                            parameters={ALL_CAUSES[alarm.cause].parameter: alarm.value},
+                            actuator=tr.actuator, config_hash=cfg.physics_hash(),
+                            mode=cfg.estimator.mode,
+                            motor_inertia=cfg.estimator.inertia_compensation,
+                            fitted_on=tuple(f.log_id for f in tr.series[alarm.cause][-7:]),
+                            notes={"machine": tr.machine, "truth": "references and holds",
+                                   "alarm": f"expected error {alarm.error_now_mm:.2f} mm, "
+                                            f"{alarm.error_projected_mm:.2f} mm in "
+                                            f"{horizon_days:g} days"})
+            path = ext.save(ext_dir / f"{tr.machine}_{tr.actuator}.json")
+            entry["extension_file"] = str(path.resolve())
+        out.append(entry)
+    return out
+
+
+def _table(table_id: str, head: list[str], rows: list[list[Any]]) -> str:
+    def cell(v: Any) -> str:
+        if isinstance(v, float):
+            return "" if not np.isfinite(v) else f"{v:.3f}"
+        return html.escape("" if v is None else str(v))
+    return (f"<table id='{table_id}'><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head)
+            + "</tr>" + "".join("<tr>" + "".join(f"<td>{cell(v)}</td>" for v in r) + "</tr>"
+                                for r in rows) + "</table>")
+
+
+def write_report(trends: list[UnitTrend], out: Path, tolerance_mm: float,
+                 horizon_days: float, cfg: Config, store_summary: dict[str, Any]) -> dict:
+    """report.html, report.json and the alarms' extension files (``<stem>_extensions/``)."""
+    ext_dir = out.parent / f"{out.stem}_extensions"
+    entries = summary(trends, tolerance_mm, horizon_days, ext_dir, cfg)
+    alarms = [e for e in entries if e["alarm"]]
+    parts = ["<!DOCTYPE html><html><head><meta charset='utf-8'><title>ddh-vsensor fleet "
+             "report</title><style>body{font-family:sans-serif;max-width:1000px;margin:auto}"
+             "table{border-collapse:collapse;font-size:.85em}td,th{border:1px solid #ccc;"
+             "padding:2px 6px}.alarm{color:#b00;font-weight:bold}</style></head><body>",
+             "<h1>Fleet diagnosis from references and holds</h1>",
+             f"<p>{store_summary['machines']} machines, {store_summary['logs']} logs "
+             f"({store_summary['log_hours']:.2f} log-hours), {store_summary['rejected']} "
+             f"rejected. Tolerance {tolerance_mm:g} mm, horizon {horizon_days:g} days.</p>",
+             f"<h2>Alarms ({len(alarms)})</h2>"]
+    parts.append(_table("alarms", ["machine", "unit", "cause", "parameter", "expected error "
+                                   "(mm)", "projected (mm)", "crosses tolerance", "first alarm",
+                                   "extension to load"],
+                        [[e["machine"], e["actuator"], e["cause"],
+                          ", ".join(f"{k}={v:.4g}" for k, v in e.get("parameter", {}).items()),
+                          e["expected_error_mm"], e["projected_error_mm"], e.get("crossing"),
+                          (e["first_alarm"] or {}).get("date"), e["extension_file"]]
+                         for e in alarms]))
+    parts.append("<h2>Machines</h2>")
+    parts.append(_table("machines", ["machine", "unit", "logs", "last log", "cause",
+                                     "parameter", "90 % interval", "error at refs, nominal "
+                                     "(mm)", "expected error (mm)", "projected (mm)", "alarm"],
+                        [[e["machine"], e["actuator"], e["logs"], e["last_log"], e["cause"],
+                          ", ".join(f"{k}={v:.4g}" for k, v in e.get("parameter", {}).items()),
+                          " .. ".join(f"{v:.4g}" for v in e.get("interval", [])),
+                          e["reference_error_mm"], e["expected_error_mm"],
+                          e["projected_error_mm"], "ALARM" if e["alarm"] else ""]
+                         for e in entries]))
+    parts.append("<h2>Per machine and unit</h2>")
+    for tr in trends:
+        if not tr.times_s:
+            continue
+        png = base64.b64encode(_figure(tr, tolerance_mm)).decode()
+        parts.append(f"<h3 id='{tr.machine}-{tr.actuator}'>{html.escape(tr.machine)} "
+                     f"{tr.actuator}</h3><img class='trend' alt='trend {tr.machine} "
+                     f"{tr.actuator}' src='data:image/png;base64,{png}'>")
+    parts.append("</body></html>")
+    out.write_text("\n".join(parts), encoding="utf-8")
+    data = {"tolerance_mm": tolerance_mm, "horizon_days": horizon_days, **store_summary,
+            "units": entries}
+    out.with_suffix(".json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    return data

@@ -1,0 +1,62 @@
+"""Trends and alarms on synthetic per-log fits: a parameter drifting away is named and
+alarmed before the expected error crosses the tolerance; a constant one is not."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ddh_vsensor.fleet.analysis import GRIDS
+from ddh_vsensor.fleet.trend import DAY_S, unit_trend
+
+T0 = 1.767e9
+
+
+def rows(true_u_per_day, cause="pump_leakage", others=("displacement", "time_offset"),
+         noise=0.02, seed=0, mm_per_u=8.0):
+    """Per day and cause a row as :mod:`ddh_vsensor.fleet.analysis` writes it: squared error
+    of 20 observations around the day's true parameter (log scale for factors)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for day, u_true in enumerate(true_u_per_day):
+        u_obs = u_true + rng.normal(0.0, noise)
+        sse_nominal = 20.0 * (1.0 + (mm_per_u * u_obs) ** 2)
+        for c in (cause, *others):
+            grid = np.asarray(GRIDS[c], float)
+            gu = np.log(grid) if c in ("pump_leakage", "displacement") else grid
+            if c == cause:
+                sse = 20.0 * (1.0 + (mm_per_u * (gu - u_obs)) ** 2)
+                emax = mm_per_u * np.abs(gu)
+            else:                               # explains nothing
+                sse = np.full(len(grid), sse_nominal) + 5.0 * gu ** 2
+                emax = np.abs(gu)
+            out.append({"cause": c, "grid": list(grid), "sse": list(sse),
+                        "emax_mm": list(emax), "n_obs": 20, "sse_nominal": sse_nominal,
+                        "max_increment_mm": 1.0, "time_s": T0 + day * DAY_S,
+                        "log_id": f"d{day}"})
+    return out
+
+
+def test_a_rising_leakage_is_named_and_alarmed_before_it_crosses():
+    days = np.arange(30)
+    u = np.log(1.0 + 0.03 * np.maximum(days - 3, 0))    # leakage factor +3 % a day from day 3
+    tr = unit_trend("M1", "boom", rows(u), tolerance_mm=3.0, horizon_days=14.0)
+    crossing = int(np.argmax(8.0 * u > 3.0))             # expected error = 8 mm per unit of u
+    first = tr.first_alarm
+    assert first is not None and first.cause == "pump_leakage"
+    warned = crossing - (first.time_s - T0) / DAY_S
+    assert warned >= 7, f"alarm {warned:.1f} days before crossing on day {crossing}"
+    assert tr.named[-1] == "pump_leakage"
+    lo, hi = tr.series["pump_leakage"][-1].lo_u, tr.series["pump_leakage"][-1].hi_u
+    assert lo <= u[-1] + 0.1 and hi >= u[-1] - 0.1
+
+
+def test_a_constant_deviation_raises_no_alarm():
+    u = np.full(30, np.log(1.12))
+    tr = unit_trend("M2", "boom", rows(u, seed=3), tolerance_mm=3.0, horizon_days=14.0)
+    assert tr.first_alarm is None
+
+
+def test_an_error_already_beyond_tolerance_alarms_without_a_trend():
+    u = np.full(12, np.log(1.6))                         # 8 * 0.47 = 3.8 mm, flat
+    tr = unit_trend("M3", "boom", rows(u, seed=4), tolerance_mm=3.0, horizon_days=14.0)
+    assert tr.alarms[-1] is not None and tr.alarms[-1].cause == "pump_leakage"
