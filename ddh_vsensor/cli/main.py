@@ -35,8 +35,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:2] == ["simulate", "fleet"]:             # the fleet simulator's own parser
-        argv = ["simulate-fleet", *argv[2:]]
+    # `simulate fleet` is the fleet simulator's own parser (`simulate` takes no subcommand)
+    k = next((i for i, a in enumerate(argv) if not a.startswith("-")), len(argv))
+    if argv[k:k + 2] == ["simulate", "fleet"]:
+        argv = [*argv[:k], "simulate-fleet", *argv[k + 2:]]
     args = parser.parse_args(argv)
     # A subcommand's --log-level (run, demo) is the base; elsewhere warnings and errors.
     configure_logging(getattr(args, "log_level", None), args.verbose - args.quiet)

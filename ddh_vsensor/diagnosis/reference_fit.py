@@ -2,7 +2,7 @@
 increments and the holds' creep, cross-validated one run out at a time.
 
 The fit, its cross-validation and the decision are the position-truth analysis's own
-(:func:`.fit.fit_cause`, :func:`.selection.decide`): each cause's exact change of the
+(:func:`.fit.fit_cause`, :func:`.selection.decide_single`): each cause's exact change of the
 estimate is mapped to the observations of :class:`.references.ReferenceRun` (a linear map),
 so the same search, the same quadratic stencil and the same held-out score apply. Added here:
 a 90 % interval per parameter (jackknife over the leave-one-run-out fits) and the answer
@@ -23,7 +23,7 @@ from ..errors import UserError
 from .causes import ALL_CAUSES, Cause
 from .fit import CauseFit, fit_cause, rescore
 from .references import ReferenceRun
-from .selection import Decision, decide
+from .selection import Decision, decide_single
 from .workbench import Workbench
 
 Progress = Callable[[str, float], None]
@@ -134,7 +134,7 @@ def diagnose_references(cfg: Config, actuator: str, rruns: Sequence[ReferenceRun
             fits.append(_fit(cause, bench, rruns, model, weights))
     report("decision", 1.0)
     fits.sort(key=lambda f: (-f.score, f.cause.name != "none"))
-    decision = decide(fits, model, weights)
+    decision = decide_single(fits, model, weights)
     if decision.cause == "none" and decision.rms_before_mm > UNEXPLAINED_RMS_MM:
         decision = Decision("unexplained", f"the references err by {decision.rms_before_mm:.2f}"
                             f" mm RMS from edge to edge, beyond the nominal model's own error "

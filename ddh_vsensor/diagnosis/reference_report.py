@@ -13,7 +13,7 @@ import numpy as np
 
 from ..atomic import output_dir
 from .causes import ALL_CAUSES
-from .extension import Extension
+from ..estimator.extension import Extension
 from .figures import ranking_figure
 from .reference_fit import ReferenceDiagnosis
 from .report import _img, _table

@@ -92,3 +92,25 @@ def bound(cause) -> str:
         return (f"x{1 + cause.resolution:g} or x{1 / (1 + cause.resolution):.3g} "
                 f"{cause.unit}")
     return f"{cause.resolution:g} {cause.unit} from {cause.neutral:g}"
+
+
+def decide_single(fits: Sequence, target: Sequence[np.ndarray],
+                  weights: Sequence[float]) -> Decision:
+    """The one-cause decision on ``fits`` (best first) for the baseline residual ``target``:
+    the best cause is named only beyond MIN_SCORE and beyond what the model's own error can
+    mimic. Used where the data cannot carry joint fits (references and holds only)."""
+    best = fits[0]
+    before, after = rms(target, weights), rms(best.heldout, weights)
+    share = f"{100 * best.score:.0f} %"
+    if best.cause.name == "none":
+        return Decision("none", "no cause explains any of the held-out error", before, before)
+    if best.score < MIN_SCORE:
+        return Decision("none", f"the best candidate, {best.cause.name}, explains {share} of "
+                        "the held-out squared error (after its parameter penalty); naming a "
+                        f"cause needs {100 * MIN_SCORE:.0f} %", before, before)
+    if not best.cause.resolved(best.value):
+        return Decision("none", f"the best candidate, {best.cause.name}, fits "
+                        f"{best.cause.parameter} = {best.value:.4g}, within what the model's "
+                        f"own error can mimic (named from {bound(best.cause)})", before, before)
+    return Decision(best.cause.name, f"{best.cause.name} explains {share} of the held-out "
+                    f"squared error (RMS {before:.2f} -> {after:.2f} mm)", before, after)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..config import Config
 from ..diagnosis.causes import ALL_CAUSES
-from ..diagnosis.extension import Extension
+from ..estimator.extension import Extension
 from .trend import DAY_S, UnitTrend, from_u
 
 

@@ -24,8 +24,15 @@ COMMANDS = _commands(build_parser())
 
 
 def test_every_registered_module_is_a_command() -> None:
-    assert {c[0] for c in COMMANDS if c} == set(SUBCOMMANDS)
+    assert set(SUBCOMMANDS) <= {c[0] for c in COMMANDS if c}
     assert ("tables", "build") in COMMANDS         # nested commands are found too
+
+
+def test_simulate_fleet_reaches_the_fleet_simulator(capsys) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["-q", "simulate", "fleet", "--help"])
+    assert exit_.value.code == 0
+    assert "--machines" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("command", COMMANDS, ids=lambda c: " ".join(c) or "ddh-vsensor")
