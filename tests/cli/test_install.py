@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-SOURCES = ("pyproject.toml", "README.md", "ddh_vsensor", "config", "dbc", "systemd")
+SOURCES = ("pyproject.toml", "setup.py", "README.md", "ddh_vsensor", "config", "dbc", "systemd")
 DEPENDENCIES = ("numpy", "scipy", "yaml", "can", "canopen", "cantools", "matplotlib")
 DATA_FILES = ("loader.yaml", "ddh_vsensor.dbc", "cia406_position_sensor.eds",
               "ddh-vsensor@.service", "README.md")
