@@ -582,7 +582,6 @@ class Service:
                 self._widen(unit, self.max_speed_mm_s[unit.actuator] * gap_s,
                             "Sevcon frame time went back")
         unit.first_held_t = None
-        refs_before = getattr(est, "references", None)
         u_before = est.uncertainty_mm
         was_referenced = est.referenced
         step = est.step(sample.t_s, sample.speed_rpm, sample.torque_nm, oil,
@@ -598,9 +597,9 @@ class Service:
             est.add_uncertainty(abs(step.velocity_mm_s)
                                 * (self.cfg.estimator.debounce_s + 2.0 * period_s))
         confirmed = unit.provisional and est.referenced
-        referenced = confirmed or (
-            getattr(est, "references", None) != refs_before if refs_before is not None
-            else step.uncertainty_mm < u_before - 1e-9 and est.travel_mm == 0.0)
+        # a reference resets the travel and lowers the bound (Step does not carry the event)
+        referenced = confirmed or (step.uncertainty_mm < u_before - 1e-9
+                                   and est.travel_mm == 0.0)
         if confirmed:
             unit.provisional = False
             if unit.preset_pending:
