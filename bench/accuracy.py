@@ -22,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import publish  # noqa: E402
 
-from ddh_vsensor.config import ACTUATORS, load_config  # noqa: E402
+from ddh_vsensor.config import load_config  # noqa: E402
 from ddh_vsensor.estimator.accuracy import accuracy  # noqa: E402
 from ddh_vsensor.estimator.estimator import Estimator  # noqa: E402
 from ddh_vsensor.sim.cycles import dig_dump_cycle, random_cycle  # noqa: E402
@@ -64,7 +64,7 @@ def temperature_sweep(cfg, tables, figures: dict[str, object]) -> None:
         print(f"{temp:g} degC: simulated {len(specs)} runs in {time.perf_counter() - t0:.0f} s",
               flush=True)
         for mode in MODES:
-            for actuator in ACTUATORS:
+            for actuator in cfg.unit_names:
                 worst, worst_run, sq, count = 0.0, "", 0.0, 0
                 for spec, run in zip(specs, runs):
                     r = run[actuator]
@@ -95,7 +95,7 @@ def main() -> None:
     parser.add_argument("--skip-sweep", action="store_true")
     args = parser.parse_args()
     cfg = load_config(None)
-    tables = {a: build_unit_tables(cfg, a) for a in ACTUATORS}
+    tables = {a: build_unit_tables(cfg, a) for a in cfg.unit_names}
     figures: dict[str, object] = {}
     t0 = time.perf_counter()
     specs = [RunSpec(speed=s, payload_kg=p, oil_temp_c=27.0) for s in (1, 2, 3, 4)
@@ -104,7 +104,7 @@ def main() -> None:
     print(f"simulated 8 nominal runs in {time.perf_counter() - t0:.1f} s")
     print(f"{'mode':6} {'actuator':8} {'speed':>5} {'payload':>8} {'max mm':>8} {'RMS mm':>8}")
     for mode in MODES:
-        for actuator in ACTUATORS:
+        for actuator in cfg.unit_names:
             worst = 0.0
             for spec, run in zip(specs, runs):
                 r = run[actuator]
@@ -123,7 +123,7 @@ def main() -> None:
                                            cycles=args.cycles)])[0]
     print(f"simulated {args.cycles} cycles in {time.perf_counter() - t0:.1f} s")
     for mode in ("dynamic", "full"):
-        for actuator in ACTUATORS:
+        for actuator in cfg.unit_names:
             r = long[actuator]
             period = r.time_s[-1] / args.cycles
             cycle = np.minimum((r.time_s / period).astype(int), args.cycles - 1)

@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import publish  # noqa: E402
 
-from ddh_vsensor.config import ACTUATORS, load_config  # noqa: E402
+from ddh_vsensor.config import load_config  # noqa: E402
 from ddh_vsensor.diagnosis.analyze import diagnose  # noqa: E402
 from ddh_vsensor.diagnosis.runs import prepare_run  # noqa: E402
 from ddh_vsensor.diagnosis.trials import (EFFECT_NAMES, OUTSIDE_NAMES, Trial,  # noqa: E402
@@ -57,7 +57,7 @@ def one_draw(args: tuple[int, str, str]) -> list[dict]:
     runs = simulate_trial(cfg, trial)
     simulated = time.perf_counter() - started
     out = []
-    for actuator in ACTUATORS:
+    for actuator in cfg.unit_names:
         started = time.perf_counter()
         d = diagnose(cfg, actuator, [prepare_run(r[actuator]) for r in runs], "full")
         before = max(float(np.nanmax(np.abs(e))) for e in d.baseline)

@@ -12,7 +12,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import publish  # noqa: E402
 
-from ddh_vsensor.config import ACTUATORS, load_config  # noqa: E402
+from ddh_vsensor.config import load_config  # noqa: E402
 from ddh_vsensor.estimator.estimator import Estimator  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
@@ -31,7 +31,7 @@ def _signals(count: int, seed: int) -> tuple[np.ndarray, ...]:
 def main() -> None:
     cfg = load_config(None)
     figures: dict[str, object] = {}
-    for actuator in ACTUATORS:
+    for actuator in cfg.unit_names:
         tables = build_unit_tables(cfg, actuator)
         t, n, q, temp, mid = _signals(2_000_000, 0)
         refs = {"mid": mid}

@@ -23,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import publish  # noqa: E402
 
-from ddh_vsensor.config import ACTUATORS, load_config  # noqa: E402
+from ddh_vsensor.config import load_config  # noqa: E402
 from ddh_vsensor.diagnosis.analyze import diagnose  # noqa: E402
 from ddh_vsensor.diagnosis.reference_fit import diagnose_references  # noqa: E402
 from ddh_vsensor.diagnosis.references import reference_run  # noqa: E402
@@ -37,7 +37,7 @@ def one_draw(args: tuple[int, str, bool]) -> list[dict]:
     trial = draw_trial(seed, effect)
     runs = simulate_trial(cfg, trial)
     out = []
-    for actuator in ACTUATORS:
+    for actuator in cfg.unit_names:
         started = time.perf_counter()
         rr = [reference_run(cfg, actuator, r[actuator]) for r in runs]
         d = diagnose_references(cfg, actuator, rr)
@@ -75,6 +75,7 @@ def main() -> None:
     ap.add_argument("--no-position", action="store_true",
                     help="skip the position-truth analysis (its figures: diagnosis/README.md)")
     args = ap.parse_args()
+    cfg = load_config(None)
     tasks = [(args.seed + 100 * i + j, effect, not args.no_position) for i in range(args.draws)
              for j, effect in enumerate(EFFECT_NAMES)]
     with ProcessPoolExecutor(args.jobs) as pool:
@@ -87,7 +88,7 @@ def main() -> None:
         if not args.no_position:
             pos = sum(r["position_named"] == effect for r in mine) / len(mine)
             figures[f"{effect}: named from position"] = f"{100 * pos:.0f} %"
-        for a in ACTUATORS:
+        for a in cfg.unit_names:
             ma = [r for r in mine if r["actuator"] == a]
             figures[f"{effect}: named from references ({a})"] = \
                 f"{100 * sum(r['named'] == effect for r in ma) / len(ma):.0f} %"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import re
 import json
 import os
 import reprlib
@@ -22,7 +23,6 @@ import yaml
 
 from .errors import UserError
 
-ACTUATORS = ("boom", "bucket")
 DEFAULT_CONFIG = Path(__file__).with_name("data") / "loader.yaml"
 
 
@@ -184,18 +184,26 @@ class EstimatorConfig:
     state_save_interval_s: float = field(metadata=_positive(ge=0.1, le=3600.0))
 
 
+DEFAULT_BUS = "default"      # the bus of the top-level `bus:` key; `buses:` names the others
+HALL_BITS_MAX = 64           # the I/O module's 8 input bytes (CiA 401 0x6000 sub 1..8)
+UNITS_MAX = 16
+_UNIT_NAME = re.compile(r"[a-z][a-z0-9_]{0,31}")
+
+
 @dataclass(frozen=True)
 class CanUnitConfig:
     """CAN identity of one unit: its motor controller, its emulated sensor, its Hall inputs."""
 
     sevcon_node_id: int = field(metadata={"ge": 1, "le": 127})
     sensor_node_id: int = field(metadata={"ge": 1, "le": 127})
-    hall_bits: dict[str, int]       # reference name -> bit of the I/O module's input byte
+    hall_bits: dict[str, int]       # reference name -> bit of the I/O module's inputs (0x6000)
+    bus: str = DEFAULT_BUS          # the bus this unit's controller and sensor are on
 
     def check(self, path: str) -> list[tuple[str, str]]:
         for name, bit in self.hall_bits.items():
-            if not 0 <= bit <= 7:
-                return [(f"{path}.hall_bits.{name}", f"bit {bit} is not in 0..7")]
+            if not 0 <= bit < HALL_BITS_MAX:
+                return [(f"{path}.hall_bits.{name}", f"bit {bit} is not in "
+                         f"0..{HALL_BITS_MAX - 1}")]
         return []
 
 
@@ -207,7 +215,7 @@ class CanConfig:
     oil_temp_node_id: int = field(metadata={"ge": 1, "le": 127})
     position_step_mm: float = field(metadata=_positive(ge=0.0001, le=10.0))
     event_timer_ms: float = field(metadata={"ge": 1.0, "le": 65535.0})
-    units: dict[Literal["boom", "bucket"], CanUnitConfig]
+    units: dict[str, CanUnitConfig]
     # CiA 301 behaviour of the emulated sensor nodes
     nmt_auto_start: bool = True     # boot to OPERATIONAL; False: PRE-OPERATIONAL, master starts
     emcy_enabled: bool = True       # EMCY producer valid at boot (0x1014 bit 31 clear)
@@ -222,7 +230,7 @@ class FaultsConfig:
     Every key has a default, so a config without this section behaves as documented."""
 
     # unit -> node ID of the motor controller whose heartbeat is consumed (absent: none)
-    heartbeat_node_ids: dict[Literal["boom", "bucket"], int] = field(default_factory=dict)
+    heartbeat_node_ids: dict[str, int] = field(default_factory=dict)
     heartbeat_timeout_s: float = field(default=1.5, metadata={"ge": 0.05, "le": 60.0})
     # worst-case rod speed = this factor x the speed at the motor's speed limit (see
     # Config.max_speed_mm_s); it bounds the travel in any interval nothing was integrated
@@ -254,19 +262,23 @@ class Config:
 
     oil: OilConfig
     hydraulics: HydraulicsConfig
-    units: dict[Literal["boom", "bucket"], UnitConfig]
+    units: dict[str, UnitConfig]
     tables: TablesConfig
     estimator: EstimatorConfig
     can: CanConfig
     bus: dict[str, Any]
+    # further buses by name (can.units.*.bus picks one; `bus:` is the one named "default")
+    buses: dict[str, dict[str, Any]] = field(default_factory=dict)
     faults: FaultsConfig = field(default_factory=FaultsConfig)
     source: str = field(default="<memory>", compare=False, metadata={"internal": True})
 
+    @property
+    def unit_names(self) -> tuple[str, ...]:
+        """The machine's units in configuration order; nothing else knows their names."""
+        return tuple(self.units)
+
     def check(self, path: str) -> list[tuple[str, str]]:
-        problems = []
-        for name in ACTUATORS:
-            if name not in self.units:
-                problems.append((f"units.{name}", "missing unit"))
+        problems = _check_unit_names(self)
         for name, unit in self.units.items():
             missing = set(unit.references_mm) - set(self.can.units[name].hall_bits) \
                 if name in self.can.units else set()
@@ -275,6 +287,17 @@ class Config:
                                  f"no input bit for reference(s) {', '.join(sorted(missing))}"))
         if "interface" not in self.bus:
             problems.append(("bus.interface", "missing key (a python-can interface name)"))
+        for name, kwargs in self.buses.items():
+            if name == DEFAULT_BUS or not _UNIT_NAME.fullmatch(name):
+                problems.append((f"buses.{name}", f"a bus name is a lower-case identifier other "
+                                 f"than {DEFAULT_BUS!r} (that one is `bus:`)"))
+            elif "interface" not in kwargs:
+                problems.append((f"buses.{name}.interface",
+                                 "missing key (a python-can interface name)"))
+        for name, unit_can in self.can.units.items():
+            if unit_can.bus != DEFAULT_BUS and unit_can.bus not in self.buses:
+                problems.append((f"can.units.{name}.bus", f"unknown bus {unit_can.bus!r} "
+                                 f"(known: {', '.join(self.bus_names)})"))
         lo, hi = self.faults.event_timer_min_ms, self.faults.event_timer_max_ms
         if not lo <= self.can.event_timer_ms <= hi:
             problems.append(("can.event_timer_ms", f"{self.can.event_timer_ms} ms is outside "
@@ -294,7 +317,26 @@ class Config:
         return max(speeds) * self.faults.max_speed_factor
 
     def unit(self, actuator: str) -> UnitConfig:
-        return self.units[actuator]  # type: ignore[index]
+        return self.units[self.require_unit(actuator)]
+
+    def require_unit(self, name: str) -> str:
+        """``name`` if it is one of the machine's units, else an error listing them."""
+        if name not in self.units:
+            raise UnknownUnitError(f"{self.source}: unknown unit {name!r} (this machine's "
+                                   f"units: {', '.join(self.units)})")
+        return name
+
+    @property
+    def bus_names(self) -> tuple[str, ...]:
+        return (DEFAULT_BUS, *self.buses)
+
+    def bus_kwargs(self, name: str = DEFAULT_BUS) -> dict[str, Any]:
+        """Keyword arguments for ``can.Bus`` of the named bus."""
+        return dict(self.bus) if name == DEFAULT_BUS else dict(self.buses[name])
+
+    def units_on_bus(self, name: str) -> tuple[str, ...]:
+        return tuple(u for u in self.units if self.can.units[u].bus == name)
+
 
     def physics_hash(self) -> str:
         """Hash of everything the physics and tables depend on (not the bus, not the source)."""
@@ -306,6 +348,35 @@ class Config:
                 unit.pop(key)
         blob = json.dumps(data, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
+
+
+class UnknownUnitError(UserError, KeyError):
+    """A unit name this machine does not have (a CLI argument or a caller's typo)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+def _check_unit_names(cfg: Config) -> list[tuple[str, str]]:
+    """Unit names are lower-case identifiers (they become frame, file and column names), the
+    same set in every section that is keyed by unit."""
+    problems = []
+    if not 1 <= len(cfg.units) <= UNITS_MAX:
+        problems.append(("units", f"{len(cfg.units)} units: a machine has 1..{UNITS_MAX}"))
+    for name in cfg.units:
+        if not isinstance(name, str) or not _UNIT_NAME.fullmatch(name):
+            problems.append((f"units.{name}", "a unit name is a lower-case identifier of up to "
+                             "32 characters (letters, digits, _; a letter first)"))
+    for section, keys in (("can.units", cfg.can.units),
+                          ("faults.heartbeat_node_ids", cfg.faults.heartbeat_node_ids)):
+        for name in keys:
+            if name not in cfg.units:
+                problems.append((f"{section}.{name}", f"no such unit (units: "
+                                 f"{', '.join(map(str, cfg.units))})"))
+    for name in cfg.units:
+        if name not in cfg.can.units:
+            problems.append((f"can.units.{name}", "missing: every unit needs its CAN identity"))
+    return problems
 
 
 # --- generic validation --------------------------------------------------------------------

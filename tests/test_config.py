@@ -8,6 +8,7 @@ import pytest
 import yaml
 
 from ddh_vsensor.config import ConfigError, load_config, parse_config
+from ddh_vsensor.errors import UserError
 
 from .conftest import REPO
 
@@ -51,7 +52,13 @@ def _mutate(path, value, delete=False):
     ("units.boom.cylinders", 2.5, False, "whole number"),
     ("units.boom.stroke_mm", None, True, "missing key"),
     ("units.boom.colour", "red", False, "unknown key"),
-    ("units.crane", {}, False, "unknown key"),
+    ("units.crane", {}, False, "missing key"),
+    ("can.units.crane", {"sevcon_node_id": 3, "sensor_node_id": 51, "hall_bits": {}}, False,
+     "no such unit (units: boom, bucket)"),
+    ("faults.heartbeat_node_ids", {"stick": 3}, False, "no such unit"),
+    ("can.units.boom.bus", "can1", False, "unknown bus 'can1' (known: default)"),
+    ("can.units.boom.hall_bits.top", 64, False, "not in 0..63"),
+    ("buses", {"default": {"interface": "virtual"}}, False, "other than 'default'"),
     ("units.boom.references_mm.mid", 400.0, False, "outside the stroke"),
     ("oil.viscosity_cst_at_100c", 40.0, False, "below viscosity_cst_at_40c"),
 ])
@@ -60,8 +67,47 @@ def test_bad_values_name_the_key_path(path, value, delete, words):
         parse_config(_mutate(path, value, delete), source="machine.yaml")
     msg = str(err.value)
     assert msg.startswith("machine.yaml: ")
-    key = path if not path.endswith(("crane",)) else "units.crane"
-    assert key.split(".")[0] in msg and words in msg, msg
+    assert path.split(".")[0] in msg and words in msg, msg
+
+
+def _renamed(mapping: dict, names: dict) -> dict:
+    return {names.get(k, k): v for k, v in mapping.items()}
+
+
+def test_units_take_any_names_in_any_order():
+    data = copy.deepcopy(RAW)
+    names = {"boom": "lift", "bucket": "tilt"}
+    data["units"] = dict(reversed(list(_renamed(data["units"], names).items())))
+    data["can"]["units"] = _renamed(data["can"]["units"], names)
+    if "heartbeat_node_ids" in data.get("faults", {}):
+        data["faults"]["heartbeat_node_ids"] = _renamed(data["faults"]["heartbeat_node_ids"], names)
+    cfg = parse_config(data, source="machine.yaml")
+    assert cfg.unit_names == ("tilt", "lift")
+    assert cfg.unit("lift").stroke_mm == RAW["units"]["boom"]["stroke_mm"]
+    with pytest.raises(UserError, match=r"unknown unit 'boom' \(this machine's units: tilt, lift\)"):
+        cfg.unit("boom")
+
+
+@pytest.mark.parametrize("name", ["Boom", "2nd", "arm-1", "a" * 33, ""])
+def test_unit_names_are_lower_case_identifiers(name):
+    data = copy.deepcopy(RAW)
+    data["units"][name] = data["units"].pop("boom")
+    data["can"]["units"][name] = data["can"]["units"].pop("boom")
+    data.get("faults", {}).get("heartbeat_node_ids", {}).pop("boom", None)
+    with pytest.raises(ConfigError, match="lower-case identifier"):
+        parse_config(data, source="machine.yaml")
+
+
+def test_one_unit_machine_and_a_second_bus():
+    data = copy.deepcopy(RAW)
+    del data["units"]["bucket"], data["can"]["units"]["bucket"]
+    data.get("faults", {}).get("heartbeat_node_ids", {}).pop("bucket", None)
+    data["buses"] = {"can1": {"interface": "virtual", "channel": "x"}}
+    data["can"]["units"]["boom"]["bus"] = "can1"
+    cfg = parse_config(data, source="machine.yaml")
+    assert cfg.unit_names == ("boom",) and cfg.bus_names == ("default", "can1")
+    assert cfg.units_on_bus("can1") == ("boom",) and cfg.units_on_bus("default") == ()
+    assert cfg.bus_kwargs("can1") == {"interface": "virtual", "channel": "x"}
 
 
 def test_cli_exits_2_without_traceback(tmp_path):

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 import enum
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import can
@@ -22,7 +22,7 @@ import cantools
 from cantools.database.can import Database
 from cantools.database.can import Message as DbcMessage
 
-from ..config import ACTUATORS, Config, ConfigError
+from ..config import Config, ConfigError, load_config
 from ..errors import UserError
 
 DEFAULT_DBC = Path(__file__).parent.parent / "data" / "ddh_vsensor.dbc"
@@ -72,18 +72,16 @@ def message_name(kind: str, actuator: str) -> str:
     """DBC name of a per-actuator frame; kind is sevcon, heartbeat, position or diag."""
     if kind not in _PER_ACTUATOR:
         raise ValueError(f"unknown frame kind {kind!r} (known: {', '.join(_PER_ACTUATOR)})")
-    if actuator not in ACTUATORS:
-        raise ValueError(f"unknown actuator {actuator!r} (known: {', '.join(ACTUATORS)})")
     return _PER_ACTUATOR[kind].format(actuator.upper())
 
 
-def all_message_names() -> list[str]:
-    """Every message the project needs from a DBC."""
-    return [message_name(kind, a) for a in ACTUATORS for kind in _PER_ACTUATOR] + [
+def all_message_names(units: Sequence[str]) -> list[str]:
+    """Every message the project needs from a DBC for a machine with these units."""
+    return [message_name(kind, a) for a in units for kind in _PER_ACTUATOR] + [
         OIL_TEMP, IO_MODULE, NMT_COMMAND]
 
 
-def load_dbc(path: str | Path | None = None) -> Database:
+def load_dbc(path: str | Path | None = None, cfg: Config | None = None) -> Database:
     """Load a DBC (default: the packaged one) and check it has every frame the project uses."""
     path = Path(path) if path is not None else DEFAULT_DBC
     try:
@@ -92,7 +90,8 @@ def load_dbc(path: str | Path | None = None) -> Database:
         raise UserError(f"{path}: cannot read DBC: {exc.strerror or exc}") from None
     except cantools.database.UnsupportedDatabaseFormatError as exc:
         raise UserError(f"{path}: not a valid DBC: {exc}") from None
-    missing = [name for name in all_message_names()
+    units = (cfg or load_config()).unit_names
+    missing = [name for name in all_message_names(units)
                if name not in {m.name for m in db.messages}]
     if missing:
         raise UserError(f"{path}: DBC lacks message(s) {', '.join(missing)}")
@@ -115,7 +114,7 @@ def _node_settings(cfg: Config) -> dict[str, tuple[int, str]]:
 
 def frame_ids(cfg: Config, db: Database | None = None) -> dict[str, int]:
     """Message name -> frame ID for the configured node IDs; clashing IDs are a config error."""
-    db = db or load_dbc()
+    db = db or load_dbc(cfg=cfg)
     ids: dict[str, int] = dict(_FIXED_IDS)
     owner: dict[int, str] = {frame_id: name for name, frame_id in _FIXED_IDS.items()}
     for name, (node_id, key) in _node_settings(cfg).items():
@@ -131,7 +130,7 @@ class FrameCodec:
     """Encode and decode the project's frames at the configured IDs and position step."""
 
     def __init__(self, cfg: Config, db: Database | None = None) -> None:
-        db = db or load_dbc()
+        db = db or load_dbc(cfg=cfg)
         self.cfg = cfg
         self.ids = frame_ids(cfg, db)
         self._messages = {name: db.get_message_by_name(name) for name in self.ids}

@@ -204,7 +204,7 @@ def write_blf_inputs(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> 
     from ..atomic import atomic_path
     codec = FrameCodec(cfg)
     actuators = list(runs)
-    oil_actuator = "boom" if "boom" in runs else actuators[0]
+    oil_actuator = actuators[0]
     io_time = np.unique(np.concatenate([r.time_s for r in runs.values()]))
     byte = np.zeros(len(io_time), np.uint8)
     for a in actuators:

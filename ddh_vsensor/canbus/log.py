@@ -60,16 +60,16 @@ def _check_refs(runs: Mapping[str, Run], cfg: Config) -> None:
 def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
     """Write the frames of every sample of every run (actuator -> run) to a BLF; atomic.
 
-    Per sample: the Sevcon TPDO1 of its actuator, the oil temperature (from the boom run, or
-    the first run), the I/O module byte with every actuator's latest switch states, and the
-    CiA 406 position frame where the position was sampled. Frame timestamps are time_s.
+    Per sample: the Sevcon TPDO1 of its actuator, the oil temperature (from the first run),
+    the I/O module byte with every actuator's latest switch states, and the CiA 406 position
+    frame where the position was sampled. Frame timestamps are time_s.
     """
     if not runs:
         raise MeasuredDataError(str(path), "no run to write")
     _check_refs(runs, cfg)
     codec = FrameCodec(cfg)
     actuators = list(runs)
-    oil_actuator = "boom" if "boom" in runs else actuators[0]
+    oil_actuator = actuators[0]
     io_time_s = np.unique(np.concatenate([run.time_s for run in runs.values()]))
     if io_time_s[0] < 0.0:
         raise MeasuredDataError(str(path), "time_s starts below 0 s; BLF holds times from 0 "

@@ -6,7 +6,7 @@ import argparse
 
 from typing import TYPE_CHECKING
 
-from ..config import ACTUATORS, Config, load_config
+from ..config import Config, load_config
 
 if TYPE_CHECKING:
     from ..estimator.extension import Extension
@@ -20,11 +20,16 @@ def add_config_arg(parser: argparse.ArgumentParser) -> None:
 
 
 def add_actuator_arg(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--actuator", choices=ACTUATORS, required=True)
+    parser.add_argument("--actuator", metavar="UNIT", required=True,
+                        help="which unit of the configured machine")
 
 
 def config_from(args: argparse.Namespace) -> Config:
-    return load_config(args.config)
+    """The configuration, with a ``--actuator`` argument checked against its units."""
+    cfg = load_config(args.config)
+    if getattr(args, "actuator", None) is not None:
+        cfg.require_unit(args.actuator)
+    return cfg
 
 
 def load_run(path: str, actuator: str, cfg: Config) -> "Run":

@@ -35,8 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--oil-temp-c", type=float, required=True, help="oil temperature at start")
     p.add_argument("--cycles", type=int, default=1, help="repeat the cycle N times (default 1)")
     p.add_argument("--effect", action="append", default=[], metavar="[UNIT.]NAME=VALUE",
-                   help=f"plant effect, repeatable; applies to both units unless prefixed "
-                        f"with boom. or bucket. Effects: {effects}")
+                   help=f"plant effect, repeatable; applies to every unit unless prefixed "
+                        f"with a unit's name and a dot. Effects: {effects}")
     p.add_argument("--seed", type=int, default=0, help="seed of the sensor noise (default 0)")
     p.add_argument("--rate-hz", type=float, default=100.0, help="sample rate (default 100)")
     p.add_argument("--step-s", type=float, default=DEFAULT_STEP_S,
@@ -54,7 +54,7 @@ def _run(args: argparse.Namespace) -> int:
         raise UserError(f"--cycle {args.cycle}: neither 'paper' nor a readable profile file")
     if not -1.0 <= args.oil_temp_drift <= 1.0:
         raise UserError(f"--oil-temp-drift {args.oil_temp_drift}: outside -1..1 degC/s")
-    effects = build_effects(args.effect)
+    effects = build_effects(args.effect, cfg.unit_names)
     spec = RunSpec(cycle="paper" if args.cycle == "paper" else Path(args.cycle),
                    speed=args.speed, payload_kg=args.payload_kg, oil_temp_c=args.oil_temp_c,
                    cycles=args.cycles, effects=effects, seed=args.seed, step_s=args.step_s,
@@ -65,7 +65,7 @@ def _run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     runs = simulate(cfg, spec, progress=bar.update)
     wall = time.monotonic() - started
-    duration = float(runs["boom"].time_s[-1])
+    duration = float(next(iter(runs.values())).time_s[-1])
     bar.close(f"{duration:.1f} s simulated, {duration / max(wall, 1e-9):.0f}x real time")
     written = write_run_dir(cfg, runs, args.out, blf=not args.no_blf)
     for path in written:

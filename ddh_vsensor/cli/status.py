@@ -6,7 +6,6 @@ import argparse
 import json
 from typing import Any
 
-from ..config import ACTUATORS
 from ..errors import UserError
 from .common import add_config_arg, config_from
 from .run import add_bus_args, bus_from_args
@@ -14,8 +13,8 @@ from .run import add_bus_args, bus_from_args
 
 def _preset(text: str) -> tuple[str, float]:
     name, sep, value = text.partition("=")
-    if not sep or name not in ACTUATORS:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected ACTUATOR=MM, e.g. boom=12.5")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected UNIT=MM, e.g. lift=12.5")
     try:
         return name, float(value)
     except ValueError:
@@ -32,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--timeout", type=float, default=1.0, metavar="S",
                    help="SDO response timeout (default 1 s)")
     p.add_argument("--preset", type=_preset, action="append", default=[],
-                   metavar="ACTUATOR=MM", help="set a cylinder's position (manual reference; "
+                   metavar="UNIT=MM", help="set a cylinder's position (manual reference; "
                    "refused outside the stroke)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_run)

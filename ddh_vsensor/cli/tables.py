@@ -6,7 +6,6 @@ import argparse
 import time
 from pathlib import Path
 
-from ..config import ACTUATORS
 from ..tables.build import build_unit_tables
 from ..tables.store import load_tables, save_unit_tables
 from .common import add_config_arg, config_from
@@ -16,11 +15,12 @@ from .progress import ProgressBar
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("tables", help="build or plot the movement tables")
     tsub = p.add_subparsers(dest="tables_command", required=True, metavar="ACTION")
-    b = tsub.add_parser("build", help="build both units' tables from the steady state")
+    b = tsub.add_parser("build", help="build every unit's tables from the steady state")
     add_config_arg(b)
     b.add_argument("--out", metavar="DIR", default="tables", help="output directory")
     b.set_defaults(func=_build)
     pl = tsub.add_parser("plot", help="movement per motor revolution vs torque (Figure 5)")
+    add_config_arg(pl)
     pl.add_argument("--tables", metavar="DIR", default="tables")
     pl.add_argument("--out", metavar="FILE.png", required=True)
     pl.add_argument("--speed-rpm", type=float, default=5000.0,
@@ -32,20 +32,21 @@ def _build(args: argparse.Namespace) -> int:
     cfg = config_from(args)
     bar = ProgressBar("tables")
     started = time.perf_counter()
-    for k, actuator in enumerate(ACTUATORS):
+    units = cfg.unit_names
+    for k, actuator in enumerate(units):
         tables = build_unit_tables(
             cfg, actuator,
-            progress=lambda a, f, k=k: bar.update((k + f) / len(ACTUATORS), a))
+            progress=lambda a, f, k=k: bar.update((k + f) / len(units), a))
         path = save_unit_tables(args.out, tables)
-        bar.update((k + 1) / len(ACTUATORS), f"{path}")
-    bar.close(f"built {', '.join(ACTUATORS)} in {time.perf_counter() - started:.2f} s "
+        bar.update((k + 1) / len(units), f"{path}")
+    bar.close(f"built {', '.join(units)} in {time.perf_counter() - started:.2f} s "
               f"-> {Path(args.out)}")
     return 0
 
 
 def _plot(args: argparse.Namespace) -> int:
     from ..tables.plot import plot_figure5     # matplotlib only when plotting
-    tables = load_tables(args.tables)
-    plot_figure5(tables, args.out, speed_rpm=args.speed_rpm)
+    cfg = config_from(args)
+    plot_figure5(load_tables(args.tables, cfg), cfg, args.out, speed_rpm=args.speed_rpm)
     print(f"wrote {args.out}")
     return 0

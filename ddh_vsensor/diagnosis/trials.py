@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import ACTUATORS, Config
+from ..config import Config
 from ..measured import Run, write_csv
 
 EFFECT_NAMES = ("none", "pump_leakage", "compressibility", "belt_slip", "displacement",
@@ -164,11 +164,11 @@ def write_trial(runs: list[dict[str, Run]], out_dir: str | Path) -> dict[str, li
     """Write each run's CSV per actuator (comments stripped): actuator -> paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, list[Path]] = {a: [] for a in ACTUATORS}
+    paths: dict[str, list[Path]] = {}
     for i, per_unit in enumerate(runs):
         for a, run in per_unit.items():
             path = out / f"run{i:02d}_{a}.csv"
             write_csv(path, run)
             strip_comments(path)
-            paths[a].append(path)
+            paths.setdefault(a, []).append(path)
     return paths

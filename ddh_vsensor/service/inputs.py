@@ -152,7 +152,7 @@ class Inputs:
         ids = codec.ids
         self.sevcon_ids = {ids[message_name("sevcon", a)]: a for a in cfg.can.units}
         self.oil_id, self.io_id = ids[OIL_TEMP], ids[IO_MODULE]
-        db = load_dbc()
+        db = load_dbc(cfg=cfg)
         self._lengths = {frame_id: db.get_message_by_name(name).length
                          for name, frame_id in ids.items()}
         self._limits = {a: (PLAUSIBLE_LIMIT_FACTOR * cfg.unit(a).motor.speed_limit_rpm,

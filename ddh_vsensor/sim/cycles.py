@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import ACTUATORS, Config
+from ..config import Config
 from ..errors import UserError
 
 SPEED_LEVELS = (1, 2, 3, 4)
@@ -186,7 +186,7 @@ def load_profile_csv(path: str | Path, cfg: Config, cycles: int = 1) -> Profile:
         raise UserError(f"{path}: cannot read the profile: {exc.strerror or exc}") from None
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     reader = csv.DictReader(lines)
-    need = ("time_s",) + tuple(f"{a}_mm" for a in ACTUATORS)
+    need = ("time_s",) + tuple(f"{a}_mm" for a in cfg.unit_names)
     missing = [c for c in need if c not in (reader.fieldnames or [])]
     if missing:
         raise UserError(f"{path}: profile needs columns {', '.join(need)}; "
@@ -210,7 +210,7 @@ def load_profile_csv(path: str | Path, cfg: Config, cycles: int = 1) -> Profile:
     if t[0] != 0.0:
         raise UserError(f"{path}: time_s must start at 0")
     trajectories = {}
-    for a in ACTUATORS:
+    for a in cfg.unit_names:
         x = np.array(cols[f"{a}_mm"])
         stroke = cfg.unit(a).stroke_mm
         if np.any(x < 0.0) or np.any(x > stroke):
@@ -289,7 +289,7 @@ def random_cycle(cfg: Config, seed: int, duration_s: float = 60.0,
     v_top = {"boom": PaperCycleDesign.boom_velocity_mm_s,
              "bucket": PaperCycleDesign.bucket_velocity_mm_s}
     trajectories = {}
-    for actuator in ACTUATORS:
+    for actuator in cfg.unit_names:
         stroke = cfg.unit(actuator).stroke_mm
         lo, hi = 0.03 * stroke, 0.97 * stroke
         t, x = 0.0, rng.uniform(lo, hi)

@@ -45,9 +45,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields, replace
-from typing import Callable, Iterable, Mapping
+from typing import Callable, Iterable, Mapping, Sequence
 
-from ..config import ACTUATORS
 from ..errors import UserError
 from ..physics.unit import DDHUnit
 from ..physics.units import BAR_PA, LPM_M3S
@@ -144,8 +143,8 @@ def check_effect(name: str, value: float) -> float:
     return value
 
 
-def parse_effect(text: str) -> tuple[str | None, str, float]:
-    """``NAME=VALUE`` or ``UNIT.NAME=VALUE`` -> (unit or None for both, name, value)."""
+def parse_effect(text: str, units: Sequence[str]) -> tuple[str | None, str, float]:
+    """``NAME=VALUE`` or ``UNIT.NAME=VALUE`` -> (unit or None for every unit, name, value)."""
     if "=" not in text:
         raise UserError(f"effect {text!r}: expected NAME=VALUE or UNIT.NAME=VALUE "
                         f"(effects: {', '.join(EFFECTS)})")
@@ -153,9 +152,9 @@ def parse_effect(text: str) -> tuple[str | None, str, float]:
     unit = None
     if "." in key:
         unit, key = (s.strip() for s in key.split(".", 1))
-        if unit not in ACTUATORS:
+        if unit not in units:
             raise UserError(f"effect {text!r}: unknown unit {unit!r} (units: "
-                            f"{', '.join(ACTUATORS)})")
+                            f"{', '.join(units)})")
     try:
         value = float(raw)
     except ValueError:
@@ -166,22 +165,22 @@ def parse_effect(text: str) -> tuple[str | None, str, float]:
 
 
 def build_effects(items: Iterable[str | tuple[str | None, str, float]] | Mapping[str, float]
-                  | None) -> dict[str, UnitEffects]:
+                  | None, units: Sequence[str]) -> dict[str, UnitEffects]:
     """Effects per unit from CLI strings, (unit, name, value) tuples or a {name: value} map.
 
-    A name without a unit applies to both units; the same effect twice on a unit is an error.
+    A name without a unit applies to every unit; the same effect twice on a unit is an error.
     """
     if items is None:
         items = []
     if isinstance(items, Mapping):
         items = [f"{k}={v}" for k, v in items.items()]
-    out = {a: {} for a in ACTUATORS}
+    out: dict[str, dict[str, float]] = {a: {} for a in units}
     for item in items:
-        unit, name, value = parse_effect(item) if isinstance(item, str) else item
+        unit, name, value = parse_effect(item, units) if isinstance(item, str) else item
         value = check_effect(name, value)
-        if unit is not None and unit not in ACTUATORS:
-            raise UserError(f"unknown unit {unit!r} (units: {', '.join(ACTUATORS)})")
-        for a in ([unit] if unit else ACTUATORS):
+        if unit is not None and unit not in units:
+            raise UserError(f"unknown unit {unit!r} (units: {', '.join(units)})")
+        for a in ([unit] if unit else units):
             if name in out[a]:
                 raise UserError(f"effect {name} given twice for the {a}")
             out[a][name] = value
@@ -191,7 +190,7 @@ def build_effects(items: Iterable[str | tuple[str | None, str, float]] | Mapping
 def describe(effects: Mapping[str, UnitEffects]) -> str:
     """One line for logs and CSV comments, e.g. 'boom: pump_leakage=1.5; bucket: none'."""
     parts = []
-    for a in ACTUATORS:
-        vals = effects[a].non_neutral() if a in effects else {}
+    for a in effects:
+        vals = effects[a].non_neutral()
         parts.append(f"{a}: " + (", ".join(f"{k}={v:g}" for k, v in vals.items()) or "none"))
     return "; ".join(parts)

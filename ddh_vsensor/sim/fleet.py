@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from ..atomic import output_dir
-from ..config import ACTUATORS, Config
+from ..config import Config
 from ..errors import UserError
 from .cycles import Profile, Trajectory
 from .effects import UnitEffects
@@ -59,7 +59,7 @@ class MachinePlan:
 
     def effects(self, day: int) -> dict[str, UnitEffects]:
         out = {}
-        for a in ACTUATORS:
+        for a in self.base:
             values = dict(self.base[a])
             if self.wear is not None and self.wear.actuator == a:
                 neutral = getattr(UnitEffects(), self.wear.effect)
@@ -77,7 +77,8 @@ class FleetPlan:
     log_s: float = LOG_S
 
 
-def plan_fleet(machines: int, days: int, seed: int = 0, log_s: float = LOG_S,
+def plan_fleet(units: Sequence[str], machines: int, days: int, seed: int = 0,
+               log_s: float = LOG_S,
                wear_share: float = WEAR_SHARE) -> FleetPlan:
     """Draw every machine's deviations and (for some) its wear."""
     if not 1 <= machines <= 1000:
@@ -93,10 +94,10 @@ def plan_fleet(machines: int, days: int, seed: int = 0, log_s: float = LOG_S,
     for m in range(machines):
         base = {a: {"pump_leakage": float(rng.uniform(0.85, 1.15)),
                     "displacement": float(1.0 + rng.uniform(-0.003, 0.003))}
-                for a in ACTUATORS}
+                for a in units}
         wear = None
         if m in wearing:
-            actuator = ACTUATORS[int(rng.integers(len(ACTUATORS)))]
+            actuator = units[int(rng.integers(len(units)))]
             effect = "pump_leakage" if rng.random() < 0.6 else "time_offset"
             start = int(rng.integers(1, max(2, days // 5)))
             weeks = float(rng.uniform(2.0, 3.0))          # onset to a few mm of error
@@ -111,7 +112,7 @@ def work_profile(cfg: Config, rng: np.random.Generator, duration_s: float) -> Pr
     that every Hall switch is passed; speeds 30..100 % of a top speed."""
     tops = {"boom": 80.0, "bucket": 160.0}
     knots = {}
-    for a in ACTUATORS:
+    for a in cfg.unit_names:
         stroke = cfg.unit(a).stroke_mm
         lo, hi, top = 1.0, stroke - 1.0, tops[a]
         t, x = [0.0], [float(rng.uniform(0.2, 0.8) * stroke)]

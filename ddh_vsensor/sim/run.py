@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import output_dir
-from ..config import ACTUATORS, Config
+from ..config import Config
 from ..errors import UserError
 from ..measured import Run, write_csv
 from ..physics.steady import holding_speed, steady_state
@@ -89,9 +89,9 @@ def _prepare(cfg: Config, spec: RunSpec) -> _Prepared:
     else:
         profile = load_profile_csv(spec.cycle, cfg, spec.cycles)
     effects = (dict(spec.effects) if isinstance(spec.effects, Mapping)
-               else build_effects(spec.effects))
+               else build_effects(spec.effects, cfg.unit_names))
     rows = {}
-    for a in ACTUATORS:
+    for a in cfg.unit_names:
         unit = DDHUnit.from_config(cfg, a)
         row = effects[a].row(unit, spec.payload_kg)
         force = unit.load_force_n(spec.payload_kg)
@@ -158,7 +158,7 @@ def _simulate_group(cfg: Config, runs: list[_Prepared],
     rate = spec0.sensors.rate_hz
     rows, units, payloads, t0s, drifts, profiles, acts = [], [], [], [], [], [], []
     for p in runs:
-        for a in ACTUATORS:
+        for a in cfg.unit_names:
             rows.append(p.rows[a])
             units.append(p.rows[a].unit)
             payloads.append(p.spec.payload_kg)
@@ -223,8 +223,8 @@ def _simulate_group(cfg: Config, runs: list[_Prepared],
         m = samples[r]
         t = np.arange(m) / rate
         per_unit = {}
-        for ai, a in enumerate(ACTUATORS):
-            i = r * len(ACTUATORS) + ai
+        for ai, a in enumerate(cfg.unit_names):
+            i = r * len(cfg.unit_names) + ai
             truth = Truth(time_s=t, x_m=rec["x"][:m, i], v_m_s=rec["v"][:m, i],
                           dp_a_pa=rec["pa"][:m, i], dp_b_pa=rec["pb"][:m, i],
                           speed_rpm=rec["n"][:m, i], torque_nm=rec["tq"][:m, i],

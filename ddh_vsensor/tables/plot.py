@@ -10,25 +10,25 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ..config import Config  # noqa: E402
 from .lookup import UnitTables  # noqa: E402
 
 FIGURE5_TEMPERATURES_C = (-5.0, 25.0, 60.0, 100.0)
-# Working direction of the load: the boom's load is held by the A side (positive torque), the
-# bucket's by the B side (negative torque: "the bucket motor torque is opposite to the boom").
-_LOAD_TORQUE_SIGN = {"boom": 1.0, "bucket": -1.0}
 
 
-def plot_figure5(tables: dict[str, UnitTables], out: str | Path,
+def plot_figure5(tables: dict[str, UnitTables], cfg: Config, out: str | Path,
                  speed_rpm: float = 5000.0) -> None:
     fig, axes = plt.subplots(1, len(tables), figsize=(6.2 * len(tables), 4.6))
     for ax, (actuator, t) in zip(np.atleast_1d(axes), tables.items()):
-        sign = _LOAD_TORQUE_SIGN.get(actuator, 1.0)
+        # Working direction of the load: a load pushing the rod in is held by the A side
+        # (positive torque), a pulling one by the B side (negative torque).
+        sign = 1.0 if cfg.unit(actuator).load.holding_force_n >= 0.0 else -1.0
         q_max = t.full.torque.stop
         torque = np.linspace(0.0, sign * q_max, 600)
         colors = plt.cm.coolwarm(np.linspace(0.0, 1.0, len(FIGURE5_TEMPERATURES_C)))
         for temp_c, color in zip(FIGURE5_TEMPERATURES_C, colors):
             for direction, style, label in ((1.0, "-", "lifting"), (-1.0, "--", "lowering")):
-                # Lifting the bucket is a retraction: its motor turns negative.
+                # Lifting against a pulling load is a retraction: the motor turns negative.
                 n = direction * sign * speed_rpm
                 v, _ = t.full.velocity_many(np.full_like(torque, n), torque,
                                             np.full_like(torque, temp_c))

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write
-from ..config import ACTUATORS, Config
+from ..config import Config
 from ..errors import UserError
 from .build import FORMAT_VERSION
 from .grid import Axis
@@ -72,5 +72,5 @@ def load_unit_tables(directory: str | Path, actuator: str, cfg: Config | None = 
                       PaperTable(torque, temp, edges, paper_v), meta)
 
 
-def load_tables(directory: str | Path, cfg: Config | None = None) -> dict[str, UnitTables]:
-    return {a: load_unit_tables(directory, a, cfg) for a in ACTUATORS}
+def load_tables(directory: str | Path, cfg: Config) -> dict[str, UnitTables]:
+    return {a: load_unit_tables(directory, a, cfg) for a in cfg.unit_names}

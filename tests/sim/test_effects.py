@@ -107,7 +107,8 @@ def test_time_offset_is_a_logging_lag(runs):
 
 
 def test_effects_compose():
-    eff = build_effects(["pump_leakage=1.5", "bucket.displacement=0.95", "boom.belt_slip=1"])
+    eff = build_effects(["pump_leakage=1.5", "bucket.displacement=0.95", "boom.belt_slip=1"],
+                        ("boom", "bucket"))
     assert eff["boom"].non_neutral() == {"pump_leakage": 1.5, "belt_slip": 1.0}
     assert eff["bucket"].non_neutral() == {"pump_leakage": 1.5, "displacement": 0.95}
 
@@ -126,12 +127,12 @@ def test_effects_compose():
 ])
 def test_bad_effects_are_user_errors(text, words):
     with pytest.raises(UserError, match=words):
-        parse_effect(text)
+        parse_effect(text, ("boom", "bucket"))
 
 
 def test_same_effect_twice_is_an_error():
     with pytest.raises(UserError, match="twice"):
-        build_effects(["pump_leakage=2", "boom.pump_leakage=3"])
+        build_effects(["pump_leakage=2", "boom.pump_leakage=3"], ("boom", "bucket"))
     assert set(EFFECTS) == {"pump_leakage", "compressibility", "belt_slip", "displacement",
                             "time_offset", "oil_temp_offset", "torque_gain", "torque_offset",
                             "position_scale", "position_offset", "valve_leak"}
