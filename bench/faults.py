@@ -44,14 +44,13 @@ from _results import publish  # noqa: E402
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name  # noqa: E402
 from ddh_vsensor.config import Config, load_config  # noqa: E402
-from ddh_vsensor.estimator.estimator import (FLAG_CLAMPED, FLAG_CONTROLLER,  # noqa: E402
-                                             FLAG_NOT_REFERENCED, FLAG_PRESET, FLAG_STALE)
+from ddh_vsensor.estimator.flags import Flags  # noqa: E402
 from ddh_vsensor.service import Service, ServiceOptions  # noqa: E402
 from ddh_vsensor.service.replay import machine_frames  # noqa: E402
 from ddh_vsensor.sim import RunSpec, simulate_with_truth  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
-EXPLAINING = FLAG_STALE | FLAG_NOT_REFERENCED | FLAG_PRESET | FLAG_CONTROLLER | FLAG_CLAMPED
+EXPLAINING = Flags.STALE_INPUT | Flags.NOT_REFERENCED | Flags.PRESET_UNCONFIRMED | Flags.CONTROLLER_NOT_OPERATIONAL | Flags.TABLE_CLAMPED
 CHECK_S = 0.01
 TOLERANCE_MM = 0.01
 KINDS = ("gap", "heartbeat_spoof", "heartbeat_loss", "preset", "malformed", "nmt_reset",

@@ -13,7 +13,6 @@ returns them whole as ``Status`` and ``Flags`` as well, the way the service uses
 from __future__ import annotations
 
 import copy
-import enum
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from cantools.database.can import Message as DbcMessage
 
 from ..config import Config, ConfigError, load_config
 from ..errors import UserError
+from ..estimator.flags import Flags
 
 DEFAULT_DBC = Path(__file__).parent.parent / "data" / "ddh_vsensor.dbc"
 
@@ -45,25 +45,13 @@ _FIXED_IDS = {NMT_COMMAND: 0x000}
 _NODE_ID_MASK = 0x7F    # CANopen COB-ID = function code (upper 4 bits) + node ID (lower 7)
 
 
-class DiagFlags(enum.IntFlag):
-    """Bits of DIAG ``Flags`` and POSITION ``Status`` (objects 0x2002 / 0x2000)."""
-
-    STALE_INPUT = 0x01
-    NOT_REFERENCED = 0x02
-    AT_SOFT_LIMIT = 0x04
-    ADAPTING = 0x08
-    TABLE_CLAMPED = 0x10
-    PRESET_UNCONFIRMED = 0x20
-    CONTROLLER_NOT_OPERATIONAL = 0x40
-
-
-def _bit_signal(flag: DiagFlags) -> str:
+def _bit_signal(flag: Flags) -> str:
     """STALE_INPUT -> StaleInput: the DBC's name for one flag bit (after its prefix)."""
     return "".join(word.capitalize() for word in (flag.name or "").split("_"))
 
 
 # Whole byte -> ((bit signal, flag value) per flag, reserved bit 7's signal)
-_FLAG_BYTES = {whole: (tuple((prefix + _bit_signal(f), int(f)) for f in DiagFlags),
+_FLAG_BYTES = {whole: (tuple((prefix + _bit_signal(f), int(f)) for f in Flags),
                        prefix + "Reserved")
                for whole, prefix in (("Status", "Status"), ("Flags", "Flag"))}
 

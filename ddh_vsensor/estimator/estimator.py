@@ -23,19 +23,8 @@ from .bounded import bounded_cumsum
 from .dynamic import DynamicModel
 from .model import Mode, VelocityModel
 from .references import Debouncer, Switch, accepted_edges, switches_from_config
+from .flags import Flags
 from .state import EstimatorState
-
-FLAG_STALE = 0x01
-FLAG_NOT_REFERENCED = 0x02
-FLAG_SOFT_LIMIT = 0x04
-FLAG_ADAPTING = 0x08
-FLAG_CLAMPED = 0x10
-FLAG_PRESET = 0x20          # position set by a preset, not yet confirmed by a reference
-FLAG_CONTROLLER = 0x40      # the motor controller's heartbeat says it is not operational
-FLAG_NAMES = {FLAG_STALE: "stale", FLAG_NOT_REFERENCED: "not_referenced",
-              FLAG_SOFT_LIMIT: "soft_limit", FLAG_ADAPTING: "adapting",
-              FLAG_CLAMPED: "table_clamped", FLAG_PRESET: "preset_unconfirmed",
-              FLAG_CONTROLLER: "controller_not_operational"}
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
 
@@ -147,11 +136,11 @@ class Estimator:
 
     def state_flags(self) -> int:
         """The flags that follow from the estimator's state alone (not from one input)."""
-        flags = 0 if self.referenced else FLAG_NOT_REFERENCED
+        flags = 0 if self.referenced else Flags.NOT_REFERENCED
         if self.gain.active:
-            flags |= FLAG_ADAPTING
+            flags |= Flags.ADAPTING
         if self.position_mm <= self.lower_mm or self.position_mm >= self.upper_mm:
-            flags |= FLAG_SOFT_LIMIT
+            flags |= Flags.AT_SOFT_LIMIT
         return flags
 
     def _reference(self, sw: Switch, rising: bool, snap: _Snapshot, x_now: float,
@@ -244,9 +233,9 @@ class Estimator:
                     self.dynamic.set_position(self.position_mm)
         flags = self.state_flags()
         if stale:
-            flags |= FLAG_STALE
+            flags |= Flags.STALE_INPUT
         if clamped:
-            flags |= FLAG_CLAMPED
+            flags |= Flags.TABLE_CLAMPED
         return Step(self.position_mm, v, self.uncertainty_mm, flags)
 
     # --- offline face ----------------------------------------------------------------------
@@ -345,10 +334,10 @@ class Estimator:
             log.append(event)
             start = float(x[k])
         self.position_mm = float(x[-1]) if n else self.position_mm
-        flags = (np.where(stale, FLAG_STALE, 0) | np.where(clamped, FLAG_CLAMPED, 0)
-                 | np.where(not_ref, FLAG_NOT_REFERENCED, 0)
-                 | np.where(adapting, FLAG_ADAPTING, 0)
-                 | np.where((x <= self.lower_mm) | (x >= self.upper_mm), FLAG_SOFT_LIMIT, 0))
+        flags = (np.where(stale, Flags.STALE_INPUT, 0) | np.where(clamped, Flags.TABLE_CLAMPED, 0)
+                 | np.where(not_ref, Flags.NOT_REFERENCED, 0)
+                 | np.where(adapting, Flags.ADAPTING, 0)
+                 | np.where((x <= self.lower_mm) | (x >= self.upper_mm), Flags.AT_SOFT_LIMIT, 0))
         return RunEstimate(x, v, u, flags.astype(np.uint8), log)
 
     def preset(self, position_mm: float, uncertainty_mm: float) -> None:

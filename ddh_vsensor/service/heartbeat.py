@@ -3,7 +3,7 @@
 Which controllers are consumed is configuration (``faults.heartbeat_node_ids``), never decided
 by what appears on the bus: a consumed controller is "not operational" from the start until
 its first OPERATIONAL heartbeat, again whenever its last heartbeat is older than the consumer
-time or reports another state. The verdict only raises a flag (FLAG_CONTROLLER): the
+time or reports another state. The verdict only raises a flag (Flags.CONTROLLER_NOT_OPERATIONAL): the
 controller's frames are integrated whatever its heartbeat says.
 """
 

@@ -45,8 +45,7 @@ import canopen
 from canopen.sdo import SdoAbortedError
 
 from ..config import Config
-from ..estimator.estimator import (FLAG_CLAMPED, FLAG_CONTROLLER, FLAG_NOT_REFERENCED,
-                                   FLAG_PRESET, FLAG_SOFT_LIMIT, FLAG_STALE)
+from ..estimator.flags import Flags
 
 log = logging.getLogger(__name__)
 
@@ -73,11 +72,11 @@ COMM_AREA = range(0x1000, 0x2000)   # what NMT reset communication restores
 # set with any fault; bit 4 communication (inputs), bit 7 manufacturer-specific. An EMCY's
 # manufacturer bytes: the flag set or cleared, then the fault flags active after it.
 EMCY_FAULTS: dict[int, tuple[int, int]] = {
-    FLAG_STALE: (0x8100, 0x11),             # communication: input frames missing
-    FLAG_NOT_REFERENCED: (0xFF02, 0x81),    # device specific: position not referenced
-    FLAG_CLAMPED: (0xFF10, 0x81),           # device specific: operating point off the tables
-    FLAG_PRESET: (0xFF20, 0x81),            # device specific: preset not confirmed by a switch
-    FLAG_CONTROLLER: (0x8130, 0x11),        # heartbeat error (the motor controller's)
+    Flags.STALE_INPUT: (0x8100, 0x11),             # communication: input frames missing
+    Flags.NOT_REFERENCED: (0xFF02, 0x81),    # device specific: position not referenced
+    Flags.TABLE_CLAMPED: (0xFF10, 0x81),           # device specific: operating point off the tables
+    Flags.PRESET_UNCONFIRMED: (0xFF20, 0x81),            # device specific: preset not confirmed by a switch
+    Flags.CONTROLLER_NOT_OPERATIONAL: (0x8130, 0x11),        # heartbeat error (the motor controller's)
 }
 FAULT_FLAGS = sum(EMCY_FAULTS)
 # CiA 406 0x6503 alarms bit 0 "position error"; 0x6505 warnings bit 5 "reference point not
@@ -371,10 +370,10 @@ class SensorNode:
         if index == 0x6400:
             return self._area_state(p.position_mm)
         if index == 0x6503:
-            return ALARM_POSITION_ERROR if p.flags & (FLAG_STALE | FLAG_CONTROLLER) else 0
-        return ((WARNING_NO_REFERENCE if p.flags & (FLAG_NOT_REFERENCED | FLAG_PRESET) else 0)
-                | (WARNING_CLAMPED if p.flags & FLAG_CLAMPED else 0)
-                | (WARNING_SOFT_LIMIT if p.flags & FLAG_SOFT_LIMIT else 0))      # 0x6505
+            return ALARM_POSITION_ERROR if p.flags & (Flags.STALE_INPUT | Flags.CONTROLLER_NOT_OPERATIONAL) else 0
+        return ((WARNING_NO_REFERENCE if p.flags & (Flags.NOT_REFERENCED | Flags.PRESET_UNCONFIRMED) else 0)
+                | (WARNING_CLAMPED if p.flags & Flags.TABLE_CLAMPED else 0)
+                | (WARNING_SOFT_LIMIT if p.flags & Flags.AT_SOFT_LIMIT else 0))      # 0x6505
 
     def _area_state(self, position_mm: float) -> int:
         """CiA 406 0x6400: bit 0 outside the measuring range (0x650A), bit 1 above the work

@@ -20,7 +20,7 @@ One asyncio loop, four activities:
   stop, bus closed, exit code 0.
 
 Motion is never dropped silently. Sevcon frames are integrated whatever the controller's
-heartbeat says (a consumed controller that is not OPERATIONAL sets FLAG_CONTROLLER). Any
+heartbeat says (a consumed controller that is not OPERATIONAL sets Flags.CONTROLLER_NOT_OPERATIONAL). Any
 interval the estimator did not integrate (frames missing, held before the first oil
 temperature, dropped from the backlog; longer than ``estimator.max_gap_s``) widens the
 uncertainty by the worst travel possible in it, ``Config.max_speed_mm_s`` x its length; when
@@ -30,7 +30,7 @@ the measured Sevcon period), while the newest integrated frame is older than tha
 timestamp (when frame timestamps are this host's wall clock: frames delivered late), or no
 oil temperature was ever received: position held,
 published speed 0, published uncertainty growing at the worst-case speed (capped at the
-stroke), FLAG_STALE set. The stale flag clears with the first integrated frame after the gap,
+stroke), Flags.STALE_INPUT set. The stale flag clears with the first integrated frame after the gap,
 because that frame brings the gap's worst-case travel into the uncertainty: from then on the
 bound holds again.
 
@@ -60,8 +60,8 @@ from canopen.sdo import SdoAbortedError
 from ..atomic import remove_temp_files
 from ..canbus.dbc import FrameCodec
 from ..config import Config
-from ..estimator.estimator import (FLAG_CLAMPED, FLAG_CONTROLLER, FLAG_NAMES,
-                                   FLAG_NOT_REFERENCED, FLAG_PRESET, FLAG_STALE, Estimator, Step)
+from ..estimator.estimator import Estimator, Step
+from ..estimator.flags import Flags, flag_text
 from ..estimator.extension import Extension
 from ..estimator.state import EstimatorState, load_state, save_state
 from ..tables.lookup import UnitTables
@@ -135,7 +135,7 @@ class Unit:
     restored: bool = False
     gaps: int = 0                            # unintegrated intervals that widened the bound
     gap_widening_mm: float = 0.0             # their worst-case travel, in total
-    preset_pending: bool = False             # FLAG_PRESET: until a reference confirms it
+    preset_pending: bool = False             # Flags.PRESET_UNCONFIRMED: until a reference confirms it
     # After a preset or a widened gap the estimate is provisional: the estimator is kept
     # unreferenced inside (its next reference corrects in full and teaches the gains
     # nothing), while the flags published say what the service knows (PRESET, or nothing
@@ -151,11 +151,7 @@ class Unit:
 
 def estimator_flags(est: Estimator, clamped: bool = False) -> int:
     """The estimator's flags for its current state (as its step() would report them)."""
-    return est.state_flags() | (FLAG_CLAMPED if clamped else 0)
-
-
-def flag_names(flags: int) -> str:
-    return ",".join(name for bit, name in FLAG_NAMES.items() if flags & bit) or "ok"
+    return est.state_flags() | (Flags.TABLE_CLAMPED if clamped else 0)
 
 
 class Service:
@@ -653,7 +649,7 @@ class Service:
         if unit.last_step is not None:
             unit.last_step = Step(est.position_mm, unit.last_step.velocity_mm_s,
                                   est.uncertainty_mm,
-                                  estimator_flags(est) & ~FLAG_NOT_REFERENCED)
+                                  estimator_flags(est) & ~Flags.NOT_REFERENCED)
 
     # --- what is published -------------------------------------------------------------------
 
@@ -677,14 +673,14 @@ class Service:
         now = time.monotonic() if now is None else now
         est = unit.estimator
         stale, why = self.stale(unit, now)
-        clamped = bool(unit.last_step and unit.last_step.flags & FLAG_CLAMPED)
+        clamped = bool(unit.last_step and unit.last_step.flags & Flags.TABLE_CLAMPED)
         flags = estimator_flags(est, clamped)
         if unit.provisional:
-            flags &= ~FLAG_NOT_REFERENCED
+            flags &= ~Flags.NOT_REFERENCED
         if unit.preset_pending:
-            flags |= FLAG_PRESET
+            flags |= Flags.PRESET_UNCONFIRMED
         if unit.heartbeat is not None and not unit.heartbeat.status(now)[0]:
-            flags |= FLAG_CONTROLLER
+            flags |= Flags.CONTROLLER_NOT_OPERATIONAL
         u = est.uncertainty_mm
         speed = unit.velocity_mm_s
         if stale:
@@ -696,14 +692,14 @@ class Service:
             held_s = max(now - unit.stale_since_s, 0.0)
             stroke = self.cfg.unit(unit.actuator).stroke_mm
             u = max(u, min(u + self.max_speed_mm_s[unit.actuator] * held_s, stroke))
-            flags |= FLAG_STALE
+            flags |= Flags.STALE_INPUT
             speed = 0.0
         elif unit.stale_since_s is not None:
             self._log.info(f"back-{unit.actuator}", "%s: input back after %.2f s (%s)",
                            unit.actuator, now - unit.stale_since_s, unit.stale_reason)
             unit.stale_since_s = None
         if u >= UNCERTAINTY_MAX_MM:
-            flags |= FLAG_NOT_REFERENCED
+            flags |= Flags.NOT_REFERENCED
         counters = self.inputs.units[unit.actuator]
         return Published(est.position_mm, speed, u, flags, counters.received, counters.rejected)
 
@@ -779,7 +775,7 @@ class Service:
         for actuator, unit in self.units.items():
             p = self.published(unit, now)
             parts.append(f"{actuator} {p.position_mm:.2f} mm +-{p.uncertainty_mm:.2f} "
-                         f"[{flag_names(p.flags)}]")
+                         f"[{flag_text(p.flags)}]")
         link = self.link
         parts.append(f"bus {link.state}" + (f" ({link.reason})" if link.state != "open" else ""))
         parts.append(f"in {sum(u.received for u in self.inputs.units.values())} "

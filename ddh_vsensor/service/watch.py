@@ -9,7 +9,7 @@ import can
 
 from ..canbus.dbc import FrameCodec, message_name
 from ..config import Config
-from ..estimator.estimator import FLAG_NAMES
+from ..estimator.flags import flag_text
 
 NMT_NAMES = {0: "boot-up", 4: "stopped", 5: "operational", 127: "pre-op"}
 
@@ -28,10 +28,6 @@ class Reading:
     diag_t: float | None = None
     nmt_state: int | None = None
     heartbeat_t: float | None = None
-
-
-def flag_text(flags: int) -> str:
-    return ",".join(name for bit, name in FLAG_NAMES.items() if flags & bit) or "ok"
 
 
 class OutputWatcher:

@@ -9,7 +9,8 @@ from pathlib import Path
 import cantools
 import pytest
 
-from ddh_vsensor.canbus import (IO_MODULE, DiagFlags, FrameCodec, all_message_names, frame_ids,
+from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.canbus import (IO_MODULE, FrameCodec, all_message_names, frame_ids,
                                 load_dbc, message_name)
 from ddh_vsensor.canbus.dbc import DEFAULT_DBC
 from ddh_vsensor.config import Config, ConfigError, load_config
@@ -55,7 +56,7 @@ def test_documented_layout(cfg: Config) -> None:
     assert msg.arbitration_id == 0x1B1
     assert bytes(msg.data) == (12346).to_bytes(4, "little", signed=True) + \
         (-123).to_bytes(2, "little", signed=True) + b"\x03"
-    msg = codec.encode_diag("bucket", uncertainty_mm=1.5, flags=DiagFlags.ADAPTING,
+    msg = codec.encode_diag("bucket", uncertainty_mm=1.5, flags=Flags.ADAPTING,
                             input_frames=70000, rejected_frames=2)
     assert msg.arbitration_id == 0x2B2
     assert bytes(msg.data) == bytes([150, 0, 0, 8]) + (70000 - 65536).to_bytes(2, "little") + \
@@ -95,7 +96,7 @@ def test_flag_bytes_are_bit_signals_with_value_tables(cfg: Config) -> None:
     for actuator in cfg.can.units:
         for kind, prefix in (("position", "Status"), ("diag", "Flag")):
             message = db.get_message_by_name(message_name(kind, actuator))
-            for flag in DiagFlags:
+            for flag in Flags:
                 bit = flag.bit_length() - 1
                 name = prefix + "".join(w.capitalize() for w in flag.name.split("_"))
                 signal = message.get_signal_by_name(name)
@@ -105,7 +106,7 @@ def test_flag_bytes_are_bit_signals_with_value_tables(cfg: Config) -> None:
             pos = codec.decode(codec.encode_position(actuator, 1.0, 0.0, flags))[1]
             diag = codec.decode(codec.encode_diag(actuator, 1.0, flags, 0, 0))[1]
             assert pos["Status"] == diag["Flags"] == flags
-    pos = codec.decode(codec.encode_position("boom", 1.0, 0.0, DiagFlags.PRESET_UNCONFIRMED))[1]
+    pos = codec.decode(codec.encode_position("boom", 1.0, 0.0, Flags.PRESET_UNCONFIRMED))[1]
     assert pos["StatusPresetUnconfirmed"] == 1 and pos["StatusStaleInput"] == 0
     decoded = db.decode_message(0x1B1, bytes(codec.encode_position("boom", 1, 0, 0x40).data))
     assert str(decoded["StatusControllerNotOperational"]) == "NotOperational"

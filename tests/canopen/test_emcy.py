@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from ddh_vsensor.estimator.estimator import (FLAG_CLAMPED, FLAG_CONTROLLER, FLAG_NOT_REFERENCED,
-                                             FLAG_PRESET, FLAG_STALE)
+from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.service import ServiceOptions
 from ddh_vsensor.service.node import ABORT_VALUE_RANGE
 
@@ -46,23 +45,23 @@ def test_cold_start_faults_then_cleared_by_inputs_and_a_preset(cfg, unit_tables,
         assert node.sdo[0x1001].raw == 0x91            # generic, communication, manufacturer
         assert node.sdo[0x1003][0].raw == 3
         history = {node.sdo[0x1003][i].raw for i in (1, 2, 3)}
-        assert history == {0x8100 | FLAG_STALE << 16, 0xFF02 | FLAG_NOT_REFERENCED << 16,
-                           0x8130 | FLAG_CONTROLLER << 16}
+        assert history == {0x8100 | Flags.STALE_INPUT << 16, 0xFF02 | Flags.NOT_REFERENCED << 16,
+                           0x8130 | Flags.CONTROLLER_NOT_OPERATIONAL << 16}
         assert node.sdo[0x6503].raw == 0x0001          # CiA 406 alarm: position error
         assert node.sdo[0x6505].raw & 0x0020           # warning: reference point not reached
         frame = next(m for m in master.frames.since(0, 0xB1) if m.data[:2] == b"\x00\x81")
-        assert frame.data[3] == FLAG_STALE             # the flag concerned
+        assert frame.data[3] == Flags.STALE_INPUT             # the flag concerned
 
         with Feeder(cfg, channel):
-            wait_for(lambda: _last_code(emcy, FLAG_STALE) == 0
-                     and _last_code(emcy, FLAG_CONTROLLER) == 0,
+            wait_for(lambda: _last_code(emcy, Flags.STALE_INPUT) == 0
+                     and _last_code(emcy, Flags.CONTROLLER_NOT_OPERATIONAL) == 0,
                      "error resets: inputs and heartbeats back")
             assert emcy.log[-1].register == 0x81       # not referenced remains
-            assert emcy.log[-1].data[1] == FLAG_NOT_REFERENCED
+            assert emcy.log[-1].data[1] == Flags.NOT_REFERENCED
             assert node.sdo[0x6503].raw == 0
             node.sdo[0x6010][1].raw = 10000            # preset: provisional until a switch
-            wait_for(lambda: _last_code(emcy, FLAG_NOT_REFERENCED) == 0
-                     and _last_code(emcy, FLAG_PRESET) == 0xFF20,
+            wait_for(lambda: _last_code(emcy, Flags.NOT_REFERENCED) == 0
+                     and _last_code(emcy, Flags.PRESET_UNCONFIRMED) == 0xFF20,
                      "error reset of not referenced, preset unconfirmed raised")
             assert node.sdo[0x1001].raw == 0x81
             assert node.sdo[0x6505].raw & 0x0020       # still no reference point reached
@@ -74,18 +73,18 @@ def test_cold_start_faults_then_cleared_by_inputs_and_a_preset(cfg, unit_tables,
 
 
 @pytest.mark.parametrize("flag, code, register", [
-    (FLAG_CLAMPED, 0xFF10, 0x81), (FLAG_PRESET, 0xFF20, 0x81), (FLAG_CONTROLLER, 0x8130, 0x11)])
+    (Flags.TABLE_CLAMPED, 0xFF10, 0x81), (Flags.PRESET_UNCONFIRMED, 0xFF20, 0x81), (Flags.CONTROLLER_NOT_OPERATIONAL, 0x8130, 0x11)])
 def test_each_fault_flag_has_its_emcy_and_error_reset(cfg, unit_tables, channel, flag, code,
                                                       register) -> None:
     with master_on(cfg, channel) as master, \
             service_thread(cfg, unit_tables, channel, OPTIONS, FlaggedService) as service:
         node = master.nodes["bucket"]
         service.extra_flags = {}
-        service.masked_flags = 0 if flag == FLAG_PRESET else FLAG_PRESET
+        service.masked_flags = 0 if flag == Flags.PRESET_UNCONFIRMED else Flags.PRESET_UNCONFIRMED
         with Feeder(cfg, channel):
             node.sdo[0x6010][1].raw = 10000
-            if flag == FLAG_PRESET:
-                service.masked_flags = FLAG_PRESET     # the preset's own, until injected
+            if flag == Flags.PRESET_UNCONFIRMED:
+                service.masked_flags = Flags.PRESET_UNCONFIRMED     # the preset's own, until injected
             wait_for(lambda: _all_clear(node.emcy), "no fault left (error resets seen)")
             start, mark = len(node.emcy.log), master.frames.mark()
             service.extra_flags = {"bucket": flag}
@@ -111,7 +110,7 @@ def test_emcy_can_be_disabled_and_is_not_sent_while_stopped(cfg, unit_tables, ch
             node.sdo[0x1014].raw = 0xC1                    # another COB-ID: refused
         assert getattr(exc.value, "code", None) == ABORT_VALUE_RANGE
         start = len(node.emcy.log)
-        service.extra_flags = {"boom": FLAG_CLAMPED}
+        service.extra_flags = {"boom": Flags.TABLE_CLAMPED}
         mark = master.frames.mark()
         master.frames.wait_count(mark, 0x1B1, 20, "TPDO1 with the flag set")
         assert node.sdo[0x1001].raw & 0x80                 # the register shows it

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from ddh_vsensor.estimator.bounded import bounded_cumsum
-from ddh_vsensor.estimator.estimator import (FLAG_NOT_REFERENCED, FLAG_SOFT_LIMIT, FLAG_STALE,
-                                             Estimator)
+from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.state import EstimatorState
 from ddh_vsensor.physics.steady import holding_speed, steady_state
 
@@ -33,7 +33,7 @@ def test_online_and_offline_faces_agree(cfg, boom, unit_tables, make_run, mode):
     assert np.max(np.abs(np.array([s.position_mm for s in steps]) - res.position_mm)) < 1e-6
     assert np.max(np.abs(np.array([s.uncertainty_mm for s in steps]) - res.uncertainty_mm)) < 1e-6
     assert [s.flags for s in steps] == res.flags.tolist()
-    assert res.flags[2000] & FLAG_STALE and not res.flags[1999] & FLAG_STALE
+    assert res.flags[2000] & Flags.STALE_INPUT and not res.flags[1999] & Flags.STALE_INPUT
     assert np.allclose(on.gain.gain, off.gain.gain)
 
 
@@ -110,7 +110,7 @@ def test_soft_limits_act_and_are_flagged(cfg, boom, unit_tables):
                     initial_position_mm=300.0)
     res = est.run(t, np.full_like(t, 3000.0), np.full_like(t, 22.0), np.full_like(t, 27.0))
     assert res.position_mm.max() == pytest.approx(cfg.unit("boom").stroke_mm)
-    assert res.flags[-1] & FLAG_SOFT_LIMIT and not res.flags[0] & FLAG_SOFT_LIMIT
+    assert res.flags[-1] & Flags.AT_SOFT_LIMIT and not res.flags[0] & Flags.AT_SOFT_LIMIT
 
 
 def test_bounded_cumsum_equals_the_clipped_loop():
@@ -141,7 +141,7 @@ def test_restored_estimate_is_flagged_until_a_reference(cfg, boom, unit_tables, 
         refs = {n: bool(a[k]) for n, a in run.refs.items()}
         flags.append(second.step(run.time_s[k], run.speed_rpm[k], float(run.torque_nm[k]),
                                  27.0, refs).flags)
-    assert flags[0] & FLAG_NOT_REFERENCED and not flags[-1] & FLAG_NOT_REFERENCED
+    assert flags[0] & Flags.NOT_REFERENCED and not flags[-1] & Flags.NOT_REFERENCED
 
 
 def test_a_cold_start_does_not_learn_from_its_first_reference(cfg, boom, unit_tables, make_run):

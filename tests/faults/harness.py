@@ -25,12 +25,11 @@ import yaml
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.config import Config
-from ddh_vsensor.estimator.estimator import (FLAG_CLAMPED, FLAG_CONTROLLER, FLAG_NOT_REFERENCED,
-                                             FLAG_PRESET, FLAG_STALE)
+from ddh_vsensor.estimator.flags import Flags
 
 # The flags that say why a position may be off: stale input, not referenced, unconfirmed
 # preset, controller not operational, model outside its table.
-EXPLAINING = FLAG_STALE | FLAG_NOT_REFERENCED | FLAG_PRESET | FLAG_CONTROLLER | FLAG_CLAMPED
+EXPLAINING = Flags.STALE_INPUT | Flags.NOT_REFERENCED | Flags.PRESET_UNCONFIRMED | Flags.CONTROLLER_NOT_OPERATIONAL | Flags.TABLE_CLAMPED
 # Published position and uncertainty are quantised to 0.01 mm each; truth interpolated.
 TOLERANCE_MM = 0.05
 # An output may reflect frames up to this old (handling latency on a loaded machine); beyond

@@ -12,8 +12,7 @@ import can
 import canopen
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
-from ddh_vsensor.estimator.estimator import (FLAG_CONTROLLER, FLAG_NOT_REFERENCED, FLAG_PRESET,
-                                             FLAG_STALE)
+from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.service.node import EDS_PATH
 
 from .conftest import CURRENT, Flood, run_row, start_daemon
@@ -60,9 +59,9 @@ def test_three_seconds_of_sevcon_frames_missing_while_the_boom_rises(cfg, cfg_ra
     boom = outputs(cfg, row.frames, "boom")
     during = [o for o in boom if 5.6 <= o.t_wall - row.base_wall < 8.3]
     after = [o for o in boom if o.t_wall - row.base_wall >= 8.45]
-    assert during and all(o.flags & FLAG_STALE for o in during)
+    assert during and all(o.flags & Flags.STALE_INPUT for o in during)
     # the boom rose ~200 mm unseen: worst-case travel over 3 s is beyond the stroke
-    assert after and all(o.flags & FLAG_NOT_REFERENCED for o in after)
+    assert after and all(o.flags & Flags.NOT_REFERENCED for o in after)
 
 
 def test_spoofed_stopped_heartbeat_then_real_ones(cfg, cfg_raw, paper, hub, tmp_path) -> None:
@@ -77,10 +76,10 @@ def test_spoofed_stopped_heartbeat_then_real_ones(cfg, cfg_raw, paper, hub, tmp_
     row = run_row(hub, tmp_path, cfg, cfg_raw, paper, T0, T1, hook=spoof)
     assert sent and row.exit_code == 0
     boom = outputs(cfg, row.frames, "boom")
-    assert any(o.flags & FLAG_CONTROLLER for o in boom)       # the spoof is reported ...
-    assert not boom[-1].flags & FLAG_CONTROLLER                # ... and clears
+    assert any(o.flags & Flags.CONTROLLER_NOT_OPERATIONAL for o in boom)       # the spoof is reported ...
+    assert not boom[-1].flags & Flags.CONTROLLER_NOT_OPERATIONAL                # ... and clears
     # ... and no frame was discarded for it: right without counting the controller flag
-    _assert_invariant(cfg, paper, row, explaining=EXPLAINING & ~FLAG_CONTROLLER,
+    _assert_invariant(cfg, paper, row, explaining=EXPLAINING & ~Flags.CONTROLLER_NOT_OPERATIONAL,
                       meaningful=MEANINGFUL)
 
 
@@ -97,8 +96,8 @@ def test_spoofed_heartbeat_in_a_log_without_heartbeats(cfg, cfg_raw, paper, hub,
     row = run_row(hub, tmp_path, cfg, cfg_raw, paper, T0, T1, heartbeats=False, hook=spoof)
     assert sent and row.exit_code == 0
     boom = outputs(cfg, row.frames, "boom")
-    assert all(o.flags & FLAG_CONTROLLER for o in boom[-50:])  # consumed by config: "lost"
-    _assert_invariant(cfg, paper, row, explaining=EXPLAINING & ~FLAG_CONTROLLER,
+    assert all(o.flags & Flags.CONTROLLER_NOT_OPERATIONAL for o in boom[-50:])  # consumed by config: "lost"
+    _assert_invariant(cfg, paper, row, explaining=EXPLAINING & ~Flags.CONTROLLER_NOT_OPERATIONAL,
                       meaningful=MEANINGFUL)
 
 
@@ -137,7 +136,7 @@ def test_kill_9_and_restart_allows_for_the_time_since_the_save(cfg, cfg_raw, pap
     _assert_invariant(cfg, paper, before)
     _assert_invariant(cfg, paper, after)
     restored = outputs(cfg, after.frames, "boom")[0]
-    assert restored.flags & FLAG_NOT_REFERENCED
+    assert restored.flags & Flags.NOT_REFERENCED
 
 
 def _sdo_client(url: str, node_id: int):
@@ -189,7 +188,7 @@ def test_presets_from_any_node_are_bounded_and_flagged(cfg, cfg_raw, paper, hub,
     thread.join(10)
     assert results == {"jump": 0x06090030, "small": "accepted", "moving": 0x08000022}, results
     bucket = outputs(cfg, row.frames, "bucket")
-    assert bucket[-1].flags & FLAG_PRESET                 # unconfirmed until a reference
+    assert bucket[-1].flags & Flags.PRESET_UNCONFIRMED                 # unconfirmed until a reference
     log = row.daemon.log()
     assert "preset accepted" in log and "refused" in log
     _assert_invariant(cfg, paper, row)

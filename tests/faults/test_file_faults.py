@@ -14,7 +14,7 @@ import time
 import pytest
 import yaml
 
-from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED
+from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.state import EstimatorState, save_state
 
 from .conftest import start_daemon
@@ -77,7 +77,7 @@ def test_hostile_state_files_are_reported_and_ignored(cfg, cfg_raw, hub, tmp_pat
         else:                                # ignored: cold start, the whole stroke
             assert f"{actuator}.json: corrupt state file ignored" in log
             assert out[-1].uncertainty_mm >= min(stroke, 655.35) - 0.01   # UINT16 counts
-        assert out[-1].flags & FLAG_NOT_REFERENCED
+        assert out[-1].flags & Flags.NOT_REFERENCED
     # the stop wrote sound files over the hostile ones (a symlink is replaced, not followed)
     for actuator in cfg.can.units:
         path = state_dir / f"{actuator}.json"

@@ -23,7 +23,7 @@ import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.canbus.log import write_blf
-from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED
+from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.service.replay import read_log
 
 from .conftest import commission, paired_outputs
@@ -150,10 +150,10 @@ def cold_run(cfg, paper_cycle, hub_url, tmp_path_factory) -> dict[str, Published
     for actuator in cfg.can.units:
         pairs = paired_outputs(cfg, recorder.frames, actuator)
         first = next((i for i, p in enumerate(pairs)
-                      if p.input_frames and not p.status & FLAG_NOT_REFERENCED), None)
+                      if p.input_frames and not p.status & Flags.NOT_REFERENCED), None)
         assert first is not None, f"{actuator}: never referenced"
         referenced = pairs[first:]
-        assert not any(p.status & FLAG_NOT_REFERENCED for p in referenced), actuator
+        assert not any(p.status & Flags.NOT_REFERENCED for p in referenced), actuator
         truth = truths[actuator]
         times = sevcon_times[actuator][[p.input_frames - 1 for p in referenced]]
         true_mm = np.interp(times, truth.time_s, truth.x_m * 1e3)

@@ -20,7 +20,7 @@ import can
 import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
-from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED
+from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.state import load_state
 from ddh_vsensor.service.replay import replay
 
@@ -222,5 +222,5 @@ def test_daemon_process_sigterm_and_restart(cfg, unit_tables, frames, remote_url
         restored = [codec.decode(m)[1] for m in idle if m.arbitration_id == pos_id]
         assert restored, second.log()
         assert restored[-1]["Position"] == pytest.approx(saved[actuator].position_mm, abs=0.01)
-        assert restored[-1]["Status"] & FLAG_NOT_REFERENCED      # until a reference switch
+        assert restored[-1]["Status"] & Flags.NOT_REFERENCED      # until a reference switch
         _check_against_offline(cfg, unit_tables, seen2, actuator, state=saved[actuator])

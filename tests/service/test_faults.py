@@ -14,7 +14,7 @@ import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.cli.main import main
-from ddh_vsensor.estimator.estimator import FLAG_CONTROLLER, FLAG_NOT_REFERENCED, FLAG_STALE
+from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.state import EstimatorState, save_state
 from ddh_vsensor.service import ServiceOptions
 
@@ -38,7 +38,7 @@ def _boom(service):
 
 def test_controller_heartbeat_raises_a_flag_and_never_discards_motion(cfg, unit_tables) -> None:
     """Consumed by configuration (boom: node 1, bucket: node 2): not OPERATIONAL or lost sets
-    FLAG_CONTROLLER; the frames are integrated all the same, nothing is stale for it."""
+    Flags.CONTROLLER_NOT_OPERATIONAL; the frames are integrated all the same, nothing is stale for it."""
     channel = channel_name()
     codec = FrameCodec(cfg)
 
@@ -66,14 +66,14 @@ def test_controller_heartbeat_raises_a_flag_and_never_discards_motion(cfg, unit_
             return ok, preop, lost, lost_why, back, bucket, unit
 
     ok, preop, lost, lost_why, back, bucket, unit = asyncio.run(scenario())
-    assert not ok.flags & (FLAG_STALE | FLAG_CONTROLLER)
-    assert preop.flags & FLAG_CONTROLLER and not preop.flags & FLAG_STALE
+    assert not ok.flags & (Flags.STALE_INPUT | Flags.CONTROLLER_NOT_OPERATIONAL)
+    assert preop.flags & Flags.CONTROLLER_NOT_OPERATIONAL and not preop.flags & Flags.STALE_INPUT
     assert preop.position_mm > ok.position_mm + 1.0            # integrated all the same
-    assert lost.flags & FLAG_CONTROLLER and "heartbeat lost" in lost_why
+    assert lost.flags & Flags.CONTROLLER_NOT_OPERATIONAL and "heartbeat lost" in lost_why
     assert lost.position_mm > preop.position_mm + 1.0
-    assert not back.flags & (FLAG_STALE | FLAG_CONTROLLER)
+    assert not back.flags & (Flags.STALE_INPUT | Flags.CONTROLLER_NOT_OPERATIONAL)
     assert unit.held == 0 and unit.integrated == 100
-    assert bucket.flags & FLAG_CONTROLLER and not bucket.flags & FLAG_STALE  # never heard
+    assert bucket.flags & Flags.CONTROLLER_NOT_OPERATIONAL and not bucket.flags & Flags.STALE_INPUT  # never heard
 
 
 def test_heartbeats_of_unconfigured_nodes_arm_nothing(cfg, unit_tables) -> None:
@@ -97,7 +97,7 @@ def test_heartbeats_of_unconfigured_nodes_arm_nothing(cfg, unit_tables) -> None:
 
     boom, unit = asyncio.run(scenario())
     assert unit.heartbeat is None
-    assert not boom.flags & (FLAG_CONTROLLER | FLAG_STALE) and unit.integrated == 20
+    assert not boom.flags & (Flags.CONTROLLER_NOT_OPERATIONAL | Flags.STALE_INPUT) and unit.integrated == 20
 
 
 def test_malformed_frames_are_counted_and_ignored(cfg, unit_tables, caplog) -> None:
@@ -293,7 +293,7 @@ def test_corrupt_state_file_is_ignored_the_other_restored(cfg, unit_tables, tmp_
     assert published["boom"].position_mm == 0.0
     assert published["boom"].uncertainty_mm >= cfg.unit("boom").stroke_mm
     assert published["bucket"].position_mm == pytest.approx(321.0)
-    assert published["bucket"].flags & FLAG_NOT_REFERENCED
+    assert published["bucket"].flags & Flags.NOT_REFERENCED
     # the stop wrote both files again, sound
     assert json.loads((tmp_path / "boom.json").read_text())["actuator"] == "boom"
     assert json.loads((tmp_path / "bucket.json").read_text())["position_mm"] == \
@@ -311,13 +311,13 @@ def test_bad_config_and_bad_bus_settings_exit_2(tmp_path, capsys) -> None:
 
 @pytest.mark.parametrize("mode", ["disabled", "pre-operational only", "enabled"])
 def test_preset_modes_and_their_abort_codes(cfg, unit_tables, mode) -> None:
-    """SDO presets per ``faults.preset``; the jump bound once referenced; FLAG_PRESET until a
+    """SDO presets per ``faults.preset``; the jump bound once referenced; Flags.PRESET_UNCONFIRMED until a
     reference confirms; every one counted in the status line."""
     import dataclasses
 
     import canopen
 
-    from ddh_vsensor.estimator.estimator import FLAG_PRESET
+    from ddh_vsensor.estimator.flags import Flags
     from ddh_vsensor.service.node import EDS_PATH
     modal = dataclasses.replace(cfg, faults=dataclasses.replace(cfg.faults, preset=mode))
     channel = channel_name()
@@ -365,7 +365,7 @@ def test_preset_modes_and_their_abort_codes(cfg, unit_tables, mode) -> None:
         assert out == {"operational": "accepted", "pre-operational": "accepted",
                        "jump": 0x06090030, "small": "accepted"}
     if mode != "disabled":
-        assert boom.flags & FLAG_PRESET and not boom.flags & FLAG_NOT_REFERENCED
+        assert boom.flags & Flags.PRESET_UNCONFIRMED and not boom.flags & Flags.NOT_REFERENCED
         assert boom.position_mm == pytest.approx(103.0)
         accepted = sum(v == "accepted" for v in out.values())
         assert f"boom {accepted}/{len(out) - accepted}" in status

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
-from ddh_vsensor.estimator.estimator import FLAG_NOT_REFERENCED, FLAG_STALE
+from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.service.node import EDS_PATH
 from ddh_vsensor.service.replay import replay
 
@@ -74,7 +74,7 @@ def test_positions_on_the_bus_equal_the_offline_estimate(cfg, unit_tables, frame
         for p in pairs:
             expected = offline.position_mm[p.input_frames - 1 - offline.held]
             assert p.position_mm == pytest.approx(expected, abs=step + 1e-9)
-            assert not p.status & FLAG_NOT_REFERENCED          # the SDO preset referenced it
+            assert not p.status & Flags.NOT_REFERENCED          # the SDO preset referenced it
         assert np.ptp(offline.position_mm) > 20.0              # the rod did move
         unit = service.units[actuator]
         assert unit.estimator.position_mm == pytest.approx(offline.position_mm[-1], abs=1e-9)
@@ -118,7 +118,7 @@ def test_input_stops_then_returns_stale_held_growing_then_clear(cfg, unit_tables
 
                 def stale_frames() -> list[dict]:
                     return [d for d in (codec.decode(m)[1] for m in recorder.drain()[n0:]
-                                        if m.arbitration_id == pos_id) if d["Status"] & FLAG_STALE]
+                                        if m.arbitration_id == pos_id) if d["Status"] & Flags.STALE_INPUT]
 
                 await until(lambda: len(stale_frames()) >= 5, "5 stale position frames")
                 window = recorder.drain()[n0:]
@@ -133,18 +133,18 @@ def test_input_stops_then_returns_stale_held_growing_then_clear(cfg, unit_tables
         moving, stale1, stale2, back, window = asyncio.run(scenario())
     finally:
         recorder.close()
-    assert not moving.flags & FLAG_STALE and moving.speed_mm_s > 0
-    assert stale1.flags & FLAG_STALE and stale2.flags & FLAG_STALE
+    assert not moving.flags & Flags.STALE_INPUT and moving.speed_mm_s > 0
+    assert stale1.flags & Flags.STALE_INPUT and stale2.flags & Flags.STALE_INPUT
     assert stale1.position_mm == stale2.position_mm == moving.position_mm   # held
     assert stale1.speed_mm_s == 0.0
     assert stale2.uncertainty_mm > stale1.uncertainty_mm > moving.uncertainty_mm
-    assert not back.flags & FLAG_STALE
+    assert not back.flags & Flags.STALE_INPUT
     # the gap (0.4 s > max_gap) was not integrated: its worst-case travel (max speed x gap)
     # stays in the uncertainty until a reference
     gap_s = 0.41
     assert back.uncertainty_mm >= moving.uncertainty_mm + cfg.max_speed_mm_s("boom") * gap_s
     published = [codec.decode(m)[1] for m in window if m.arbitration_id == pos_id]
-    assert all(p["Status"] & FLAG_STALE and p["Speed"] == 0 for p in published[-5:])
+    assert all(p["Status"] & Flags.STALE_INPUT and p["Speed"] == 0 for p in published[-5:])
 
 
 def test_sdo_reads_live_values_and_refuses_presets_outside_the_stroke(cfg, unit_tables) -> None:
@@ -185,7 +185,7 @@ def test_sdo_reads_live_values_and_refuses_presets_outside_the_stroke(cfg, unit_
     assert out["position"] == 4250
     assert out["step"] == 10000                       # nm: 0.01 mm
     assert out["device"] == 0x00080196
-    assert not out["flags"] & FLAG_NOT_REFERENCED     # a preset is a reference
+    assert not out["flags"] & Flags.NOT_REFERENCED     # a preset is a reference
     assert out["abort"] == 0x06090030                 # value range exceeded
     assert service.units["boom"].estimator.position_mm == pytest.approx(42.5)
     assert service.units["bucket"].estimator.position_mm == 0.0
