@@ -34,12 +34,9 @@ def config_from(args: argparse.Namespace) -> Config:
 
 def load_run(path: str, actuator: str, cfg: Config) -> "Run":
     """A measured run from a CSV of the interchange format or from any CAN log python-can
-    reads (decoded with the project's DBC)."""
-    from ..canbus.log import read_can_log
-    from ..measured import read_csv
-    if path.lower().endswith(".csv"):
-        return read_csv(path)
-    return read_can_log(path, actuator, cfg)
+    reads (decoded with the configuration's frame layout)."""
+    from ..reader import read_run
+    return read_run(path, cfg, actuator)
 
 
 def load_tables_for(args: argparse.Namespace, cfg: Config, actuator: str) -> "UnitTables":

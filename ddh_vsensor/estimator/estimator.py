@@ -11,19 +11,22 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from ..config import Config
+from ..measured import Run
 from ..physics.unit import DDHUnit
 from ..tables.lookup import UnitTables
 from .adaptation import DirectionalGain
 from .bounded import bounded_cumsum
 from .dynamic import DynamicModel
 from .model import Mode, VelocityModel
-from .references import Debouncer, Switch, accepted_edges, switches_from_config
 from .flags import Flags
+from .references import Debouncer, Switch, accepted_edges, switches_from_config
 from .state import EstimatorState
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
@@ -124,6 +127,25 @@ class Estimator:
         self.s_ref = (0.0, 0.0)         # raw travel sums at the last reference's edge
         self._on = _Online(debouncers=[Debouncer(self.debounce_s) for _ in self.switches],
                            snapshots=[None] * len(self.switches))
+
+    @classmethod
+    def from_config(cls, cfg: Config | None, unit: str, *,
+                    tables: UnitTables | str | Path | None = None,
+                    **options: Any) -> "Estimator":
+        """An estimator for one unit of a machine (``cfg`` None: the reference loader).
+        ``tables``: a table set, the directory ``ddh-vsensor tables build`` wrote (refused if
+        built for another configuration), or None to build them now (well under a second).
+        ``options`` are the constructor's (mode, references, adaptation, initial_position_mm)."""
+        from ..config import load_config
+        from ..tables.build import build_unit_tables
+        from ..tables.store import load_unit_tables
+        cfg = cfg if cfg is not None else load_config()
+        cfg.require_unit(unit)
+        if tables is None:
+            tables = build_unit_tables(cfg, unit)
+        elif isinstance(tables, (str, Path)):
+            tables = load_unit_tables(tables, unit, cfg)
+        return cls(cfg, unit, tables, **options)
 
     # --- shared pieces -------------------------------------------------------------------
 
@@ -240,10 +262,17 @@ class Estimator:
 
     # --- offline face ----------------------------------------------------------------------
 
-    def run(self, time_s: ArrayLike, speed_rpm: ArrayLike, torque_nm: ArrayLike,
-            oil_temp_c: ArrayLike, refs: Mapping[str, ArrayLike] | None = None) -> RunEstimate:
+    def run(self, time_s: ArrayLike | Run, speed_rpm: ArrayLike | None = None,
+            torque_nm: ArrayLike | None = None, oil_temp_c: ArrayLike | None = None,
+            refs: Mapping[str, ArrayLike] | None = None) -> RunEstimate:
         """A whole run at once, from this (fresh) estimator's state; equal to feeding
-        :meth:`step` sample by sample."""
+        :meth:`step` sample by sample. Takes the columns, or a measured :class:`Run` whole
+        (its switch states included)."""
+        if isinstance(time_s, Run):
+            run = time_s
+            return self.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+        if speed_rpm is None or torque_nm is None or oil_temp_c is None:
+            raise TypeError("run() takes a Run, or time_s, speed_rpm, torque_nm and oil_temp_c")
         if self._on.t is not None:
             raise RuntimeError("run() starts from a fresh estimator; use step() to continue")
         t = np.asarray(time_s, dtype=float)
