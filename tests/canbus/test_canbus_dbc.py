@@ -151,3 +151,31 @@ def test_message_name_rejects_unknown_kind() -> None:
     assert message_name("diag", "bucket") == "DIAG_BUCKET_TPDO2"
     with pytest.raises(ValueError, match="kind"):
         message_name("speed", "boom")
+
+
+def test_hall_bits_up_to_63_span_the_io_frame(wide_inputs: Config,
+                                              three_units: Config) -> None:
+    codec = FrameCodec(wide_inputs)
+    msg = codec.encode_inputs({"ram": {"bottom": 0, "mid": 1, "top": 1}})
+    assert msg.dlc == 8 and int.from_bytes(msg.data, "little") == (1 << 63) | (1 << 31)
+    assert codec.hall_states("ram", msg.data) == {"bottom": 0, "mid": 1, "top": 1}
+    name, signals = codec.decode(msg)
+    assert name == IO_MODULE
+    assert (signals["HallRamBottom"], signals["HallRamMid"], signals["HallRamTop"]) == (0, 1, 1)
+    with pytest.raises(cantools.database.DecodeError, match="needs 8 byte"):
+        codec.hall_states("ram", msg.data[:7])
+    codec = FrameCodec(three_units)
+    msg = codec.encode_inputs({"arm": {"top": 1}, "tilt": {"mid": 1}})
+    assert bytes(msg.data) == bytes([0b0001_0000, 0b0000_0100])
+    assert codec.hall_states("arm", msg.data) == {"bottom": 0, "mid": 0, "top": 1}
+    assert codec.hall_states("lift", msg.data) == {"bottom": 0, "mid": 0, "top": 0}
+
+
+def test_renamed_units_encode_and_decode(three_units: Config) -> None:
+    codec = FrameCodec(three_units)
+    msg = codec.encode_position("arm", 12.34, -5.0, int(Flags.NOT_REFERENCED))
+    assert msg.arbitration_id == 0x180 + 51
+    name, signals = codec.decode(msg)
+    assert name == "POSITION_ARM_TPDO1" and signals["Status"] == Flags.NOT_REFERENCED
+    assert signals["Position"] == pytest.approx(12.34)
+    assert codec.decode(codec.encode_sevcon("tilt", 2.0, -300.0))[0] == "SEVCON_TILT_TPDO1"
