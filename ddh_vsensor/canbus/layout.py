@@ -126,6 +126,7 @@ def all_message_names(units: Sequence[str]) -> list[str]:
 
 
 def sevcon_node(unit: str) -> str:
+    """DBC node name of ``unit``'s motor controller."""
     return f"SEVCON_{unit.upper()}"
 
 
@@ -162,18 +163,17 @@ def _message(frame_id: int, name: str, length: int, signals: list[Signal], comme
                    dbc_specifics=DbcSpecifics(attributes=attributes))
 
 
-def _flag_bits(prefix: str, start: int, what: str, *, with_choices: bool,
-               receivers: Sequence[str] = ()) -> list[Signal]:
-    """One bit signal per flag, then the reserved bit 7."""
+def _flag_bits(prefix: str, start: int, what: str, *, with_choices: bool) -> list[Signal]:
+    """One bit signal per flag (every Flags member has its text), then the reserved bit 7."""
     signals = []
-    for flag, (text, names) in _FLAG_TEXT.items():
+    for flag in Flags:
+        text, names = _FLAG_TEXT[flag]
         bit = flag.bit_length() - 1
-        signals.append(_signal(flag_signal(prefix, flag), start + bit, 1, what.format(
-            bit=bit, text=text), choices=dict(enumerate(names)) if with_choices else None,
-            receivers=receivers))
+        signals.append(_signal(flag_signal(prefix, flag), start + bit, 1,
+                               what.format(bit=bit, text=text),
+                               choices=dict(enumerate(names)) if with_choices else None))
     signals.append(_signal(prefix + "Reserved", start + RESERVED_FLAG_BIT, 1,
-                           what.format(bit=RESERVED_FLAG_BIT, text="reserved, 0"),
-                           receivers=receivers))
+                           what.format(bit=RESERVED_FLAG_BIT, text="reserved, 0")))
     return signals
 
 
