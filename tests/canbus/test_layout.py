@@ -227,3 +227,10 @@ def test_oil_and_io_nodes_may_not_share_an_id(cfg: Config) -> None:
         cfg.can, io_module_node_id=cfg.can.oil_temp_node_id))
     with pytest.raises(ConfigError, match=r"can\.io_module_node_id: .*OIL_TEMP_TPDO1"):
         machine_database(clash)
+
+
+def test_emcy_value_table_is_what_the_sensor_node_sends() -> None:
+    from ddh_vsensor.canbus.layout import EMCY_CODES
+    from ddh_vsensor.service.node import EMCY_FAULTS
+    assert {flag: code for flag, (code, _) in EMCY_CODES.items()} == \
+        {flag: code for flag, (code, _) in EMCY_FAULTS.items()}
