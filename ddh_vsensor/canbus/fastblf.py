@@ -111,6 +111,11 @@ def _raw(data: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(data).view("<u8")[:, 0]
 
 
+def _byte_mask(length: int) -> np.uint64:
+    """The bits of a frame's first ``length`` data bytes (the rest of the 8 is padding)."""
+    return np.uint64((1 << (8 * length)) - 1)
+
+
 def decode_signal(message, name: str, data: np.ndarray) -> np.ndarray:
     """A little-endian signal of ``message`` (cantools) for every row of ``data`` (N x 8)."""
     sig = message.get_signal_by_name(name)
@@ -142,7 +147,7 @@ _CODECS: dict[int, tuple[Config, FrameCodec]] = {}
 
 
 def _codec(cfg: Config) -> FrameCodec:
-    """One codec per config object (parsing the DBC costs ~30 ms)."""
+    """One codec per config object (generating its database costs ~30 ms)."""
     if id(cfg) not in _CODECS:
         _CODECS[id(cfg)] = (cfg, FrameCodec(cfg))       # holds cfg: its id stays its own
     return _CODECS[id(cfg)][1]
@@ -152,7 +157,7 @@ def frames_to_runs(frames: Frames, cfg: Config, source: str,
                    actuators: tuple[str, ...] | None = None) -> dict[str, Run]:
     """Each actuator's run from the frames, as :func:`.log.read_can_log` builds it."""
     codec = _codec(cfg)
-    msgs = codec._messages
+    msgs = codec.messages
     ids = frames.arbitration_id
     order = np.argsort(frames.timestamp_s, kind="stable")
     oil = order[ids[order] == codec.ids[OIL_TEMP]]
@@ -185,10 +190,11 @@ def frames_to_runs(frames: Frames, cfg: Config, source: str,
         refs = {}
         if len(io):
             held = _latest(frames.timestamp_s[io], time_s)
-            byte = frames.data[io, 0]
+            inputs = _raw(frames.data[io]) & _byte_mask(msgs[IO_MODULE].length)
             bits = cfg.can.units[actuator].hall_bits
             for name in cfg.unit(actuator).references_mm:
-                refs[name] = ((byte >> bits[name]) & 1).astype(np.uint8)[held]
+                refs[name] = ((inputs >> np.uint64(bits[name])) & np.uint64(1)) \
+                    .astype(np.uint8)[held]
         out[actuator] = Run(time_s=time_s,
                             speed_rpm=decode_signal(msgs[sevcon], "VelocityActual", d),
                             torque_nm=decode_signal(msgs[sevcon], "TorqueActual", d),
@@ -206,24 +212,23 @@ def write_blf_inputs(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> 
     actuators = list(runs)
     oil_actuator = actuators[0]
     io_time = np.unique(np.concatenate([r.time_s for r in runs.values()]))
-    byte = np.zeros(len(io_time), np.uint8)
+    inputs = np.zeros(len(io_time), np.uint64)
     for a in actuators:
         held = _latest(runs[a].time_s, io_time)
         for name, state in runs[a].refs.items():
-            byte |= (state[held].astype(np.uint8) << cfg.can.units[a].hall_bits[name])
+            inputs |= state[held].astype(np.uint64) << np.uint64(cfg.can.units[a].hall_bits[name])
     parts = [(runs[oil_actuator].time_s, 0, 0, encode_signals(
-        codec._messages[OIL_TEMP], {"OilTemp": runs[oil_actuator].oil_temp_c}),
-        codec.ids[OIL_TEMP], codec._messages[OIL_TEMP].length)]
-    io_data = np.zeros((len(io_time), 8), np.uint8)
-    io_data[:, 0] = byte
+        codec.messages[OIL_TEMP], {"OilTemp": runs[oil_actuator].oil_temp_c}),
+        codec.ids[OIL_TEMP], codec.messages[OIL_TEMP].length)]
+    io_data = inputs.astype("<u8").view(np.uint8).reshape(-1, 8)
     parts.append((io_time, 1, 0, io_data, codec.ids[IO_MODULE],
-                  codec._messages[IO_MODULE].length))
+                  codec.messages[IO_MODULE].length))
     for i, a in enumerate(actuators):
         name = message_name("sevcon", a)
         parts.append((runs[a].time_s, 2, i, encode_signals(
-            codec._messages[name], {"TorqueActual": runs[a].torque_nm,
+            codec.messages[name], {"TorqueActual": runs[a].torque_nm,
                                     "VelocityActual": runs[a].speed_rpm}),
-            codec.ids[name], codec._messages[name].length))
+            codec.ids[name], codec.messages[name].length))
     t = np.concatenate([p[0] for p in parts])
     kind = np.concatenate([np.full(len(p[0]), p[1]) for p in parts])
     act = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])

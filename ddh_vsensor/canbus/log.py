@@ -61,8 +61,8 @@ def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
     """Write the frames of every sample of every run (actuator -> run) to a BLF; atomic.
 
     Per sample: the Sevcon TPDO1 of its actuator, the oil temperature (from the first run),
-    the I/O module byte with every actuator's latest switch states, and the CiA 406 position
-    frame where the position was sampled. Frame timestamps are time_s.
+    the I/O module's input bytes with every actuator's latest switch states, and the CiA 406
+    position frame where the position was sampled. Frame timestamps are time_s.
     """
     if not runs:
         raise MeasuredDataError(str(path), "no run to write")

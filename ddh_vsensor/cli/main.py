@@ -13,7 +13,8 @@ from .logs import configure_logging
 
 # Subcommand modules under ddh_vsensor.cli, each exposing register(subparsers).
 SUBCOMMANDS = ("tables", "steady", "simulate", "estimate", "analyze",
-               "run", "replay", "monitor", "status", "demo", "config", "install", "fleet")
+               "run", "replay", "monitor", "status", "demo", "config", "install", "fleet",
+               "dbc", "eds")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -63,8 +63,8 @@ def _run(args: argparse.Namespace) -> int:
     import can
     import canopen
 
+    from ..canbus.eds import unit_object_dictionary
     from ..service.bus import open_bus
-    from ..service.node import EDS_PATH
 
     cfg = config_from(args)
     if not 0.01 <= args.timeout <= 60:
@@ -81,7 +81,7 @@ def _run(args: argparse.Namespace) -> int:
     step = cfg.can.position_step_mm
     out: dict[str, Any] = {}
     try:
-        nodes = {a: network.add_node(u.sensor_node_id, str(EDS_PATH))
+        nodes = {a: network.add_node(u.sensor_node_id, unit_object_dictionary(cfg, a))
                  for a, u in cfg.can.units.items()}
         for node in nodes.values():
             node.sdo.RESPONSE_TIMEOUT = args.timeout

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import can
 import cantools
 
-from ..canbus.dbc import IO_MODULE, OIL_TEMP, FrameCodec, load_dbc, message_name
+from ..canbus.dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
 from ..config import Config
 
 log = logging.getLogger(__name__)
@@ -152,9 +152,7 @@ class Inputs:
         ids = codec.ids
         self.sevcon_ids = {ids[message_name("sevcon", a)]: a for a in cfg.can.units}
         self.oil_id, self.io_id = ids[OIL_TEMP], ids[IO_MODULE]
-        db = load_dbc(cfg=cfg)
-        self._lengths = {frame_id: db.get_message_by_name(name).length
-                         for name, frame_id in ids.items()}
+        self._lengths = {frame_id: codec.messages[name].length for name, frame_id in ids.items()}
         self._limits = {a: (PLAUSIBLE_LIMIT_FACTOR * cfg.unit(a).motor.speed_limit_rpm,
                             PLAUSIBLE_LIMIT_FACTOR * cfg.unit(a).motor.torque_limit_nm)
                         for a in cfg.can.units}

@@ -1,49 +1,20 @@
-"""The DBC: every frame present and round-tripping, IDs following the configured node IDs."""
+"""The frame codec: every frame encoded and decoded at the configured IDs, step and wiring."""
 
 from __future__ import annotations
 
 import dataclasses
-import os
-from pathlib import Path
 
 import cantools
 import pytest
 
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.canbus import (IO_MODULE, FrameCodec, all_message_names, frame_ids,
-                                load_dbc, message_name)
-from ddh_vsensor.canbus.dbc import DEFAULT_DBC
-from ddh_vsensor.config import Config, ConfigError, load_config
-from ddh_vsensor.errors import UserError
-
-REPO = Path(__file__).resolve().parents[2]
+from ddh_vsensor.canbus import IO_MODULE, FrameCodec, frame_ids, message_name
+from ddh_vsensor.config import Config, ConfigError
 
 
 def with_can_unit(cfg: Config, actuator: str, **changes: int) -> Config:
     units = {**cfg.can.units, actuator: dataclasses.replace(cfg.can.units[actuator], **changes)}
     return dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, units=units))
-
-
-def test_packaged_dbc_is_a_relative_link_to_the_repo_dbc() -> None:
-    assert os.readlink(DEFAULT_DBC) == "../../dbc/ddh_vsensor.dbc"
-    assert DEFAULT_DBC.resolve() == (REPO / "dbc" / "ddh_vsensor.dbc").resolve()
-
-
-def test_dbc_has_every_frame_with_comments() -> None:
-    db = load_dbc()
-    assert sorted(m.name for m in db.messages) == sorted(all_message_names(load_config().unit_names))
-    for message in db.messages:
-        assert message.comment
-        assert all(signal.comment for signal in message.signals), message.name
-        assert all(signal.byte_order == "little_endian" for signal in message.signals)
-
-
-@pytest.mark.parametrize("name", all_message_names(load_config().unit_names))
-def test_each_message_round_trips(name: str) -> None:
-    message = load_dbc().get_message_by_name(name)
-    # The extreme of each signal's range: catches a wrong sign, length or scale.
-    signals = {s.name: s.minimum if s.is_signed else s.maximum for s in message.signals}
-    assert message.decode(message.encode(signals), decode_choices=False) == pytest.approx(signals)
 
 
 def test_documented_layout(cfg: Config) -> None:
@@ -91,8 +62,8 @@ def test_uncertainty_range_covers_every_stroke(cfg: Config) -> None:
 
 
 def test_flag_bytes_are_bit_signals_with_value_tables(cfg: Config) -> None:
-    db = load_dbc()
     codec = FrameCodec(cfg)
+    db = codec.database
     for actuator in cfg.can.units:
         for kind, prefix in (("position", "Status"), ("diag", "Flag")):
             message = db.get_message_by_name(message_name(kind, actuator))
@@ -112,20 +83,6 @@ def test_flag_bytes_are_bit_signals_with_value_tables(cfg: Config) -> None:
     assert str(decoded["StatusControllerNotOperational"]) == "NotOperational"
 
 
-def test_cycle_times_and_send_types() -> None:
-    db = load_dbc()
-    expected = {"POSITION_BOOM_TPDO1": (10, "Cyclic"), "DIAG_BOOM_TPDO2": (100, "Cyclic"),
-                "SENSOR_BOOM_HEARTBEAT": (1000, "Cyclic"), "SEVCON_BOOM_TPDO1": (10, "Cyclic"),
-                "SENSOR_BOOM_EMCY": (None, "Spontaneous"), "IO_MODULE_TPDO1": (None, "OnChange"),
-                "SENSOR_BOOM_SDO_TX": (None, "Spontaneous")}
-    for name, (cycle_ms, send_type) in expected.items():
-        message = db.get_message_by_name(name)
-        assert (message.cycle_time, message.send_type) == (cycle_ms, send_type), name
-    for message in db.messages:
-        assert message.send_type in ("Cyclic", "OnChange", "Spontaneous"), message.name
-        assert (message.cycle_time is not None) == (message.send_type == "Cyclic"), message.name
-
-
 def test_sensor_heartbeat_emcy_and_sdo_frames_decode(cfg: Config) -> None:
     codec = FrameCodec(cfg)
     ids = codec.ids
@@ -134,7 +91,7 @@ def test_sensor_heartbeat_emcy_and_sdo_frames_decode(cfg: Config) -> None:
     assert (ids[message_name("sdo_tx", "boom")], ids[message_name("sdo_rx", "boom")]) == \
         (0x5B1, 0x631)
     assert ids["NMT_COMMAND"] == 0
-    db = load_dbc()
+    db = codec.database
     signals = {s.name: 0 for s in db.get_message_by_name("SENSOR_BOOM_EMCY").signals}
     signals.update({"ErrorCode": 0x8100, "RegisterGeneric": 1, "RegisterCommunication": 1,
                     "FlagConcerned": 1, "ActiveStaleInput": 1})
@@ -144,11 +101,6 @@ def test_sensor_heartbeat_emcy_and_sdo_frames_decode(cfg: Config) -> None:
     assert str(decoded["ErrorCode"]) == "InputStale"
     boot = codec.decode(codec.encode(message_name("sensor_heartbeat", "bucket"), {"NmtState": 0}))
     assert boot == ("SENSOR_BUCKET_HEARTBEAT", {"NmtState": 0})
-
-
-def test_default_config_uses_the_dbc_ids(cfg: Config) -> None:
-    db = load_dbc()
-    assert frame_ids(cfg) == {m.name: m.frame_id for m in db.messages}
 
 
 def test_other_node_ids_keep_the_function_code(cfg: Config) -> None:
@@ -176,15 +128,16 @@ def test_position_follows_the_configured_step(cfg: Config) -> None:
     msg = codec.encode_position("boom", 123.44, 0.0, 0)
     assert bytes(msg.data[:4]) == (1234).to_bytes(4, "little", signed=True)
     assert codec.decode(msg)[1]["Position"] == pytest.approx(123.4)
-    assert load_dbc().get_message_by_name("POSITION_BOOM_TPDO1") \
-        .get_signal_by_name("Position").scale == 0.01       # the shared DBC is untouched
+    assert codec.messages["POSITION_BOOM_TPDO1"].get_signal_by_name("Position").scale == 0.1
+    assert FrameCodec(cfg).messages["POSITION_BOOM_TPDO1"] \
+        .get_signal_by_name("Position").scale == 0.01
 
 
 def test_hall_bits_follow_the_config(cfg: Config) -> None:
     codec = FrameCodec(cfg)
     msg = codec.encode_inputs({"boom": {"top": 1, "mid": 0}, "bucket": {"bottom": 1}})
     assert msg.arbitration_id == 0x190 and bytes(msg.data) == bytes([0b0000_1100])
-    decoded = load_dbc().get_message_by_name(IO_MODULE).decode(bytes(msg.data))
+    decoded = codec.messages[IO_MODULE].decode(bytes(msg.data))
     assert decoded["HallBoomTop"] == 1 and decoded["HallBucketBottom"] == 1
     assert codec.hall_states("bucket", msg.data) == {"bottom": 1, "mid": 0, "top": 0}
     rewired = FrameCodec(with_can_unit(cfg, "bucket", hall_bits={"bottom": 7, "mid": 4,
@@ -200,11 +153,29 @@ def test_message_name_rejects_unknown_kind() -> None:
         message_name("speed", "boom")
 
 
-def test_load_dbc_errors_name_the_file(tmp_path: Path) -> None:
-    with pytest.raises(UserError, match="nowhere.dbc"):
-        load_dbc(tmp_path / "nowhere.dbc")
-    partial = tmp_path / "partial.dbc"
-    text = DEFAULT_DBC.read_text()
-    partial.write_text(text[:text.index("BO_ 1793")] + "\n")
-    with pytest.raises(UserError, match=r"partial\.dbc.*SEVCON_BOOM_HEARTBEAT"):
-        load_dbc(partial)
+def test_hall_bits_up_to_63_span_the_io_frame(wide_inputs: Config,
+                                              three_units: Config) -> None:
+    codec = FrameCodec(wide_inputs)
+    msg = codec.encode_inputs({"ram": {"bottom": 0, "mid": 1, "top": 1}})
+    assert msg.dlc == 8 and int.from_bytes(msg.data, "little") == (1 << 63) | (1 << 31)
+    assert codec.hall_states("ram", msg.data) == {"bottom": 0, "mid": 1, "top": 1}
+    name, signals = codec.decode(msg)
+    assert name == IO_MODULE
+    assert (signals["HallRamBottom"], signals["HallRamMid"], signals["HallRamTop"]) == (0, 1, 1)
+    with pytest.raises(cantools.database.DecodeError, match="needs 8 byte"):
+        codec.hall_states("ram", msg.data[:7])
+    codec = FrameCodec(three_units)
+    msg = codec.encode_inputs({"arm": {"top": 1}, "tilt": {"mid": 1}})
+    assert bytes(msg.data) == bytes([0b0001_0000, 0b0000_0100])
+    assert codec.hall_states("arm", msg.data) == {"bottom": 0, "mid": 0, "top": 1}
+    assert codec.hall_states("lift", msg.data) == {"bottom": 0, "mid": 0, "top": 0}
+
+
+def test_renamed_units_encode_and_decode(three_units: Config) -> None:
+    codec = FrameCodec(three_units)
+    msg = codec.encode_position("arm", 12.34, -5.0, int(Flags.NOT_REFERENCED))
+    assert msg.arbitration_id == 0x180 + 51
+    name, signals = codec.decode(msg)
+    assert name == "POSITION_ARM_TPDO1" and signals["Status"] == Flags.NOT_REFERENCED
+    assert signals["Position"] == pytest.approx(12.34)
+    assert codec.decode(codec.encode_sevcon("tilt", 2.0, -300.0))[0] == "SEVCON_TILT_TPDO1"

@@ -1,16 +1,20 @@
-"""The emulated CiA 406 sensor's EDS: loadable by canopen, its PDOs pack like the DBC frames."""
+"""The emulated CiA 406 sensor's EDS, the template and each unit's generated one: loadable by
+canopen, the configured values in it, its PDOs packing like the frames."""
 
 from __future__ import annotations
 
+import configparser
+import dataclasses
 from pathlib import Path
 
 import canopen
 import pytest
 
-from ddh_vsensor.canbus import FrameCodec, message_name
-from ddh_vsensor.config import Config
+from ddh_vsensor.canbus import FrameCodec, message_name, unit_object_dictionary
+from ddh_vsensor.canbus.eds import TEMPLATE_EDS, write_unit_eds
+from ddh_vsensor.config import Config, UnknownUnitError
 
-EDS = Path(__file__).resolve().parents[2] / "ddh_vsensor" / "data" / "cia406_position_sensor.eds"
+EDS = TEMPLATE_EDS
 
 
 @pytest.fixture(params=["boom", "bucket"])
@@ -35,7 +39,6 @@ def test_eds_describes_a_cia406_linear_encoder() -> None:
 
 def test_eds_lists_every_object_it_defines() -> None:
     """The [..Objects] sections name exactly the objects defined (what tools read first)."""
-    import configparser
     eds = configparser.ConfigParser()
     eds.optionxform = str
     eds.read(EDS)
@@ -74,3 +77,111 @@ def test_tpdo2_packs_like_the_diag_frame(sensor: tuple[str, canopen.LocalNode],
         tpdo[index].raw = value
     expected = codec.encode_diag(actuator, 2.5, 0x05, 60000, 7)
     assert bytes(tpdo.data) == bytes(expected.data)
+
+
+# --- the EDS generated per unit ------------------------------------------------------------
+
+CONFIGURED = {(0x6005, 1), (0x6501, 0), (0x650A, 3), (0x1800, 5), (0x1014, 0)}
+
+
+def _generated(cfg: Config, unit: str, tmp_path: Path) -> Path:
+    path = tmp_path / f"{unit}.eds"
+    with open(path, "w", encoding="utf-8") as fh:
+        write_unit_eds(cfg, unit, fh, path.name)
+    return path
+
+
+def _defaults(od: canopen.ObjectDictionary) -> dict[tuple[int, int], object]:
+    out = {}
+    for index in od:
+        obj = od[index]
+        if isinstance(obj, canopen.objectdictionary.ODVariable):
+            out[(obj.index, 0)] = (obj.default, obj.data_type, obj.access_type, obj.pdo_mappable)
+        else:
+            for sub in obj.values():
+                out[(sub.index, sub.subindex)] = (sub.default, sub.data_type, sub.access_type,
+                                                  sub.pdo_mappable)
+    return out
+
+
+@pytest.mark.parametrize("machine", ["cfg", "three_units"])
+def test_generated_eds_loads_with_the_configured_values(machine: str, tmp_path: Path,
+                                                        request: pytest.FixtureRequest) -> None:
+    cfg: Config = request.getfixturevalue(machine)
+    for unit in cfg.unit_names:
+        node_id = cfg.can.units[unit].sensor_node_id
+        path = _generated(cfg, unit, tmp_path)
+        od = canopen.import_od(str(path))                   # the node ID comes from the file
+        assert od.node_id == node_id
+        assert od[0x1800][1].default == 0x4000_0000 | (0x180 + node_id)
+        assert od[0x1801][1].default == 0x4000_0000 | (0x280 + node_id)
+        assert od[0x1014].default == 0x80 + node_id
+        step_nm = round(cfg.can.position_step_mm * 1e6)
+        assert od[0x6005][1].default == od[0x6501].default == step_nm
+        assert od[0x650A][3].default == round(cfg.unit(unit).stroke_mm
+                                              / cfg.can.position_step_mm)
+        assert od[0x1800][5].default == cfg.can.event_timer_ms
+        assert "\nGranularity=8\n" in path.read_text()     # canopen reads it as a flag
+        # everything the configuration does not set is the template's, for this node
+        template = _defaults(canopen.import_od(str(EDS), node_id))
+        generated = _defaults(od)
+        assert generated.keys() == template.keys()
+        assert {k: v for k, v in generated.items() if k not in CONFIGURED} == \
+            {k: v for k, v in template.items() if k not in CONFIGURED}
+        assert f"Unit {unit}: sensor node {node_id}" in od.comments
+
+
+def test_generated_eds_follows_step_timer_emcy_and_nmt(cfg: Config, tmp_path: Path) -> None:
+    other = dataclasses.replace(cfg, can=dataclasses.replace(
+        cfg.can, position_step_mm=0.1, event_timer_ms=25.0, emcy_enabled=False,
+        nmt_auto_start=False))
+    path = _generated(other, "bucket", tmp_path)
+    od = canopen.import_od(str(path))
+    assert od[0x6005][1].default == 100_000
+    assert od[0x650A][3].default == round(cfg.unit("bucket").stroke_mm / 0.1)
+    assert od[0x1800][5].default == 25
+    assert od[0x1014].default == (1 << 31) | (0x80 + 50)           # not valid at boot
+    assert "$NODEID" in path.read_text()                           # COB-IDs stay relative
+    assert "stays PRE-OPERATIONAL until a master starts it" in od.comments
+    assert "0x1014 bit 31 set" in od.comments
+
+
+def test_generated_eds_is_the_same_for_the_same_config(cfg: Config, tmp_path: Path) -> None:
+    first = _generated(cfg, "boom", tmp_path).read_bytes()
+    assert _generated(cfg, "boom", tmp_path).read_bytes() == first
+    assert b"ModificationDate=01-01-2025" in first                 # the template's, not today
+
+
+def test_generated_eds_lists_every_object_it_defines(cfg: Config, tmp_path: Path) -> None:
+    eds = configparser.ConfigParser()
+    eds.optionxform = str
+    eds.read(_generated(cfg, "boom", tmp_path))
+    listed = {int(v, 16) for section in ("MandatoryObjects", "OptionalObjects",
+                                         "ManufacturerObjects")
+              for k, v in eds[section].items() if k != "SupportedObjects"}
+    defined = {int(s, 16) for s in eds.sections() if len(s) == 4
+               and all(c in "0123456789ABCDEFabcdef" for c in s)}
+    assert listed == defined and 0x6020 in listed
+
+
+def test_generated_eds_pdos_pack_like_the_frames(three_units: Config, tmp_path: Path) -> None:
+    codec = FrameCodec(three_units)
+    for unit in three_units.unit_names:
+        network = canopen.Network()
+        node = network.create_node(three_units.can.units[unit].sensor_node_id,
+                                   str(_generated(three_units, unit, tmp_path)))
+        node.tpdo.read(from_od=True)
+        tpdo1, tpdo2 = node.tpdo[1], node.tpdo[2]
+        assert tpdo1.cob_id == codec.ids[message_name("position", unit)]
+        assert tpdo2.cob_id == codec.ids[message_name("diag", unit)]
+        tpdo1[0x6020].raw, tpdo1[0x6030].raw, tpdo1[0x2000].raw = 54321, 77, 0x22
+        assert bytes(tpdo1.data) == bytes(codec.encode_position(unit, 543.21, 7.7, 0x22).data)
+        for index, value in ((0x2001, 1234), (0x2002, 0x41), (0x2003, 9), (0x2004, 1)):
+            tpdo2[index].raw = value
+        assert bytes(tpdo2.data) == bytes(codec.encode_diag(unit, 12.34, 0x41, 9, 1).data)
+
+
+def test_unknown_unit_lists_the_machine_s_units(three_units: Config) -> None:
+    with pytest.raises(UnknownUnitError, match=r"unknown unit 'boom' \(this machine's units: "
+                                               r"lift, tilt, arm\)"):
+        unit_object_dictionary(three_units, "boom")

@@ -32,6 +32,15 @@ def make_run(actuator: str, n: int = 400, start_s: float = 0.0, seed: int = 0) -
                comments=[f"test run {actuator}"], source=f"<{actuator}>")
 
 
+def switching_run(actuator: str, n: int, seed: int) -> Run:
+    """make_run with every switch toggling in runs of 10 samples, each unit differently (so a
+    bit read from the wrong unit or byte shows)."""
+    rng = np.random.default_rng(seed + 100)
+    refs = {name: np.repeat(rng.random(n // 10 + 1) < 0.5, 10)[:n]
+            for name in ("bottom", "mid", "top")}
+    return dataclasses.replace(make_run(actuator, n=n, seed=seed), refs=refs)
+
+
 def assert_same_data(read: Run, written: Run, oil: Run) -> None:
     """read is written within quantisation, with the oil temperature held from run oil."""
     np.testing.assert_allclose(read.time_s, written.time_s, rtol=0, atol=TIME_S)
@@ -127,3 +136,20 @@ def test_out_of_range_value_names_run_and_time(tmp_path: Path, cfg: Config) -> N
     with pytest.raises(MeasuredDataError, match=r"<boom>: at time_s .*cannot encode"):
         write_blf(tmp_path / "x.blf", {"boom": run}, cfg)
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("machine", ["three_units", "wide_inputs"])
+def test_hall_inputs_beyond_the_first_byte_round_trip(tmp_path: Path, machine: str,
+                                                      request: pytest.FixtureRequest) -> None:
+    cfg = request.getfixturevalue(machine)
+    runs = {unit: switching_run(unit, n=300, seed=i) for i, unit in enumerate(cfg.unit_names)}
+    path = tmp_path / "machine.blf"
+    write_blf(path, runs, cfg)
+    first = runs[cfg.unit_names[0]]
+    for unit, run in runs.items():
+        assert_same_data(read_can_log(path, unit, cfg), run, oil=first)
+    io_id = FrameCodec(cfg).ids["IO_MODULE_TPDO1"]
+    with can.BLFReader(path) as reader:
+        lengths = {m.dlc for m in reader if m.arbitration_id == io_id}
+    assert lengths == {max(b for u in cfg.can.units.values() for b in u.hall_bits.values())
+                       // 8 + 1}

@@ -1,4 +1,4 @@
-"""Every frame the service sends decodes with the shipped DBC: PDOs, heartbeats and boot-ups,
+"""Every frame the service sends decodes with the machine's generated database: PDOs, heartbeats and boot-ups,
 EMCYs, SDO responses (aborts included), before and after an NMT reset."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import canopen
 import pytest
 
-from ddh_vsensor.canbus.dbc import FrameCodec, load_dbc
+from ddh_vsensor.canbus.dbc import FrameCodec
 
 from .conftest import wait_for
 
@@ -25,7 +25,7 @@ def test_every_frame_the_service_sends_decodes_with_the_dbc(cfg, bus) -> None:
     master.frames.wait_count(master.frames.mark(), 0x2B2, 2, "TPDO2 after the reset")
     frames = master.frames.since(0)
     codec = FrameCodec(cfg)
-    db = load_dbc()
+    db = codec.database
     names = set()
     for msg in frames:
         decoded = codec.decode(msg)

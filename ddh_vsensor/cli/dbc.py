@@ -1,0 +1,37 @@
+"""``ddh-vsensor dbc``: the machine's frame layout as a DBC, generated from its configuration."""
+
+from __future__ import annotations
+
+import argparse
+
+import cantools
+
+from ..atomic import atomic_path
+from ..errors import UserError
+from .common import add_config_arg, config_from
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("dbc", help="write the DBC of every frame the machine's daemon reads "
+                                   "or writes",
+                       description="Frame IDs, names, lengths and Hall bit signals follow the "
+                       "configuration (can: section); the shipped dbc/ddh_vsensor.dbc is this "
+                       "command's output for the reference loader.")
+    add_config_arg(p)
+    p.add_argument("--out", metavar="FILE.dbc", required=True,
+                   help="where to write the DBC (replaced whole, never half-written)")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ..canbus.layout import machine_database
+    cfg = config_from(args)
+    db = machine_database(cfg)
+    try:
+        with atomic_path(args.out) as tmp:
+            cantools.database.dump_file(db, str(tmp), database_format="dbc")
+    except OSError as exc:
+        raise UserError(f"{args.out}: cannot write: {exc.strerror or exc}") from None
+    print(f"{args.out}: {len(db.messages)} frames of {len(cfg.unit_names)} unit(s) "
+          f"({', '.join(cfg.unit_names)})")
+    return 0
