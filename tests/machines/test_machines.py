@@ -1,0 +1,83 @@
+"""Every shipped machine: its configuration loads, its tables build, its work cycle simulates
+and the estimator (full mode) follows every unit, compared with the reference loader's
+accuracy on the same test (reached, or the shortfall stated with its measured figure)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ddh_vsensor.config import Config
+from ddh_vsensor.estimator.accuracy import accuracy
+from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.sim.cycles import cycle_names, work_cycle
+from ddh_vsensor.tables.build import build_unit_tables
+
+from .conftest import MACHINES
+
+# The reference loader on this same test (work cycle + random partial strokes, step 2 ms,
+# full mode): max |error| 0.75 mm (boom, work cycle; bucket 0.51 mm; random cycle 0.49 and
+# 0.36 mm), measured on this branch. Margin 20 % for noise of the seeds.
+LOADER_MAX_ERROR_MM = 0.75
+MARGIN = 1.2
+# Not reached (measured, same test): these units travel further between their Hall switches
+# (450-800 mm against the loader's 300-500 mm) and the error grows with the travel since the
+# last switch (0.1-0.3 % of it on every machine). Strict: a unit that comes within the
+# loader's figure must drop its entry here; one that gets worse than measured fails.
+NOT_REACHED = {("bench", "ram"): 1.25,
+               ("excavator", "boom"): 1.41, ("excavator", "stick"): 1.66,
+               ("excavator", "bucket"): 1.95}
+
+
+def test_every_shipped_machine_is_here():
+    assert {p.stem for p in MACHINES} >= {"loader", "excavator", "bench"}
+
+
+def test_config_and_work_cycle(machine: Config):
+    assert 1 <= len(machine.unit_names) <= 8
+    assert cycle_names(machine)
+    p = work_cycle(machine)
+    t = np.arange(0.0, p.duration_s, 0.01)
+    for a in machine.unit_names:
+        x, _ = p.evaluate(a, t)
+        unit = machine.unit(a)
+        assert x[0] == x[-1]                                  # the cycle repeats
+        assert x.min() < unit.references_mm["mid"] < x.max(), a    # it crosses a switch
+        assert machine.can.units[a].hall_bits.keys() >= unit.references_mm.keys()
+
+
+def test_tables_build_for_every_unit(machine: Config):
+    for a in machine.unit_names:
+        tables = build_unit_tables(machine, a)
+        assert tables.actuator == a
+
+
+def test_simulated_runs_have_every_unit(machine: Config, machine_runs):
+    for runs in machine_runs:
+        assert list(runs) == list(machine.unit_names)
+        for a, run in runs.items():
+            assert run.time_s[-1] >= 15.0
+            assert np.ptp(run.position_mm) > 100.0, a          # the unit really moved
+            assert any(state.any() for state in run.refs.values()), a
+
+
+def test_estimate_against_the_loaders_accuracy(machine: Config, machine_runs):
+    name = machine.source.rsplit("/", 1)[-1].removesuffix(".yaml")
+    worst = {}
+    for a in machine.unit_names:
+        tables = build_unit_tables(machine, a)
+        errors = []
+        for runs in machine_runs:
+            run = runs[a]
+            est = Estimator(machine, a, tables, mode="full",
+                            initial_position_mm=float(run.position_mm[0]))
+            res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+            errors.append(accuracy(res.position_mm, run.position_mm).max_abs_error_mm)
+        worst[a] = max(errors)
+    bound = LOADER_MAX_ERROR_MM * MARGIN
+    reached = {a: e for a, e in worst.items() if (name, a) not in NOT_REACHED}
+    missed = {a: e for a, e in worst.items() if (name, a) in NOT_REACHED}
+    assert all(e <= bound for e in reached.values()), (worst, bound)
+    for a, e in missed.items():
+        # documented shortfall: still there (else tighten), and no worse than measured
+        assert bound < e <= NOT_REACHED[(name, a)] * MARGIN, (a, e, bound)
