@@ -1,12 +1,12 @@
 """``ddh-vsensor demo``: the whole product on a virtual bus, nothing to set up.
 
 The plant simulator runs the machine's work cycle (the first of its configuration's
-``work_cycle.cycles``; the reference loader's: the paper's); its Sevcon, oil temperature, Hall-switch
-and heartbeat frames are replayed onto a python-can ``virtual`` bus in real time (``--rate``
-for faster); the service, unchanged, estimates and publishes both cylinders as CiA 406
-sensors; a listener on the same bus shows the published positions next to the simulator's
-true ones; a summary of the errors and a figure (true against published position per
-cylinder, the paper's Figures 6/8) end it. Before the cycle starts the demo writes the
+``work_cycle.cycles``; the reference loader's: the paper's); its Sevcon, oil temperature,
+Hall-switch and heartbeat frames are replayed onto a python-can ``virtual`` bus in real time
+(``--rate`` for faster); the service, unchanged, estimates and publishes every cylinder as a
+CiA 406 sensor; a listener on the same bus shows the published positions next to the
+simulator's true ones; a summary of the errors and a figure (true against published position
+per cylinder, the paper's Figures 6/8) end it. Before the cycle starts the demo writes the
 true start positions to the sensors' preset objects over SDO (as at commissioning) and sets
 the diagnostic frame's timer to the position frame's, so that every published position can be
 paired with the input frame it includes (the diag frame's input counter).

@@ -83,7 +83,7 @@ def _smooth_step(u: np.ndarray, a: float | None = None
 
 @dataclass(frozen=True)
 class Profile:
-    """Setpoints of both actuators over one cycle, repeated ``cycles`` times."""
+    """Setpoints of every unit over one cycle, repeated ``cycles`` times."""
 
     name: str
     trajectories: dict[str, Trajectory]
