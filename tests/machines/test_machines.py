@@ -20,10 +20,13 @@ from .conftest import MACHINES
 # 0.36 mm), measured on this branch. Margin 20 % for noise of the seeds.
 LOADER_MAX_ERROR_MM = 0.75
 MARGIN = 1.2
-# Not reached (measured, same test): these units travel further between their Hall switches
-# (450-800 mm against the loader's 300-500 mm) and the error grows with the travel since the
-# last switch (0.1-0.3 % of it on every machine). Strict: a unit that comes within the
-# loader's figure must drop its entry here; one that gets worse than measured fails.
+# Not reached (measured, same test). Where the error grows: a lightly loaded unit holds for
+# seconds while another moves, its motor standing (speed 0, the torque inside the pumps'
+# friction band); the true rod stands (< 0.2 mm/s), the estimate drifts 0.1-0.4 mm/s (the
+# tables' leakage at that torque). The loader's holds are heavily loaded: its motors creep at
+# tens of rpm and the tables follow (tests/sim: the boom's top hold). An estimator matter,
+# measured here and left to it. Strict: a unit that comes within the loader's figure must
+# drop its entry here; one that gets worse than measured fails.
 NOT_REACHED = {("bench", "ram"): 1.25,
                ("excavator", "boom"): 1.41, ("excavator", "stick"): 1.66,
                ("excavator", "bucket"): 1.95}
