@@ -36,6 +36,16 @@ def test_every_shipped_machine_is_here():
     assert {p.stem for p in MACHINES} >= {"loader", "excavator", "bench"}
 
 
+@pytest.mark.parametrize("path", MACHINES, ids=lambda p: p.stem)
+def test_every_value_says_where_it_comes_from(path):
+    for line in path.read_text().splitlines():
+        body = line.split("#", 1)[0].strip()
+        if body and not body.endswith(":") and ":" in body:
+            comment = line.split("#", 1)[1] if "#" in line else ""
+            nested = line.strip().startswith(("bottom", "top", "interface", "channel"))
+            assert "paper" in comment or "chosen" in comment or nested, (path.name, line)
+
+
 def test_config_and_work_cycle(machine: Config):
     assert 1 <= len(machine.unit_names) <= 8
     assert cycle_names(machine)
