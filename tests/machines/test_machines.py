@@ -59,6 +59,21 @@ def test_config_and_work_cycle(machine: Config):
         assert machine.can.units[a].hall_bits.keys() >= unit.references_mm.keys()
 
 
+def test_every_cycle_at_every_speed(machine: Config):
+    """Each configured cycle: slower at lower levels, back to its start, within the strokes
+    (plus the end-stop overtravel)."""
+    for name in cycle_names(machine):
+        durations = []
+        for speed in (1, 2, 3, 4):
+            p = work_cycle(machine, name, speed, cycles=2)
+            durations.append(p.cycle_s)
+            for a, tr in p.trajectories.items():
+                assert tr.position_mm[0] == tr.position_mm[-1], (name, a)
+                assert -100.0 <= tr.position_mm.min() <= tr.position_mm.max() \
+                    <= machine.unit(a).stroke_mm + 100.0, (name, a)
+        assert durations == sorted(durations, reverse=True), name
+
+
 def test_tables_build_for_every_unit(machine: Config):
     for a in machine.unit_names:
         tables = build_unit_tables(machine, a)
