@@ -1,5 +1,5 @@
 """Every shipped machine: its configuration loads, its tables build, its work cycle simulates
-and the estimator (full mode) follows every unit, compared with the reference loader's
+and the estimator (full and dynamic mode) follows every unit, compared with the reference loader's
 accuracy on the same test (reached, or the shortfall stated with its measured figure)."""
 
 from __future__ import annotations
@@ -15,21 +15,26 @@ from ddh_vsensor.tables.build import build_unit_tables
 
 from .conftest import MACHINES
 
-# The reference loader on this same test (work cycle + random partial strokes, step 2 ms,
-# full mode): max |error| 0.75 mm (boom, work cycle; bucket 0.51 mm; random cycle 0.49 and
-# 0.36 mm), measured on this branch. Margin 20 % for noise of the seeds.
-LOADER_MAX_ERROR_MM = 0.75
+# The reference loader on this same test (work cycle + random partial strokes, step 2 ms),
+# measured on this branch: full mode 0.75 mm (boom, work cycle; bucket 0.51; random cycle 0.49
+# and 0.36 mm), dynamic mode 0.47 mm (bucket, work cycle; boom 0.33). Margin 20 % for noise.
+LOADER_MAX_ERROR_MM = {"full": 0.75, "dynamic": 0.47}
 MARGIN = 1.2
-# Not reached (measured, same test). Where the error grows: a lightly loaded unit holds for
-# seconds while another moves, its motor standing (speed 0, the torque inside the pumps'
-# friction band); the true rod stands (< 0.2 mm/s), the estimate drifts 0.1-0.4 mm/s (the
-# tables' leakage at that torque). The loader's holds are heavily loaded: its motors creep at
-# tens of rpm and the tables follow (tests/sim: the boom's top hold). An estimator matter,
-# measured here and left to it. Strict: a unit that comes within the loader's figure must
-# drop its entry here; one that gets worse than measured fails.
-NOT_REACHED = {("bench", "ram"): 1.25,
-               ("excavator", "boom"): 1.41, ("excavator", "stick"): 1.66,
-               ("excavator", "bucket"): 1.95}
+# Not reached (measured, same test). Full mode, where the error grows: a lightly loaded unit
+# holds for seconds while another moves, its motor standing (speed 0, the torque inside the
+# pumps' friction band); the true rod nearly stands (< 0.2 mm/s), the estimate drifts
+# 0.1-0.4 mm/s (the tables' leakage at that torque). The loader's holds are heavily loaded:
+# its motors creep at tens of rpm and the tables follow. Dynamic mode has no such drift (ram
+# 0.21 mm on the work cycle); its maxima here are single events of the random cycle (ram,
+# boom) and the bucket's work cycle, not traced yet. Estimator matters, measured here and left
+# to it. Strict: a unit that comes within the loader's figure must drop its entry here; one
+# that gets worse than measured fails.
+NOT_REACHED = {
+    "full": {("bench", "ram"): 1.25, ("excavator", "boom"): 1.41,
+             ("excavator", "stick"): 1.66, ("excavator", "bucket"): 1.95},
+    "dynamic": {("bench", "ram"): 0.72, ("excavator", "boom"): 0.77,
+                ("excavator", "bucket"): 0.71},
+}
 
 
 def test_every_shipped_machine_is_here():
@@ -89,7 +94,8 @@ def test_simulated_runs_have_every_unit(machine: Config, machine_runs):
             assert any(state.any() for state in run.refs.values()), a
 
 
-def test_estimate_against_the_loaders_accuracy(machine: Config, machine_runs):
+@pytest.mark.parametrize("mode", ["full", "dynamic"])
+def test_estimate_against_the_loaders_accuracy(machine: Config, machine_runs, mode: str):
     name = machine.source.rsplit("/", 1)[-1].removesuffix(".yaml")
     worst = {}
     for a in machine.unit_names:
@@ -97,15 +103,16 @@ def test_estimate_against_the_loaders_accuracy(machine: Config, machine_runs):
         errors = []
         for runs in machine_runs:
             run = runs[a]
-            est = Estimator(machine, a, tables, mode="full",
+            est = Estimator(machine, a, tables, mode=mode,
                             initial_position_mm=float(run.position_mm[0]))
             res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
             errors.append(accuracy(res.position_mm, run.position_mm).max_abs_error_mm)
         worst[a] = max(errors)
-    bound = LOADER_MAX_ERROR_MM * MARGIN
-    reached = {a: e for a, e in worst.items() if (name, a) not in NOT_REACHED}
-    missed = {a: e for a, e in worst.items() if (name, a) in NOT_REACHED}
+    bound = LOADER_MAX_ERROR_MM[mode] * MARGIN
+    short = NOT_REACHED[mode]
+    reached = {a: e for a, e in worst.items() if (name, a) not in short}
+    missed = {a: e for a, e in worst.items() if (name, a) in short}
     assert all(e <= bound for e in reached.values()), (worst, bound)
     for a, e in missed.items():
         # documented shortfall: still there (else tighten), and no worse than measured
-        assert bound < e <= NOT_REACHED[(name, a)] * MARGIN, (a, e, bound)
+        assert bound < e <= short[(name, a)] * MARGIN, (a, e, bound)
