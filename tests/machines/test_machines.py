@@ -1,6 +1,7 @@
 """Every shipped machine: its configuration loads, its tables build, its work cycle simulates
-and the estimator (full and dynamic mode) follows every unit, compared with the reference loader's
-accuracy on the same test (reached, or the shortfall stated with its measured figure)."""
+and the estimator (full and dynamic mode) follows every unit, compared with the reference
+loader's accuracy on the same test (reached, or the shortfall stated with its measured
+figure)."""
 
 from __future__ import annotations
 
