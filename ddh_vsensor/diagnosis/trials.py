@@ -3,8 +3,9 @@ campaign of the machine's work cycle with it, and hand the runs over without the
 
 Two kinds of work cycle: the machine's configured one (``cycle="paper"``: for the reference
 loader the paper's, at two of its speeds 2..4) and random point-to-point cycles (smooth moves
-of random length and speed between random holds, every unit independently: harder on the model, with sharp accelerations and braking). Used by the tests
-and the benchmark; the draws are seeded so a failure can be replayed.
+of random length and speed between random holds, every unit independently: harder on the
+model, with sharp accelerations and braking). Used by the tests and the benchmark; the draws
+are seeded so a failure can be replayed.
 Magnitudes are drawn from ranges where the effect is large against the model's own error
 (about 1 mm without any effect): each range's low end moves the estimate by a few
 millimetres in a cycle.
