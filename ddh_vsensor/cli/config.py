@@ -10,7 +10,7 @@ import types
 import typing
 from pathlib import Path
 
-from ..config import DEFAULT_CONFIG, Config, load_config
+from ..config import DEFAULT_BUS, DEFAULT_CONFIG, Config, load_config
 from ..errors import UserError
 
 
@@ -39,10 +39,15 @@ def default_text() -> str:
 
 
 def describe(cfg: Config) -> str:
-    units = ", ".join(f"{a} (Sevcon node {u.sevcon_node_id}, sensor node {u.sensor_node_id})"
+    units = ", ".join(f"{a} (Sevcon node {u.sevcon_node_id}, sensor node {u.sensor_node_id}"
+                      f"{'' if len(cfg.bus_names) == 1 else ', bus ' + u.bus})"
                       for a, u in cfg.can.units.items())
-    bus = " ".join(f"{k}={v}" for k, v in cfg.bus.items())
-    return f"units {units}; bus {bus}; physics {cfg.physics_hash()[:12]}"
+    buses = "; ".join(f"{'bus' if name == DEFAULT_BUS else 'bus ' + name} "
+                      + " ".join(f"{k}={v}" for k, v in cfg.bus_kwargs(name).items())
+                      for name in cfg.bus_names)
+    cycles = ", ".join(cfg.work_cycle.cycles) if cfg.work_cycle is not None else "none"
+    return (f"units {units}; {buses}; work cycles {cycles}; "
+            f"physics {cfg.physics_hash()[:12]}")
 
 
 _BOUND_WORDS = (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))

@@ -8,13 +8,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ddh_vsensor.config import Config
+from ddh_vsensor.config import Config, load_config
 from ddh_vsensor.estimator.accuracy import accuracy
 from ddh_vsensor.estimator.estimator import Estimator
 from ddh_vsensor.sim.cycles import cycle_names, work_cycle
 from ddh_vsensor.tables.build import build_unit_tables
 
-from .conftest import MACHINES
+from .conftest import MACHINES, REPO
 
 # The reference loader on this same test (work cycle + random partial strokes, step 2 ms),
 # measured on this branch: full mode 0.75 mm (boom, work cycle; bucket 0.51; random cycle 0.49
@@ -40,6 +40,14 @@ NOT_REACHED = {
 
 def test_every_shipped_machine_is_here():
     assert {p.stem for p in MACHINES} >= {"loader", "excavator", "bench"}
+
+
+def test_a_shipped_machine_splits_its_units_over_two_buses():
+    cfg = load_config(REPO / "config" / "excavator.yaml")
+    assert cfg.bus_names == ("default", "can1")
+    assert cfg.units_on_bus("default") == ("boom", "stick")
+    assert cfg.units_on_bus("can1") == ("bucket",)
+    assert cfg.bus_kwargs("can1")["channel"] == "can1"
 
 
 @pytest.mark.parametrize("path", MACHINES, ids=lambda p: p.stem)
