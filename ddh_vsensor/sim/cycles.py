@@ -177,6 +177,7 @@ def work_cycle(cfg: Config, name: str = WORK, speed: int = 4, cycles: int = 1) -
     trajectories = {}
     for unit, pts in knots.items():
         pts.append((t, pts[-1][1]))
+        pts = [p for k, p in enumerate(pts) if k == 0 or p != pts[k - 1]]  # no 0 s segments
         trajectories[unit] = Trajectory(np.array([p[0] for p in pts]),
                                         np.array([p[1] for p in pts]), smooth=True)
     return Profile(f"{name} speed {speed}", trajectories, t).repeated(cycles)

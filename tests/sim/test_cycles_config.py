@@ -64,6 +64,21 @@ def test_overlapping_moves_and_holds(cfg):
     assert boom.time_s[3] == pytest.approx(bucket.time_s[4] + 0.6)       # after the curl holds
 
 
+def test_steps_that_do_not_move_and_zero_holds_leave_no_empty_segment():
+    data = copy.deepcopy(RAW)
+    cycle = data["work_cycle"]["cycles"]["paper"]
+    cycle["end_hold_s"] = 0.0
+    cycle["steps"] = [{"unit": "boom", "to_mm": 1.5},                 # already there
+                      {"unit": "boom", "to_mm": 150.0, "hold_s": 0.0},
+                      {"unit": "boom", "to_mm": 1.5, "hold_s": 0.0}]
+    p = work_cycle(parse_config(data, "m.yaml"), "paper", cycles=2)
+    for tr in p.trajectories.values():
+        assert np.all(np.diff(tr.time_s) > 0.0)
+    with np.errstate(all="raise"):
+        x, _ = p.evaluate("boom", np.linspace(0.0, p.duration_s, 2001))
+    assert np.all(np.isfinite(x)) and x.max() == pytest.approx(150.0)
+
+
 def test_unknown_cycle_lists_the_names(cfg):
     assert cycle_names(cfg) == ("paper", "dig-dump")
     assert require_cycle(cfg, "work") == "paper"
