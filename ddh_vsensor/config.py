@@ -221,6 +221,125 @@ class CanConfig:
     emcy_enabled: bool = True       # EMCY producer valid at boot (0x1014 bit 31 clear)
 
 
+END_STOP_OVERTRAVEL_MAX_MM = 100.0     # a cycle setpoint beyond a stroke end presses the rod
+                                      # into its stop; further than this is a typo
+WORK_SPEED_LEVELS = 4                 # `simulate --speed 1..4`: level N moves at N/4 of a speed
+
+
+@dataclass(frozen=True)
+class CycleStepConfig:
+    """One move of a work cycle: ``unit`` travels to ``to_mm`` (beyond a stroke end: pressed
+    into its end stop), then the cycle holds; ``with_next`` starts the next step at once, so
+    the two moves overlap."""
+
+    unit: str
+    to_mm: float = field(metadata={"ge": -END_STOP_OVERTRAVEL_MAX_MM, "le": 100000.0})
+    speed_share: float = field(default=1.0, metadata={"gt": 0.0, "le": 1.0})
+    hold_s: float | None = field(default=None, metadata={"ge": 0.0, "le": 3600.0})
+    with_next: bool = False
+
+
+@dataclass(frozen=True)
+class CycleConfig:
+    """A named work cycle: every unit's start position, then the steps one after another."""
+
+    start_mm: dict[str, float]
+    steps: tuple[CycleStepConfig, ...]
+    start_hold_s: float = field(default=1.0, metadata={"ge": 0.0, "le": 3600.0})
+    pause_s: float = field(default=0.4, metadata={"ge": 0.0, "le": 3600.0})
+    end_hold_s: float = field(default=1.0, metadata={"ge": 0.0, "le": 3600.0})
+
+    def check(self, path: str) -> list[tuple[str, str]]:
+        if not self.steps:
+            return [(f"{path}.steps", "a cycle needs at least one step")]
+        if self.steps[-1].with_next:
+            return [(f"{path}.steps[{len(self.steps) - 1}].with_next",
+                     "the last step has no next step to overlap with")]
+        for i, step in enumerate(self.steps):
+            if step.with_next and step.hold_s is not None:
+                return [(f"{path}.steps[{i}].hold_s", "a step with with_next does not hold "
+                         "(the next step starts at once)")]
+        return []
+
+
+@dataclass(frozen=True)
+class WorkUnitConfig:
+    """How fast one unit works in the simulator's cycles."""
+
+    travel_speed_mm_s: float = field(metadata=_positive(le=10000.0))  # cycle steps at speed 4
+    work_speed_mm_s: float = field(metadata=_positive(le=10000.0))    # random work: top speed
+    work_range_mm: tuple[float, ...]    # [low, high]: targets of the diagnosis' random trials
+
+    def check(self, path: str) -> list[tuple[str, str]]:
+        r = self.work_range_mm
+        if len(r) != 2 or not r[0] < r[1]:
+            return [(f"{path}.work_range_mm", "must be [low, high] with low < high")]
+        return []
+
+
+@dataclass(frozen=True)
+class WorkCycleConfig:
+    """The machine's work for the simulator: per-unit speeds and named cycles (the first is
+    the machine's typical cycle, ``simulate --cycle work``)."""
+
+    units: dict[str, WorkUnitConfig]
+    cycles: dict[str, CycleConfig]
+
+    def check(self, path: str) -> list[tuple[str, str]]:
+        if not self.cycles:
+            return [(f"{path}.cycles", "at least one cycle (the machine's typical one)")]
+        for name in self.cycles:
+            if not _CYCLE_NAME.fullmatch(name) or name in RESERVED_CYCLE_NAMES:
+                return [(f"{path}.cycles.{name}", "a cycle name is a lower-case word (letters, "
+                         "digits, - and _) other than " + ", ".join(RESERVED_CYCLE_NAMES))]
+        return []
+
+
+_CYCLE_NAME = re.compile(r"[a-z][a-z0-9_-]{0,31}")
+RESERVED_CYCLE_NAMES = ("work", "random")   # `simulate --cycle`: the first cycle, random work
+
+
+def _check_work_cycle(cfg: "Config") -> list[tuple[str, str]]:
+    """Every unit has its speeds and start positions; steps name units and stay within a
+    stroke (plus the end-stop overtravel)."""
+    work = cfg.work_cycle
+    if work is None:
+        return []
+    problems = []
+    units = ", ".join(cfg.units)
+    for name in cfg.units:
+        if name not in work.units:
+            problems.append((f"work_cycle.units.{name}", "missing: every unit needs its speeds"))
+    for name, wu in work.units.items():
+        if name not in cfg.units:
+            problems.append((f"work_cycle.units.{name}", f"no such unit (units: {units})"))
+        elif not 0.0 <= wu.work_range_mm[0] < wu.work_range_mm[1] <= cfg.units[name].stroke_mm:
+            problems.append((f"work_cycle.units.{name}.work_range_mm",
+                             f"must lie within the stroke 0..{cfg.units[name].stroke_mm:g} mm"))
+    for cname, cycle in work.cycles.items():
+        base = f"work_cycle.cycles.{cname}"
+        for name in cfg.units:
+            if name not in cycle.start_mm:
+                problems.append((f"{base}.start_mm.{name}", "missing: every unit starts "
+                                 "somewhere"))
+        for name, x in cycle.start_mm.items():
+            if name not in cfg.units:
+                problems.append((f"{base}.start_mm.{name}", f"no such unit (units: {units})"))
+            elif not 0.0 <= x <= cfg.units[name].stroke_mm:
+                problems.append((f"{base}.start_mm.{name}", f"{x:g} mm lies outside the stroke "
+                                 f"0..{cfg.units[name].stroke_mm:g} mm"))
+        for i, step in enumerate(cycle.steps):
+            if step.unit not in cfg.units:
+                problems.append((f"{base}.steps[{i}].unit", f"no such unit {step.unit!r} "
+                                 f"(units: {units})"))
+            elif not (-END_STOP_OVERTRAVEL_MAX_MM <= step.to_mm
+                      <= cfg.units[step.unit].stroke_mm + END_STOP_OVERTRAVEL_MAX_MM):
+                problems.append((f"{base}.steps[{i}].to_mm", f"{step.to_mm:g} mm is more than "
+                                 f"{END_STOP_OVERTRAVEL_MAX_MM:g} mm beyond the stroke "
+                                 f"0..{cfg.units[step.unit].stroke_mm:g} mm"))
+    return problems
+
+
 PresetMode = Literal["disabled", "pre-operational only", "enabled"]
 
 
@@ -270,6 +389,8 @@ class Config:
     # further buses by name (can.units.*.bus picks one; `bus:` is the one named "default")
     buses: dict[str, dict[str, Any]] = field(default_factory=dict)
     faults: FaultsConfig = field(default_factory=FaultsConfig)
+    # the simulator's work cycles (absent: random work only, speeds from the motor limits)
+    work_cycle: WorkCycleConfig | None = None
     source: str = field(default="<memory>", compare=False, metadata={"internal": True})
 
     @property
@@ -279,6 +400,7 @@ class Config:
 
     def check(self, path: str) -> list[tuple[str, str]]:
         problems = _check_unit_names(self)
+        problems += _check_work_cycle(self)
         for name, unit in self.units.items():
             missing = set(unit.references_mm) - set(self.can.units[name].hall_bits) \
                 if name in self.can.units else set()
@@ -341,7 +463,7 @@ class Config:
     def physics_hash(self) -> str:
         """Hash of everything the physics and tables depend on (not the bus, not the source)."""
         data = dataclasses.asdict(self)
-        for key in ("bus", "can", "estimator", "faults", "source"):
+        for key in ("bus", "can", "estimator", "faults", "work_cycle", "source"):
             data.pop(key)
         for unit in data["units"].values():
             for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm"):

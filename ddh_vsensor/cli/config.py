@@ -4,10 +4,13 @@ checked the way the service will load it (so a technician finds a typo before th
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
+import types
+import typing
 from pathlib import Path
 
-from ..config import DEFAULT_CONFIG, Config, load_config
+from ..config import DEFAULT_BUS, DEFAULT_CONFIG, Config, load_config
 from ..errors import UserError
 
 
@@ -22,6 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument("--validate", metavar="FILE",
                       help="load FILE as the service would; exit 0 and a one-line summary if "
                            "valid, exit 2 and the key path and problem if not")
+    what.add_argument("--schema", action="store_true",
+                      help="print every configuration key with its type, bounds and default "
+                           "(generated from the configuration's dataclasses)")
     what.add_argument("--write", metavar="PATH",
                       help="write the default configuration to PATH (an existing different "
                            "file is never overwritten)")
@@ -33,10 +39,89 @@ def default_text() -> str:
 
 
 def describe(cfg: Config) -> str:
-    units = ", ".join(f"{a} (Sevcon node {u.sevcon_node_id}, sensor node {u.sensor_node_id})"
+    units = ", ".join(f"{a} (Sevcon node {u.sevcon_node_id}, sensor node {u.sensor_node_id}"
+                      f"{'' if len(cfg.bus_names) == 1 else ', bus ' + u.bus})"
                       for a, u in cfg.can.units.items())
-    bus = " ".join(f"{k}={v}" for k, v in cfg.bus.items())
-    return f"units {units}; bus {bus}; physics {cfg.physics_hash()[:12]}"
+    buses = "; ".join(f"{'bus' if name == DEFAULT_BUS else 'bus ' + name} "
+                      + " ".join(f"{k}={v}" for k, v in cfg.bus_kwargs(name).items())
+                      for name in cfg.bus_names)
+    cycles = ", ".join(cfg.work_cycle.cycles) if cfg.work_cycle is not None else "none"
+    return (f"units {units}; {buses}; work cycles {cycles}; "
+            f"physics {cfg.physics_hash()[:12]}")
+
+
+_BOUND_WORDS = (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
+
+
+def _type_text(tp: typing.Any) -> str:
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if dataclasses.is_dataclass(tp):
+        return "mapping"
+    if origin is typing.Literal:
+        return " | ".join(str(a) for a in args)
+    if origin is tuple:
+        return f"list of {_type_text(args[0])}"
+    if origin is dict:
+        return f"mapping of {_type_text(args[0])} to {_type_text(args[1])}"
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join("null" if a is type(None) else _type_text(a) for a in args)
+    return {float: "number", int: "whole number", bool: "true/false", str: "text",
+            typing.Any: "any"}.get(tp, getattr(tp, "__name__", str(tp)))
+
+
+def _number(value: float) -> str:
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
+def _inner_dataclass(tp: typing.Any) -> type | None:
+    """The dataclass a field holds (directly, as the values of a mapping, the items of a
+    list, or optionally), whose keys the schema lists below the field."""
+    if dataclasses.is_dataclass(tp):
+        return tp
+    for arg in typing.get_args(tp):
+        inner = _inner_dataclass(arg)
+        if inner is not None:
+            return inner
+    return None
+
+
+def schema_lines(cls: type = Config, prefix: str = "") -> list[str]:
+    """One line per key: path, type, bounds, default; from the dataclass fields' type hints
+    and ``metadata`` (the same ones the loader validates with)."""
+    hints = typing.get_type_hints(cls)
+    lines = []
+    for f in dataclasses.fields(cls):
+        if f.metadata.get("internal"):
+            continue
+        tp = hints[f.name]
+        path = f"{prefix}{f.name}"
+        meta = dict(f.metadata)
+        if "ge" in meta and meta.get("gt", meta["ge"]) < meta["ge"]:
+            del meta["gt"]                  # _positive(ge=...): the tighter bound says it
+        bounds = " ".join(f"{word} {_number(meta[key])}" for key, word in _BOUND_WORDS
+                          if key in meta)
+        if f.default is not dataclasses.MISSING:
+            default = f"default {f.default!r}" if f.default is not None else "optional"
+        elif f.default_factory is not dataclasses.MISSING:
+            default = "optional"
+        else:
+            default = "required"
+        inner = _inner_dataclass(tp)
+        what = f"{_type_text(tp)}{', ' + bounds if bounds else ''}; {default}"
+        if inner is not None:
+            doc = " ".join((inner.__doc__ or "").replace("``", "").split())
+            what += f". {doc.split('. ')[0].rstrip('.')}"
+        lines.append(f"{path:<48} {what}")
+        if inner is not None:
+            origin = typing.get_origin(tp)
+            if origin is dict:
+                sub = f"{path}.<{'unit' if f.name == 'units' else 'name'}>."
+            elif origin is tuple:
+                sub = f"{path}[i]."
+            else:
+                sub = f"{path}."
+            lines += schema_lines(inner, sub)
+    return lines
 
 
 def write_default(path: Path) -> str:
@@ -56,6 +141,11 @@ def write_default(path: Path) -> str:
 def _run(args: argparse.Namespace) -> int:
     if args.print_default:
         sys.stdout.write(default_text())
+        return 0
+    if args.schema:
+        print("# ddh-vsensor configuration keys: path, type, bounds, default (<unit>: one of "
+              "the machine's units)")
+        print("\n".join(schema_lines()))
         return 0
     if args.validate:
         cfg = load_config(args.validate)

@@ -1,11 +1,12 @@
 """``ddh-vsensor demo``: the whole product on a virtual bus, nothing to set up.
 
-The plant simulator runs the paper's work cycle; its Sevcon, oil temperature, Hall-switch
-and heartbeat frames are replayed onto a python-can ``virtual`` bus in real time (``--rate``
-for faster); the service, unchanged, estimates and publishes both cylinders as CiA 406
-sensors; a listener on the same bus shows the published positions next to the simulator's
-true ones; a summary of the errors and a figure (true against published position per
-cylinder, the paper's Figures 6/8) end it. Before the cycle starts the demo writes the
+The plant simulator runs the machine's work cycle (the first of its configuration's
+``work_cycle.cycles``; the reference loader's: the paper's); its Sevcon, oil temperature,
+Hall-switch and heartbeat frames are replayed onto a python-can ``virtual`` bus in real time
+(``--rate`` for faster); the service, unchanged, estimates and publishes every cylinder as a
+CiA 406 sensor; a listener on the same bus shows the published positions next to the
+simulator's true ones; a summary of the errors and a figure (true against published position
+per cylinder, the paper's Figures 6/8) end it. Before the cycle starts the demo writes the
 true start positions to the sensors' preset objects over SDO (as at commissioning) and sets
 the diagnostic frame's timer to the position frame's, so that every published position can be
 paired with the input frame it includes (the diag frame's input counter).
@@ -32,8 +33,9 @@ DEFAULT_FIGURE = "ddh-vsensor-demo.png"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="simulated loader + service on a virtual bus, live view",
-                       description="Runs the paper's work cycle on the plant simulator, "
+    p = sub.add_parser("demo", help="simulated machine + service on a virtual bus, live view",
+                       description="Runs the machine's work cycle (--config; default the "
+                       "reference loader and the paper's cycle) on the plant simulator, "
                        "replays its frames onto a virtual CAN bus, runs the service on them "
                        "and shows true against estimated positions live, then an error "
                        "summary.")
@@ -41,7 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rate", type=float, default=1.0,
                    help="replay speed-up (default 1: real time)")
     p.add_argument("--speed", type=int, default=4, choices=(1, 2, 3, 4),
-                   help="paper cycle speed level (default 4, the fastest: about 25 s)")
+                   help="work cycle speed level (default 4, the fastest; the reference "
+                        "loader's paper cycle: about 25 s)")
     p.add_argument("--cycles", type=int, default=1, help="work cycles (default 1)")
     p.add_argument("--payload-kg", type=float, default=0.0)
     p.add_argument("--oil-temp-c", type=float, default=27.0)
@@ -91,6 +94,7 @@ class _Pairing:
 def _run(args: argparse.Namespace) -> int:
     from ..service.replay import machine_frames
     from ..sim import RunSpec, simulate_with_truth
+    from ..sim.cycles import WORK, require_cycle
     from .progress import ProgressBar
 
     if not 0.05 <= args.rate <= 1000:
@@ -103,10 +107,10 @@ def _run(args: argparse.Namespace) -> int:
     extensions = extensions_from(args, cfg)
     spec = RunSpec(speed=args.speed, cycles=args.cycles, payload_kg=args.payload_kg,
                    oil_temp_c=args.oil_temp_c)
-    print(f"ddh-vsensor demo: the paper's work cycle at speed {args.speed} "
+    print(f"ddh-vsensor demo: the {require_cycle(cfg, WORK)} work cycle at speed {args.speed} "
           f"({args.cycles} cycle{'s' if args.cycles > 1 else ''}, payload {args.payload_kg:g} kg, "
           f"oil {args.oil_temp_c:g} degC) on a virtual CAN bus")
-    bar = ProgressBar("simulating the loader")
+    bar = ProgressBar("simulating the machine")
     result = simulate_with_truth(cfg, [spec], bar.update)[0]
     bar.close()
     runs = {a: run for a, (run, _) in result.items()}
@@ -148,7 +152,7 @@ def write_figure(pairing: dict[str, "_Pairing"], truths: dict, path: str) -> Pat
             ax.set_xlabel("time (s)")
             ax.grid(True, alpha=0.3)
             ax.legend(loc="best", fontsize="small")
-    fig.suptitle("ddh-vsensor demo: the paper's work cycle, the service's output on the bus")
+    fig.suptitle("ddh-vsensor demo: the machine's work cycle, the service's output on the bus")
     fig.tight_layout()
     try:
         fig.savefig(out, dpi=110)

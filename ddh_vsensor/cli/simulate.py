@@ -1,4 +1,4 @@
-"""``ddh-vsensor simulate``: a simulated measured run of both units (CSV per unit + BLF)."""
+"""``ddh-vsensor simulate``: a simulated measured run of every unit (CSV per unit + BLF)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from ..config import Config
 from ..errors import UserError
 from ..sim.control import PIDSettings
+from ..sim.cycles import RANDOM, WORK, Profile, cycle_names, random_cycle, require_cycle
 from ..sim.effects import EFFECTS, build_effects, describe
 from ..sim.run import DEFAULT_STEP_S, RunSpec, simulate, write_run_dir
 from ..sim.sensors import SensorSettings
@@ -22,15 +24,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     effects = "; ".join(f"{e.name} ({e.parameter}, {e.allowed})"
                         for e in EFFECTS.values()).replace("%", "%%")
     p = sub.add_parser(
-        "simulate", help="simulate a work cycle of both units: boom.csv, bucket.csv, run.blf",
-        description="Time-domain simulation of both DDH units under PID position control. "
-                    "Writes DIR/boom.csv, DIR/bucket.csv (measured-data format) and DIR/run.blf.")
+        "simulate", help="simulate a work cycle of every unit: UNIT.csv per unit, run.blf",
+        description="Time-domain simulation of the machine's DDH units under PID position "
+                    "control. Writes DIR/UNIT.csv per unit (measured-data format) and "
+                    "DIR/run.blf.")
     add_config_arg(p)
-    p.add_argument("--cycle", required=True, metavar="paper|FILE.csv",
-                   help="'paper' (the paper's work cycle) or a CSV setpoint profile with "
-                        "columns time_s, boom_mm, bucket_mm")
-    p.add_argument("--speed", type=int, default=4, help="paper cycle speed level 1..4 "
-                   "(4 = fastest, about 25 s; default 4)")
+    p.add_argument("--cycle", required=True, metavar="NAME|random|FILE.csv",
+                   help="'work' (the machine's typical cycle: the first of its configuration's "
+                        "work_cycle.cycles), a cycle's name (reference loader: paper, "
+                        "dig-dump), 'random' (random work, --duration-s long, seeded by "
+                        "--seed) or a CSV setpoint profile with columns time_s and UNIT_mm per "
+                        "unit")
+    p.add_argument("--speed", type=int, default=4, help="speed level 1..4 of a named cycle: "
+                   "N/4 of the units' travel speeds (4 = fastest; reference loader's paper "
+                   "cycle about 25 s; default 4)")
+    p.add_argument("--duration-s", type=float, default=60.0,
+                   help="length of a random cycle (default 60)")
     p.add_argument("--payload-kg", type=float, required=True)
     p.add_argument("--oil-temp-c", type=float, required=True, help="oil temperature at start")
     p.add_argument("--cycles", type=int, default=1, help="repeat the cycle N times (default 1)")
@@ -48,14 +57,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run)
 
 
+def _cycle(cfg: Config, args: argparse.Namespace) -> str | Path | Profile:
+    """``--cycle`` as a RunSpec's cycle: a configured name, random work or a profile file."""
+    if args.cycle == RANDOM:
+        if not 5.0 <= args.duration_s <= 86400.0:
+            raise UserError(f"--duration-s {args.duration_s:g}: a random cycle lasts 5..86400 s")
+        return random_cycle(cfg, args.seed, args.duration_s)
+    if args.cycle == WORK or args.cycle in cycle_names(cfg):
+        return require_cycle(cfg, args.cycle)
+    if Path(args.cycle).is_file():
+        return Path(args.cycle)
+    names = ", ".join((WORK,) + cycle_names(cfg) + (RANDOM,))
+    raise UserError(f"--cycle {args.cycle}: neither a cycle of this machine ({names}) nor a "
+                    "readable profile file")
+
+
 def _run(args: argparse.Namespace) -> int:
     cfg = config_from(args)
-    if args.cycle != "paper" and not Path(args.cycle).is_file():
-        raise UserError(f"--cycle {args.cycle}: neither 'paper' nor a readable profile file")
+    cycle = _cycle(cfg, args)
     if not -1.0 <= args.oil_temp_drift <= 1.0:
         raise UserError(f"--oil-temp-drift {args.oil_temp_drift}: outside -1..1 degC/s")
     effects = build_effects(args.effect, cfg.unit_names)
-    spec = RunSpec(cycle="paper" if args.cycle == "paper" else Path(args.cycle),
+    spec = RunSpec(cycle=cycle,
                    speed=args.speed, payload_kg=args.payload_kg, oil_temp_c=args.oil_temp_c,
                    cycles=args.cycles, effects=effects, seed=args.seed, step_s=args.step_s,
                    sensors=replace(SensorSettings(), rate_hz=args.rate_hz,

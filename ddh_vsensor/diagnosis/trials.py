@@ -1,10 +1,11 @@
 """Hidden-effect trials: draw an effect of the catalogue (or none) and a magnitude, simulate a
-campaign of the paper's cycle with it, and hand the runs over without their comments.
+campaign of the machine's work cycle with it, and hand the runs over without their comments.
 
-Two kinds of work cycle: the paper's (at two of its speeds 2..4) and random point-to-point
-cycles (smooth moves of random length and speed between random holds, both actuators
-independently: harder on the model, with sharp accelerations and braking). Used by the tests
-and the benchmark; the draws are seeded so a failure can be replayed.
+Two kinds of work cycle: the machine's configured one (``cycle="paper"``: for the reference
+loader the paper's, at two of its speeds 2..4) and random point-to-point cycles (smooth moves
+of random length and speed between random holds, every unit independently: harder on the
+model, with sharp accelerations and braking). Used by the tests and the benchmark; the draws
+are seeded so a failure can be replayed.
 Magnitudes are drawn from ranges where the effect is large against the model's own error
 (about 1 mm without any effect): each range's low end moves the estimate by a few
 millimetres in a cycle.
@@ -118,14 +119,16 @@ def draw_trial(seed: int, effect: str | None = None, speeds: tuple[int, ...] | N
     return Trial(seed, effect, value, speeds, temps, cycle, more)
 
 
-def random_cycle(rng: np.random.Generator, duration_s: float = 40.0):
-    """Smooth point-to-point moves of each actuator between random holds (exponential, mean
-    2 s) to random targets within its stroke, at 30-100 % of a top speed (boom 80 mm/s,
-    bucket 160 mm/s, about what the motors reach near 5000 rpm)."""
-    from ..sim.cycles import Profile, Trajectory
-    limits = {"boom": (5.0, 300.0, 80.0), "bucket": (100.0, 800.0, 160.0)}
+def random_cycle(cfg: Config, rng: np.random.Generator, duration_s: float = 40.0):
+    """Smooth point-to-point moves of each unit between random holds (exponential, mean 2 s)
+    to random targets within its configured ``work_range_mm``, at 30-100 % of its
+    ``work_speed_mm_s`` (reference loader: boom 80 mm/s, bucket 160 mm/s, about what the
+    motors reach near 5000 rpm)."""
+    from ..sim.cycles import Profile, Trajectory, work_unit
     knots = {}
-    for a, (lo, hi, top) in limits.items():
+    for a in cfg.unit_names:
+        work = work_unit(cfg, a)
+        (lo, hi), top = work.work_range_mm, work.work_speed_mm_s
         t, x = [0.0], [float(rng.uniform(lo, hi))]
         while t[-1] < duration_s - 3.0:
             t.append(t[-1] + float(rng.exponential(2.0)))
@@ -142,10 +145,12 @@ def random_cycle(rng: np.random.Generator, duration_s: float = 40.0):
 
 
 def simulate_trial(cfg: Config, trial: Trial) -> list[dict[str, Run]]:
-    """The campaign: every speed x payload x oil temperature, one run each (both units)."""
+    """The campaign: every speed x payload x oil temperature, one run each (every unit)."""
+    from ..sim.cycles import WORK
     from ..sim.run import RunSpec, simulate_campaign
     rng = np.random.default_rng([trial.seed, 1])
-    cycles = {s: "paper" if trial.cycle == "paper" else random_cycle(rng) for s in trial.speeds}
+    cycles = {s: WORK if trial.cycle == "paper" else random_cycle(cfg, rng)
+              for s in trial.speeds}
     specs = [RunSpec(cycle=cycles[s], speed=s, payload_kg=p, oil_temp_c=t,
                      effects=trial.effect_arg, seed=trial.seed * 1000 + i)
              for i, (s, p, t) in enumerate((s, p, t) for s in trial.speeds for p in PAYLOADS_KG
@@ -161,7 +166,7 @@ def strip_comments(path: str | Path) -> None:
 
 
 def write_trial(runs: list[dict[str, Run]], out_dir: str | Path) -> dict[str, list[Path]]:
-    """Write each run's CSV per actuator (comments stripped): actuator -> paths."""
+    """Write each run's CSV per unit (comments stripped): unit -> paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths: dict[str, list[Path]] = {}

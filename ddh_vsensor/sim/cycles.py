@@ -1,18 +1,13 @@
-"""Setpoint profiles: the paper's work cycle at four speeds, and user profiles from CSV.
+"""Setpoint profiles: the machine's work cycles from its configuration, random work, and
+user profiles from CSV.
 
-A profile gives, for each actuator, the position setpoint and its rate as functions of time.
-The paper's cycle (lift the bucket = retract it; lift the boom; dump the bucket = extend it,
-then lift it again; lower the boom; finally the bucket back to its digging position, so that
-the cycle ends in its start state and repeats) is built from smooth point-to-point moves:
-trapezoidal velocity with raised-cosine acceleration and deceleration, no jerk steps.
-
-Positions are chosen so that every cycle crosses the middle reference switches (boom 155 mm,
-bucket 425 mm), the boom's bottom end switch (0 mm, window 3 mm) is on at each cycle's start
-and end (boom low setpoint 1.5 mm, clear of the end stop), and the boom's top setpoint
-(297 mm) stays below the top end (311.15 mm) as in the paper ("not allowed to reach the upper
-limits"). The four speed levels scale the travel velocities by 1/4 ... 4/4; at speed 4 the
-motors peak near 5000-5500 rpm and the cycle lasts about 26 s (paper: about 25 s, motors at
-5000-6000 rpm).
+A profile gives, for each unit, the position setpoint and its rate as functions of time. A
+configured cycle (``work_cycle.cycles`` of the machine's configuration; for the reference
+loader the paper's: lift the bucket, lift the boom, dump, lower, back to digging) is a list
+of steps, each a smooth point-to-point move of one unit: trapezoidal velocity with
+raised-cosine acceleration and deceleration, no jerk steps, then a hold; a step may overlap
+the next. The four speed levels scale the units' travel speeds by 1/4 ... 4/4 (the
+reference loader at speed 4: motors near 5000-5500 rpm, about 26 s, paper: about 25 s).
 """
 
 from __future__ import annotations
@@ -24,27 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config
+from ..config import Config, CycleConfig, WorkUnitConfig
 from ..errors import UserError
 
 SPEED_LEVELS = (1, 2, 3, 4)
 ACCEL_FRACTION = 0.25          # share of each move spent accelerating (and decelerating)
-
-
-@dataclass(frozen=True)
-class PaperCycleDesign:
-    """Positions (mm), travel velocities at speed 4 (mm/s) and pauses (s) of the cycle."""
-
-    boom_low_mm: float = 1.5
-    boom_high_mm: float = 297.0
-    bucket_dig_mm: float = 600.0
-    bucket_lifted_mm: float = 200.0
-    bucket_dumped_mm: float = 700.0
-    boom_velocity_mm_s: float = 95.0
-    bucket_velocity_mm_s: float = 195.0
-    start_hold_s: float = 1.0
-    pause_s: float = 0.4
-    end_hold_s: float = 1.0
+WORK = "work"                  # the machine's typical cycle: the first configured one
+RANDOM = "random"              # random work (:func:`random_cycle`), not a configured cycle
+# Without a work_cycle section: speeds as shares of the speed-limit speed (the reference
+# loader's configured ones are 0.84 / 0.71 of it), random targets within 3..97 % of a stroke.
+DEFAULT_TRAVEL_SHARE, DEFAULT_WORK_SHARE, DEFAULT_RANGE_SHARE = 0.8, 0.7, 0.03
 
 
 @dataclass(frozen=True)
@@ -99,7 +83,7 @@ def _smooth_step(u: np.ndarray, a: float | None = None
 
 @dataclass(frozen=True)
 class Profile:
-    """Setpoints of both actuators over one cycle, repeated ``cycles`` times."""
+    """Setpoints of every unit over one cycle, repeated ``cycles`` times."""
 
     name: str
     trajectories: dict[str, Trajectory]
@@ -138,44 +122,70 @@ def _move_time(distance_mm: float, velocity_mm_s: float) -> float:
     return abs(distance_mm) / (velocity_mm_s * (1.0 - ACCEL_FRACTION))
 
 
-def paper_cycle(speed: int, cycles: int = 1,
-                design: PaperCycleDesign = PaperCycleDesign()) -> Profile:
-    """The paper's work cycle at speed level 1..4 (4 the fastest), repeated ``cycles`` times."""
+def cycle_names(cfg: Config) -> tuple[str, ...]:
+    """The machine's configured cycles, its typical one first."""
+    return tuple(cfg.work_cycle.cycles) if cfg.work_cycle is not None else ()
+
+
+def require_cycle(cfg: Config, name: str) -> str:
+    """The configured cycle's name (``work``: the first), else an error listing them."""
+    names = cycle_names(cfg)
+    if name == WORK and names:
+        return names[0]
+    if name not in names:
+        known = ", ".join((WORK,) + names) if names else "none: the configuration has no " \
+            "work_cycle section"
+        raise UserError(f"{cfg.source}: unknown work cycle {name!r} (this machine's cycles: "
+                        f"{known})")
+    return name
+
+
+def work_unit(cfg: Config, unit: str) -> WorkUnitConfig:
+    """A unit's work speeds: configured, or shares of its speed-limit speed."""
+    if cfg.work_cycle is not None:
+        return cfg.work_cycle.units[cfg.require_unit(unit)]
+    top = cfg.max_speed_mm_s(unit) / cfg.faults.max_speed_factor
+    stroke = cfg.unit(unit).stroke_mm
+    return WorkUnitConfig(travel_speed_mm_s=DEFAULT_TRAVEL_SHARE * top,
+                          work_speed_mm_s=DEFAULT_WORK_SHARE * top,
+                          work_range_mm=(DEFAULT_RANGE_SHARE * stroke,
+                                         (1.0 - DEFAULT_RANGE_SHARE) * stroke))
+
+
+def work_cycle(cfg: Config, name: str = WORK, speed: int = 4, cycles: int = 1) -> Profile:
+    """A configured cycle at speed level 1..4 (4 the fastest), repeated ``cycles`` times."""
     if speed not in SPEED_LEVELS:
         raise UserError(f"speed must be one of 1, 2, 3, 4 (4 the fastest), got {speed}")
+    name = require_cycle(cfg, name)
+    design: CycleConfig = cfg.work_cycle.cycles[name]     # type: ignore[union-attr]
     f = speed / 4.0
-    d = design
-    knots: dict[str, list[tuple[float, float]]] = {
-        "boom": [(0.0, d.boom_low_mm)], "bucket": [(0.0, d.bucket_dig_mm)]}
-    t = d.start_hold_s
-
-    def move(actuator: str, target: float) -> None:
-        nonlocal t
-        velocity = (d.boom_velocity_mm_s if actuator == "boom" else d.bucket_velocity_mm_s) * f
-        start = knots[actuator][-1][1]
-        knots[actuator].append((t, start))
-        t += _move_time(target - start, velocity)
-        knots[actuator].append((t, target))
-        t += d.pause_s
-
-    move("bucket", d.bucket_lifted_mm)      # lift the bucket (retract)
-    move("boom", d.boom_high_mm)            # lift the boom
-    move("bucket", d.bucket_dumped_mm)      # dump (extend) ...
-    move("bucket", d.bucket_lifted_mm)      # ... and lift the bucket again
-    move("boom", d.boom_low_mm)             # lower the boom
-    move("bucket", d.bucket_dig_mm)         # bucket back to digging: the start state
-    t += d.end_hold_s - d.pause_s
+    knots = {u: [(0.0, design.start_mm[u])] for u in cfg.unit_names}
+    t, hold = design.start_hold_s, design.pause_s
+    for step in design.steps:
+        velocity = work_unit(cfg, step.unit).travel_speed_mm_s * step.speed_share * f
+        last_t, start = knots[step.unit][-1]
+        begin = max(t, last_t)          # a unit's move waits for its previous (overlapping) one
+        end = begin + _move_time(step.to_mm - start, velocity)
+        knots[step.unit] += [(begin, start), (end, step.to_mm)]
+        if not step.with_next:
+            hold = design.pause_s if step.hold_s is None else step.hold_s
+            t = end + hold
+    t += design.end_hold_s - hold
+    latest = max(pts[-1][0] for pts in knots.values()) + design.end_hold_s
+    if latest > t + 1e-9:               # an overlapping move ends after the last step
+        t = latest
     trajectories = {}
-    for name, pts in knots.items():
+    for unit, pts in knots.items():
         pts.append((t, pts[-1][1]))
-        tk = np.array([p[0] for p in pts])
-        xk = np.array([p[1] for p in pts])
-        trajectories[name] = Trajectory(tk, xk, smooth=True)
-    return Profile(f"paper speed {speed}", trajectories, t).repeated(cycles)
+        pts = [p for k, p in enumerate(pts) if k == 0 or p != pts[k - 1]]  # no 0 s segments
+        trajectories[unit] = Trajectory(np.array([p[0] for p in pts]),
+                                        np.array([p[1] for p in pts]), smooth=True)
+    return Profile(f"{name} speed {speed}", trajectories, t).repeated(cycles)
 
 
 def load_profile_csv(path: str | Path, cfg: Config, cycles: int = 1) -> Profile:
-    """A user profile: CSV with columns time_s, boom_mm, bucket_mm (``#`` lines are comments).
+    """A user profile: CSV with columns time_s and one ``<unit>_mm`` per unit, e.g. time_s,
+    boom_mm, bucket_mm for the reference loader (``#`` lines are comments).
 
     Setpoints are joined by straight lines (sample the file finely for smooth motion).
     """
@@ -223,71 +233,19 @@ END_STOP_OVERTRAVEL_MM = 20.0   # setpoint beyond a stroke end: the controller p
                                 # into its stop (pressure to the relief, no motion)
 
 
-@dataclass(frozen=True)
-class DigDumpDesign:
-    """A fast digging cycle: the bucket curled into its retracted stop and dumped into its
-    extended stop, the boom lowered onto its bottom stop to dig, as an operator does."""
-
-    boom_dig_mm: float = -END_STOP_OVERTRAVEL_MM
-    boom_carry_mm: float = 180.0
-    bucket_start_mm: float = 600.0
-    bucket_curled_mm: float = -END_STOP_OVERTRAVEL_MM
-    bucket_dumped_extra_mm: float = END_STOP_OVERTRAVEL_MM
-    boom_velocity_mm_s: float = 95.0
-    bucket_velocity_mm_s: float = 195.0
-    stop_hold_s: float = 0.6
-    pause_s: float = 0.2
-
-
-def dig_dump_cycle(cfg: Config, speed: int = 4, cycles: int = 1,
-                   design: DigDumpDesign = DigDumpDesign()) -> Profile:
-    """Dig (boom down onto its stop, bucket curled into its stop), carry, dump (bucket into
-    its extended stop), curl again, back to the start; ``speed`` 1..4 as the paper's cycle."""
-    if speed not in SPEED_LEVELS:
-        raise UserError(f"speed must be one of 1, 2, 3, 4 (4 the fastest), got {speed}")
-    f, d = speed / 4.0, design
-    boom_start = 0.5 * d.boom_carry_mm
-    dumped = cfg.unit("bucket").stroke_mm + d.bucket_dumped_extra_mm
-    knots: dict[str, list[tuple[float, float]]] = {
-        "boom": [(0.0, boom_start)], "bucket": [(0.0, d.bucket_start_mm)]}
-    t = 0.5
-
-    def move(actuator: str, target: float, hold_s: float, together: bool = False) -> None:
-        nonlocal t
-        velocity = (d.boom_velocity_mm_s if actuator == "boom" else d.bucket_velocity_mm_s) * f
-        start = knots[actuator][-1][1]
-        knots[actuator].append((t, start))
-        end = t + _move_time(target - start, velocity)
-        knots[actuator].append((end, target))
-        if not together:
-            t = end + hold_s
-
-    move("boom", d.boom_dig_mm, 0.0, together=True)            # boom down onto its stop ...
-    move("bucket", d.bucket_start_mm - 100.0, d.pause_s)       # ... while the bucket tilts
-    move("bucket", d.bucket_curled_mm, d.stop_hold_s)          # curl: fill, into the stop
-    move("boom", d.boom_carry_mm, d.pause_s)                   # lift and carry
-    move("bucket", dumped, d.stop_hold_s)                      # dump into the extended stop
-    move("bucket", d.bucket_curled_mm, d.stop_hold_s)          # shake out: curl back in
-    move("bucket", dumped, d.stop_hold_s)                      # ... and dump again
-    move("boom", boom_start, 0.0, together=True)               # back to the start state
-    move("bucket", d.bucket_start_mm, d.pause_s)
-    t = max(t, knots["boom"][-1][0] + d.pause_s)
-    trajectories = {}
-    for name, pts in knots.items():
-        pts.append((t, pts[-1][1]))
-        trajectories[name] = Trajectory(np.array([p[0] for p in pts]),
-                                        np.array([p[1] for p in pts]), smooth=True)
-    return Profile(f"dig-dump speed {speed}", trajectories, t).repeated(cycles)
+def dig_dump_cycle(cfg: Config, speed: int = 4, cycles: int = 1) -> Profile:
+    """The configured ``dig-dump`` cycle (the reference loader's: units pressed into their end
+    stops, as an operator digs)."""
+    return work_cycle(cfg, "dig-dump", speed, cycles)
 
 
 def random_cycle(cfg: Config, seed: int, duration_s: float = 60.0,
                  end_stop_share: float = 0.25) -> Profile:
     """Random work: partial strokes between random positions at random speeds, short and
-    long (loaded) holds, and a share of the moves pressed into an end stop. Both units move
-    independently, so their moves overlap."""
+    long (loaded) holds, and a share of the moves pressed into an end stop, at 30-100 % of
+    each unit's travel speed. The units move independently, so their moves overlap."""
     rng = np.random.default_rng(seed)
-    v_top = {"boom": PaperCycleDesign.boom_velocity_mm_s,
-             "bucket": PaperCycleDesign.bucket_velocity_mm_s}
+    v_top = {a: work_unit(cfg, a).travel_speed_mm_s for a in cfg.unit_names}
     trajectories = {}
     for actuator in cfg.unit_names:
         stroke = cfg.unit(actuator).stroke_mm

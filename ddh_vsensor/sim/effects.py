@@ -1,7 +1,7 @@
 """Effects catalogue: what a real machine has that the nominal tables do not.
 
 Each effect is named, documented, has one parameter and composes with the others; each applies
-to both units unless the caller names one (``boom.pump_leakage=1.5``). The nominal plant is
+to every unit unless the caller names one (``boom.pump_leakage=1.5``). The nominal plant is
 every effect at its neutral value.
 
 ``pump_leakage`` (factor, > 0, neutral 1)

@@ -6,7 +6,7 @@ leakage rises linearly from a day on, or the drive's logged signals drift in tim
 I/O module's (a time offset growing from a day on: the sensor chain drifting). Rates are
 drawn so that the error would cross a few millimetres two to three weeks after the onset.
 
-Each day's log: ``LOG_S`` of point-to-point work of both units between holds, passing the
+Each day's log: ``LOG_S`` of point-to-point work of every unit between holds, passing the
 Hall switches (the ends and the middle), a payload of the day, oil from a morning
 temperature warming through the log. The truth (every machine's effects per day) goes to
 ``truth.json`` beside the logs; the analysis never reads it. File names carry the machine,
@@ -26,7 +26,7 @@ import numpy as np
 from ..atomic import output_dir
 from ..config import Config
 from ..errors import UserError
-from .cycles import Profile, Trajectory
+from .cycles import Profile, Trajectory, work_unit
 from .effects import UnitEffects
 from .run import RunSpec, simulate_campaign
 from .sensors import SensorSettings
@@ -109,12 +109,11 @@ def plan_fleet(units: Sequence[str], machines: int, days: int, seed: int = 0,
 
 def work_profile(cfg: Config, rng: np.random.Generator, duration_s: float) -> Profile:
     """Point-to-point moves between holds; a quarter of the targets at the stroke ends so
-    that every Hall switch is passed; speeds 30..100 % of a top speed."""
-    tops = {"boom": 80.0, "bucket": 160.0}
+    that every Hall switch is passed; speeds 30..100 % of the unit's work speed."""
     knots = {}
     for a in cfg.unit_names:
         stroke = cfg.unit(a).stroke_mm
-        lo, hi, top = 1.0, stroke - 1.0, tops[a]
+        lo, hi, top = 1.0, stroke - 1.0, work_unit(cfg, a).work_speed_mm_s
         t, x = [0.0], [float(rng.uniform(0.2, 0.8) * stroke)]
         while t[-1] < duration_s - 4.0:
             t.append(t[-1] + float(rng.uniform(1.5, 4.0)))           # a hold

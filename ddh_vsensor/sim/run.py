@@ -3,8 +3,8 @@
 ``simulate_campaign(cfg, specs)`` simulates many runs at once: every unit of every run is a
 row of one vectorised plant, so the per-step Python overhead is shared (runs with the same
 step, sample rate and controller settings go together; the others form further batches).
-``simulate(cfg, spec)`` is the one-run form, ``write_run_dir`` writes ``boom.csv``,
-``bucket.csv`` and ``run.blf``.
+``simulate(cfg, spec)`` is the one-run form, ``write_run_dir`` writes one ``<unit>.csv`` per
+unit (``boom.csv``, ``bucket.csv`` for the reference loader) and ``run.blf``.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from ..measured import Run, write_csv
 from ..physics.steady import holding_speed, steady_state
 from ..physics.unit import DDHUnit
 from .control import PIDSettings, PositionPID
-from .cycles import Profile, load_profile_csv, paper_cycle
+from .cycles import WORK, Profile, load_profile_csv, work_cycle
 from .effects import UnitEffects, build_effects, describe
 from .plant import Plant, RowSpec
 from .sensors import SensorSettings, Truth, measure
@@ -35,10 +35,10 @@ Progress = Callable[[float], None]
 
 @dataclass(frozen=True)
 class RunSpec:
-    """Everything that defines one simulated run (both units)."""
+    """Everything that defines one simulated run (every unit of the machine)."""
 
-    cycle: str | Path | Profile = "paper"     # "paper", a CSV profile file, or a Profile
-    speed: int = 4                            # paper cycle speed level 1..4
+    cycle: str | Path | Profile = WORK        # a configured cycle's name, a CSV file, a Profile
+    speed: int = 4                            # configured cycle's speed level 1..4
     payload_kg: float = 0.0
     oil_temp_c: float = 27.0
     cycles: int = 1
@@ -84,8 +84,8 @@ def _prepare(cfg: Config, spec: RunSpec) -> _Prepared:
                         f"steps of {spec.step_s:g} s")
     if isinstance(spec.cycle, Profile):
         profile = spec.cycle.repeated(spec.cycles)
-    elif _is_paper(spec):
-        profile = paper_cycle(spec.speed, spec.cycles)
+    elif _is_named(spec):
+        profile = work_cycle(cfg, str(spec.cycle), spec.speed, spec.cycles)
     else:
         profile = load_profile_csv(spec.cycle, cfg, spec.cycles)
     effects = (dict(spec.effects) if isinstance(spec.effects, Mapping)
@@ -115,7 +115,7 @@ def _group_key(p: _Prepared) -> tuple:
 
 def simulate_campaign(cfg: Config, specs: Sequence[RunSpec],
                       progress: Progress | None = None) -> list[dict[str, Run]]:
-    """Simulate many runs in lockstep; one ``{"boom": Run, "bucket": Run}`` per spec."""
+    """Simulate many runs in lockstep; one ``{unit: Run}`` per spec (config order)."""
     return [{a: run for a, (run, _) in r.items()}
             for r in simulate_with_truth(cfg, specs, progress)]
 
@@ -147,7 +147,7 @@ def simulate_with_truth(cfg: Config, specs: Sequence[RunSpec], progress: Progres
 
 
 def simulate(cfg: Config, spec: RunSpec, progress: Progress | None = None) -> dict[str, Run]:
-    """One run: ``{"boom": Run, "bucket": Run}``."""
+    """One run: ``{unit: Run}``, e.g. ``{"boom": Run, "bucket": Run}``."""
     return simulate_campaign(cfg, [spec], progress)[0]
 
 
@@ -238,8 +238,8 @@ def _simulate_group(cfg: Config, runs: list[_Prepared],
     return out
 
 
-def _is_paper(spec: RunSpec) -> bool:
-    return isinstance(spec.cycle, str) and spec.cycle == "paper"
+def _is_named(spec: RunSpec) -> bool:
+    return isinstance(spec.cycle, str)
 
 
 def _comments(cfg: Config, p: _Prepared, actuator: str) -> list[str]:
@@ -250,7 +250,7 @@ def _comments(cfg: Config, p: _Prepared, actuator: str) -> list[str]:
         f"actuator: {actuator}",
         f"cycle: {p.profile.name}",
         f"cycles: {s.cycles}",
-        f"speed: {s.speed}" if _is_paper(s) else f"cycle_source: {p.profile.name}",
+        f"speed: {s.speed}" if _is_named(s) else f"cycle_source: {p.profile.name}",
         f"duration_s: {p.profile.duration_s:.3f}",
         f"payload_kg: {s.payload_kg:g}",
         f"oil_temp_c: {s.oil_temp_c:g}",
@@ -269,7 +269,7 @@ def _comments(cfg: Config, p: _Prepared, actuator: str) -> list[str]:
 
 def write_run_dir(cfg: Config, runs: Mapping[str, Run], out_dir: str | Path,
                   blf: bool = True) -> list[Path]:
-    """Write ``boom.csv``, ``bucket.csv`` and (``blf``) ``run.blf`` into ``out_dir``."""
+    """Write one ``<unit>.csv`` per unit and (``blf``) ``run.blf`` into ``out_dir``."""
     out = output_dir(out_dir)
     written = []
     for a, run in runs.items():

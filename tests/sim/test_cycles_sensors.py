@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from ddh_vsensor.errors import UserError
-from ddh_vsensor.sim.cycles import dig_dump_cycle, load_profile_csv, paper_cycle, random_cycle
+from ddh_vsensor.sim.cycles import dig_dump_cycle, load_profile_csv, random_cycle, work_cycle
 from ddh_vsensor.sim.sensors import hall_switch, lagged, quantise
 
 
 @pytest.mark.parametrize("speed", [1, 2, 3, 4])
 def test_paper_cycle_positions_cross_the_references(cfg, speed):
-    p = paper_cycle(speed)
+    p = work_cycle(cfg, "paper", speed)
     t = np.arange(0.0, p.duration_s, 0.01)
     boom, _ = p.evaluate("boom", t)
     bucket, _ = p.evaluate("bucket", t)
@@ -28,22 +28,22 @@ def test_paper_cycle_positions_cross_the_references(cfg, speed):
     assert bucket[np.searchsorted(t, first_bucket) + 5] < bucket[0] and first_bucket < first_boom
 
 
-def test_speed_levels_and_repetition():
-    durations = [paper_cycle(s).duration_s for s in (1, 2, 3, 4)]
+def test_speed_levels_and_repetition(cfg):
+    durations = [work_cycle(cfg, "paper", s).duration_s for s in (1, 2, 3, 4)]
     assert durations == sorted(durations, reverse=True)
     assert 20.0 <= durations[-1] <= 32.0
-    three = paper_cycle(4, cycles=3)
+    three = work_cycle(cfg, "paper", 4, cycles=3)
     assert three.duration_s == pytest.approx(3 * durations[-1])
     t = np.array([1.0, 9.0, 15.0])
     for a in ("boom", "bucket"):
         np.testing.assert_allclose(three.evaluate(a, t + 2 * durations[-1])[0],
                                    three.evaluate(a, t)[0])
     with pytest.raises(UserError, match="speed"):
-        paper_cycle(5)
+        work_cycle(cfg, "paper", 5)
 
 
-def test_smooth_moves_have_consistent_rates():
-    p = paper_cycle(4)
+def test_smooth_moves_have_consistent_rates(cfg):
+    p = work_cycle(cfg, "paper", 4)
     t = np.arange(0.0, p.duration_s, 1e-4)
     x, v, a = p.trajectories["bucket"].evaluate_all(t)
     np.testing.assert_allclose(np.gradient(x, t), v, atol=1e-3)

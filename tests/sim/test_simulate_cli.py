@@ -11,7 +11,7 @@ import pytest
 from ddh_vsensor.canbus.log import read_can_log
 from ddh_vsensor.cli.main import main
 from ddh_vsensor.measured import read_csv
-from ddh_vsensor.sim.cycles import paper_cycle
+from ddh_vsensor.sim.cycles import work_cycle
 
 
 def test_paper_speed4_timing_and_peaks(paper_run_dir):
@@ -28,10 +28,10 @@ def test_paper_speed4_timing_and_peaks(paper_run_dir):
     assert not boom.refs["top"].any()
 
 
-def test_boom_top_hold_creeps_while_the_rod_stands(paper_run_dir):
+def test_boom_top_hold_creeps_while_the_rod_stands(cfg, paper_run_dir):
     """The paper's Figure 7: tens of rpm at the top while the cylinder stays put."""
     run = read_csv(paper_run_dir / "boom.csv")
-    knots = paper_cycle(4).trajectories["boom"].time_s     # ..., top reached, lowering starts
+    knots = work_cycle(cfg, "paper", 4).trajectories["boom"].time_s  # ..., top, lowering starts
     hold = (run.time_s >= knots[2] + 1.0) & (run.time_s <= knots[3])
     assert hold.sum() > 500
     creep = run.speed_rpm[hold]
@@ -89,7 +89,8 @@ def test_same_seed_same_files(tmp_path, profile_csv):
     (["--oil-temp-c", "150"], "oil temperature"),
     (["--cycles", "0"], "cycles"),
     (["--rate-hz", "300"], "whole number"),
-    (["--cycle", "nothere.csv"], "neither 'paper' nor a readable profile"),
+    (["--cycle", "nothere.csv"], "work, paper, dig-dump"),
+    (["--cycle", "random", "--duration-s", "1"], "--duration-s"),
 ])
 def test_bad_input_exits_2(tmp_path, capsys, args, words):
     base = {"--cycle": "paper", "--payload-kg": "0", "--oil-temp-c": "27",
