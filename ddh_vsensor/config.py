@@ -463,7 +463,7 @@ class Config:
     def physics_hash(self) -> str:
         """Hash of everything the physics and tables depend on (not the bus, not the source)."""
         data = dataclasses.asdict(self)
-        for key in ("bus", "can", "estimator", "faults", "work_cycle", "source"):
+        for key in ("bus", "buses", "can", "estimator", "faults", "work_cycle", "source"):
             data.pop(key)
         for unit in data["units"].values():
             for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm"):

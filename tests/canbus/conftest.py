@@ -23,6 +23,7 @@ def machine(units: dict[str, tuple[str, dict[str, Any]]], source: str,
             buses: dict[str, dict[str, Any]] | None = None) -> Config:
     """The loader with these units: name -> (loader unit it copies, its can.units entry)."""
     data = loader_data()
+    data.pop("work_cycle")          # the loader's cycles name its own units
     data["units"] = {name: copy.deepcopy(data["units"][like])
                      for name, (like, _) in units.items()}
     data["can"]["units"] = {name: can for name, (_, can) in units.items()}
