@@ -610,9 +610,3 @@ class SensorNode:
                     self._next_emcy_s = now_s + inhibit_s
                     break
         return sent
-
-def sdo_preset(network: canopen.Network, node_id: int, position_mm: float,
-               step_mm: float, eds: str | Path = EDS_PATH) -> None:
-    """Client side: write the preset of a sensor node (raises SdoAbortedError if refused)."""
-    node = network.nodes.get(node_id) or network.add_node(node_id, str(eds))
-    node.sdo[0x6010][1].raw = round(position_mm / step_mm)

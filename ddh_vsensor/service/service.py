@@ -59,13 +59,13 @@ from canopen.sdo import SdoAbortedError
 
 from ..atomic import remove_temp_files
 from ..canbus.dbc import FrameCodec
-from ..config import Config
+from ..config import DEFAULT_BUS, Config
 from ..estimator.estimator import Estimator, Step
 from ..estimator.flags import Flags, flag_text
 from ..estimator.extension import Extension
 from ..estimator.state import EstimatorState, load_state, save_state
 from ..tables.lookup import UnitTables
-from .bus import BusLink, exact_filters
+from .bus import BusLink, bus_settings, exact_filters
 from .heartbeat import HeartbeatConsumer
 from .inputs import Inputs, LogLimiter, RateLimitedLog, TokenBucket
 from .node import UINT24_MAX, UNCERTAINTY_STEP_MM, Published, SensorNode, ServiceNetwork
@@ -160,13 +160,21 @@ class Service:
     def __init__(self, cfg: Config, tables: dict[str, UnitTables], bus: dict[str, Any],
                  options: ServiceOptions | None = None,
                  notifier: SystemdNotifier | None = None,
-                 opener: Callable[..., can.BusABC] | None = None) -> None:
+                 opener: Callable[..., can.BusABC] | None = None,
+                 buses: dict[str, dict[str, Any]] | None = None) -> None:
+        """``bus``: the settings of the default bus (the config's ``bus:`` with command-line
+        overrides); ``buses``: settings of the other buses by name (default: the config's)."""
         self.cfg, self.options = cfg, options or ServiceOptions()
         self.faults = cfg.faults
         self.notifier = notifier or SystemdNotifier()
         self.codec = FrameCodec(cfg)
         self.inputs = Inputs(cfg, self.codec)
-        self.network = ServiceNetwork(self._send)
+        # The default bus carries the oil temperature and the I/O module; the others are
+        # opened when a unit is on them. One canopen network per bus: a broadcast NMT command
+        # reaches the nodes of the bus it came on.
+        self.bus_names = (DEFAULT_BUS, *(n for n in cfg.buses if cfg.units_on_bus(n)))
+        self.networks = {name: ServiceNetwork(lambda msg, name=name: self._send(name, msg))
+                         for name in self.bus_names}
         self._log = RateLimitedLog(log, self.faults.log_interval_s)
         self.log_limiter = LogLimiter(self.faults.log_interval_s)
         hb_timeout_s = self.options.heartbeat_timeout_s or self.faults.heartbeat_timeout_s
@@ -176,11 +184,12 @@ class Service:
             est = (Estimator(cfg, actuator, tables[actuator]) if ext is None
                    else ext.estimator(cfg, tables[actuator]))
             hb_node = self.faults.heartbeat_node_ids.get(actuator)  # type: ignore[call-overload]
+            network = self.networks[cfg.can.units[actuator].bus]
             hb = None if hb_node is None else HeartbeatConsumer(
-                self.network, hb_node, actuator, hb_timeout_s,
+                network, hb_node, actuator, hb_timeout_s,
                 log_interval_s=self.faults.log_interval_s)
             unit = Unit(actuator, est, hb)
-            unit.node = SensorNode(self.network, cfg, actuator,
+            unit.node = SensorNode(network, cfg, actuator,
                                    live=lambda u=unit: self.published(u),
                                    on_preset=lambda mm, u=unit: self._preset(u, mm))
             unit.node.event_timer_bounds_ms = (self.faults.event_timer_min_ms,
@@ -190,16 +199,23 @@ class Service:
         self.max_speed_mm_s = {a: cfg.max_speed_mm_s(a) for a in self.units}
         self._restore_states()
         self._routes = self._build_routes()
-        self._canopen_buckets: dict[int, TokenBucket] = {}
+        self._canopen_buckets: dict[tuple[str, int], TokenBucket] = {}
         link_kwargs = {"opener": opener} if opener is not None else {}
-        self.link = BusLink(bus, exact_filters(self._routes), self._on_frames,
-                            on_state=self._bus_state, watch_fd=self.options.fd_reader,
-                            coalesce_s=self._coalesce_s(),
-                            log_interval_s=self.faults.log_interval_s, **link_kwargs)
+        filters = exact_filters(self._routes)
+        self.links: dict[str, BusLink] = {}
+        for name in self.bus_names:
+            settings = bus if name == DEFAULT_BUS else (buses or {}).get(name) or \
+                bus_settings(cfg.bus_kwargs(name))
+            self.links[name] = BusLink(
+                settings, filters, lambda batch, name=name: self._on_frames(batch, name),
+                on_state=lambda state, reason, name=name: self._bus_state(name, state, reason),
+                watch_fd=self.options.fd_reader, coalesce_s=self._coalesce_s(),
+                log_interval_s=self.faults.log_interval_s, **link_kwargs)
+        self.link = self.links[DEFAULT_BUS]
         self.ticker = Ticker(self._period_s(), use_timerfd=self.options.use_timerfd)
         self.housekeeper = Ticker(self.faults.housekeeping_tick_ms / 1000.0,
                                   use_timerfd=self.options.use_timerfd)
-        self._inbox: deque[tuple[float, list[can.Message]]] = deque()
+        self._inbox: deque[tuple[float, str, list[can.Message]]] = deque()
         self._inbox_frames = 0
         self.dropped_frames = 0
         self.canopen_dropped = 0
@@ -268,8 +284,10 @@ class Service:
             routes[frame_id] = ("sevcon", self.units[actuator])
         routes[self.inputs.oil_id] = ("oil", None)
         routes[self.inputs.io_id] = ("io", None)
-        for can_id in self.network.subscribers:          # NMT, SDO requests, heartbeats
-            routes.setdefault(can_id, ("canopen", None))
+        for network in self.networks.values():           # SDO requests, heartbeats
+            for can_id in network.subscribers:
+                routes.setdefault(can_id, ("canopen", network))
+        routes[0] = ("nmt", None)                        # to the network of its bus
         for unit in self.units.values():
             assert unit.node is not None
             for kind, can_id in unit.node.cob_ids.items():
@@ -321,7 +339,8 @@ class Service:
             n.set_tick(period_ms)
         if hasattr(self, "ticker"):
             self.ticker.set_period(period_ms / 1000.0)
-            self.link.coalesce_s = self._coalesce_s()
+            for link in self.links.values():
+                link.coalesce_s = self._coalesce_s()
 
     # --- run / stop ----------------------------------------------------------------------------
 
@@ -342,7 +361,8 @@ class Service:
         self._inbox_event = asyncio.Event()
         self._stop_event = asyncio.Event()
         self.log_limiter.attach(BUS_PATH_LOGGERS)
-        await self.link.start()
+        for link in self.links.values():
+            await link.start()
         for unit in self.units.values():
             assert unit.node is not None
             unit.node.boot()
@@ -363,15 +383,17 @@ class Service:
             self._tasks.append(task)
         self.started = True
         self._ready_when_open()
-        log.info("running: %s, TPDO1 every %g ms (%s ticks), state %s", self.link.channel_info
-                 or self.link.settings, self.ticker.period_s * 1000, self.ticker.kind,
+        log.info("running: %s, TPDO1 every %g ms (%s ticks), state %s",
+                 ", ".join(f"{name} {link.channel_info or link.settings}"
+                           for name, link in self.links.items()),
+                 self.ticker.period_s * 1000, self.ticker.kind,
                  self.options.state_dir or "not persisted")
 
     def _ready_when_open(self) -> None:
-        """READY=1 once the bus is open. Inputs are not awaited (a parked machine sends
+        """READY=1 once every bus is open. Inputs are not awaited (a parked machine sends
         none, and systemd would kill a service that never gets ready): until they come the
         outputs are flagged stale, and the STATUS line says so."""
-        if self.ready or self.link.state != "open":
+        if self.ready or any(link.state != "open" for link in self.links.values()):
             return
         self.ready = True
         waiting = [a for a, u in self.units.items() if u.last_rx_s is None]
@@ -401,7 +423,8 @@ class Service:
         self.save_states(clean=True)
         self.ticker.close()
         self.housekeeper.close()
-        await self.link.close()
+        for link in self.links.values():
+            await link.close()
         log.info("stopped; %s", self.status_line())
         self.log_limiter.detach()
         self.notifier.close()
@@ -447,23 +470,23 @@ class Service:
 
     # --- receiving ---------------------------------------------------------------------------
 
-    def _send(self, msg: can.Message) -> bool:
-        return self.link.send(msg)
+    def _send(self, bus: str, msg: can.Message) -> bool:
+        return self.links[bus].send(msg)
 
-    def _on_frames(self, batch: list[can.Message]) -> None:
+    def _on_frames(self, batch: list[can.Message], bus: str = DEFAULT_BUS) -> None:
         """A batch from the bus link. Handled right here when nothing is waiting and it is
         small (the common case, a few frames per wake); queued for the dispatcher otherwise,
         so that order is kept and a flood is worked through in bounded slices between
         ticks. The queue is capped: the oldest batches go first (counted)."""
         now = time.monotonic()
         if not self._inbox and len(batch) <= DISPATCH_SLICE_FRAMES:
-            self._handle(batch, now)
+            self._handle(batch, now, bus)
             return
-        self._inbox.append((now, batch))
+        self._inbox.append((now, bus, batch))
         self._inbox_frames += len(batch)
         while self._inbox_frames > self.faults.backlog_max_frames or \
                 now - self._inbox[0][0] > BACKLOG_DROP_S:
-            _, dropped = self._inbox.popleft()
+            _, _, dropped = self._inbox.popleft()
             self._inbox_frames -= len(dropped)
             self.dropped_frames += len(dropped)
             self._log.warning("backlog", "received frames not handled in time: %d dropped so "
@@ -473,10 +496,10 @@ class Service:
                 break
         self._inbox_event.set()
 
-    def _handle(self, batch: list[can.Message], now: float) -> None:
+    def _handle(self, batch: list[can.Message], now: float, bus: str = DEFAULT_BUS) -> None:
         for msg in batch:
             try:
-                self._route(msg, now)
+                self._route(msg, now, bus)
             except Exception:   # noqa: BLE001 - one bad frame must not stop the rest
                 self.canopen_errors += 1
                 self._log.warning("route", "frame 0x%03X could not be handled",
@@ -491,22 +514,22 @@ class Service:
             slice_start = time.perf_counter()
             done = 0
             while self._inbox:
-                received_s, batch = self._inbox[0]
+                received_s, bus, batch = self._inbox[0]
                 if len(batch) > DISPATCH_SLICE_FRAMES:      # split a huge batch
                     head, rest = batch[:DISPATCH_SLICE_FRAMES], batch[DISPATCH_SLICE_FRAMES:]
-                    self._inbox[0] = (received_s, rest)
+                    self._inbox[0] = (received_s, bus, rest)
                     batch = head
                 else:
                     self._inbox.popleft()
                 self._inbox_frames -= len(batch)
-                self._handle(batch, received_s)
+                self._handle(batch, received_s, bus)
                 done += len(batch)
                 if done >= DISPATCH_SLICE_FRAMES or \
                         time.perf_counter() - slice_start >= DISPATCH_SLICE_S:
                     await asyncio.sleep(0)     # let the tick run
                     slice_start, done = time.perf_counter(), 0
 
-    def _route(self, msg: can.Message, now: float) -> None:
+    def _route(self, msg: can.Message, now: float, bus: str = DEFAULT_BUS) -> None:
         if msg.is_error_frame:
             return
         if msg.timestamp <= 0.0:          # an interface without timestamps: arrival time
@@ -515,32 +538,37 @@ class Service:
         if route is None:
             self.inputs.unknown(msg)
             return
-        kind, unit = route
+        kind, target = route
         if kind == "sevcon":
-            self._on_sevcon(unit, msg, now)
+            self._on_sevcon(target, msg, now)
         elif kind == "oil":
             self.inputs.oil(msg, now)
         elif kind == "io":
             self.inputs.io(msg, now)
         elif kind == "canopen":
-            if msg.is_remote_frame or not self._canopen_allowed(msg):
+            if msg.is_remote_frame or not self._canopen_allowed(msg, bus):
                 return
-            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
-            if msg.arbitration_id == 0:
-                for u in self.units.values():
-                    assert u.node is not None
+            target.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        elif kind == "nmt":
+            if msg.is_remote_frame or not self._canopen_allowed(msg, bus):
+                return
+            self.networks[bus].notify(0, msg.data, msg.timestamp)
+            for u in self.units.values():
+                assert u.node is not None
+                if u.node.network is self.networks[bus]:
                     u.node.after_nmt_command()
         else:
             self.inputs.clash(msg)
 
-    def _canopen_allowed(self, msg: can.Message) -> bool:
-        """Token bucket per canopen COB-ID: the excess of a flood is dropped, counted."""
-        bucket = self._canopen_buckets.get(msg.arbitration_id)
+    def _canopen_allowed(self, msg: can.Message, bus: str = DEFAULT_BUS) -> bool:
+        """Token bucket per bus and canopen COB-ID: the excess of a flood is dropped,
+        counted."""
+        can_id = msg.arbitration_id
+        bucket = self._canopen_buckets.get((bus, can_id))
         if bucket is None:
-            can_id = msg.arbitration_id
             kind = "nmt" if can_id == 0 else "sdo" if 0x600 <= can_id < 0x680 else "heartbeat"
             bucket = TokenBucket(CANOPEN_RATE_HZ[kind], CANOPEN_BURST[kind])
-            self._canopen_buckets[can_id] = bucket
+            self._canopen_buckets[(bus, can_id)] = bucket
         if bucket.take(time.monotonic()):
             return True
         self.canopen_dropped += 1
@@ -716,7 +744,8 @@ class Service:
 
     def _on_tick(self, deadline: float, missed: int) -> None:
         """The publishing tick: TPDOs of the OPERATIONAL nodes."""
-        self.link.drain()            # every frame received so far is in what goes out now
+        for link in self.links.values():
+            link.drain()             # every frame received so far is in what goes out now
         now = time.monotonic()
         self.ticks += 1
         self._tick_index += 1 + missed
@@ -776,8 +805,10 @@ class Service:
             p = self.published(unit, now)
             parts.append(f"{actuator} {p.position_mm:.2f} mm +-{p.uncertainty_mm:.2f} "
                          f"[{flag_text(p.flags)}]")
-        link = self.link
-        parts.append(f"bus {link.state}" + (f" ({link.reason})" if link.state != "open" else ""))
+        for name, link in self.links.items():
+            label = "bus" if len(self.links) == 1 else f"bus {name}"
+            parts.append(f"{label} {link.state}"
+                         + (f" ({link.reason})" if link.state != "open" else ""))
         parts.append(f"in {sum(u.received for u in self.inputs.units.values())} "
                      f"rejected {self.inputs.rejected_total} unknown {self.inputs.counts['unknown']}")
         presets = [f"{a} {u.presets_accepted}/{u.presets_refused}"
@@ -789,9 +820,10 @@ class Service:
                          "canopen")
         return "; ".join(parts)
 
-    def _bus_state(self, state: str, reason: str) -> None:
+    def _bus_state(self, bus: str, state: str, reason: str) -> None:
         if self.started:
-            self.notifier.notify(STATUS=f"bus {state}: {reason}")
+            label = "bus" if len(self.links) == 1 else f"bus {bus}"
+            self.notifier.notify(STATUS=f"{label} {state}: {reason}")
 
 
 def _write_states(snapshots: list[tuple[Path, EstimatorState]]) -> None:

@@ -18,10 +18,11 @@ import pytest
 import yaml
 
 from ddh_vsensor.config import Config
+from ddh_vsensor.service.client import commission
 from ddh_vsensor.service.replay import machine_frames
 from ddh_vsensor.sim import RunSpec, simulate_with_truth
 
-from .harness import Daemon, Hub, Recorder, commission, feed, write_config
+from .harness import Daemon, Hub, Recorder, feed, write_config
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -165,25 +165,3 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
         est.referenced = False      # the service's presets are provisional: never learned from
     result = est.run(t, n, tq, temp, refs if io is not None else None)
     return Offline(result.position_mm, held)
-
-
-def commission(bus_kwargs: dict, cfg: Config, presets: dict[str, float] | None = None,
-               diag_ms: int | None = None, timeout_s: float = 2.0) -> None:
-    """An SDO client on the bus (blocking: run it in a thread): presets, diag event timer."""
-    import canopen
-
-    from ddh_vsensor.service.node import EDS_PATH
-    bus = can.Bus(**bus_kwargs)
-    network = canopen.Network(bus)
-    notifier = can.Notifier(bus, network.listeners, 0.1)
-    try:
-        for actuator, unit in cfg.can.units.items():
-            node = network.add_node(unit.sensor_node_id, str(EDS_PATH))
-            node.sdo.RESPONSE_TIMEOUT = timeout_s
-            if diag_ms is not None:
-                node.sdo[0x1801][5].raw = diag_ms
-            if presets and actuator in presets:
-                node.sdo[0x6010][1].raw = round(presets[actuator] / cfg.can.position_step_mm)
-    finally:
-        notifier.stop(1.0)
-        bus.shutdown()
