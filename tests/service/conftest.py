@@ -5,16 +5,19 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
+import dataclasses
 import uuid
 from collections.abc import AsyncIterator, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import can
 import numpy as np
 import pytest
 
 from ddh_vsensor.canbus.dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
-from ddh_vsensor.config import Config
+from ddh_vsensor.config import Config, load_config
 from ddh_vsensor.estimator.estimator import Estimator
 from ddh_vsensor.estimator.state import EstimatorState
 from ddh_vsensor.measured import Run
@@ -165,3 +168,58 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
         est.referenced = False      # the service's presets are provisional: never learned from
     result = est.run(t, n, tq, temp, refs if io is not None else None)
     return Offline(result.position_mm, held)
+
+
+def on_buses(cfg: Config, placement: dict[str, str],
+             buses: dict[str, dict]) -> Config:
+    """``cfg`` with units moved to other buses (unit -> bus name) and those buses named."""
+    units = {u: dataclasses.replace(c, bus=placement.get(u, c.bus))
+             for u, c in cfg.can.units.items()}
+    return dataclasses.replace(cfg, buses=buses, can=dataclasses.replace(cfg.can, units=units))
+
+
+def machine_of(cfg: Config, count: int, tables: dict) -> tuple[Config, dict]:
+    """A machine of ``count`` units named u0, u1, ..., copies of the reference loader's
+    units in turn, with node IDs of their own (controllers 1.., sensors 49..), Hall bits
+    3 per unit; and its tables (the copied units' tables)."""
+    names = [f"u{k}" for k in range(count)]
+    source = [cfg.unit_names[k % len(cfg.unit_names)] for k in range(count)]
+    can_units = {}
+    for k, (name, src) in enumerate(zip(names, source)):
+        bits = {ref: 3 * k + j for j, ref in enumerate(cfg.can.units[src].hall_bits)}
+        can_units[name] = dataclasses.replace(cfg.can.units[src], sevcon_node_id=1 + k,
+                                              sensor_node_id=49 + k, hall_bits=bits)
+    machine = dataclasses.replace(
+        cfg, units={n: cfg.units[s] for n, s in zip(names, source)},
+        can=dataclasses.replace(cfg.can, units=can_units),
+        faults=dataclasses.replace(cfg.faults, heartbeat_node_ids={
+            n: c.sevcon_node_id for n, c in can_units.items()}))
+    return machine, {n: tables[s] for n, s in zip(names, source)}
+
+
+def write_machine_dbc(cfg: Config, path: Path) -> Path:
+    """The packaged DBC's frames for ``cfg``'s units: each unit's messages copied from the
+    reference loader's first unit under the unit's name, the I/O module's frame 8 bytes
+    (Hall bits beyond the first byte)."""
+    import cantools
+    from cantools.database.can import Database
+
+    from ddh_vsensor.canbus.dbc import _PER_ACTUATOR, _SENSOR_KINDS, DEFAULT_DBC
+    db = cantools.database.load_file(str(DEFAULT_DBC))
+    template = load_config().unit_names[0]
+    per_unit = {message_name(kind, a) for kind in _PER_ACTUATOR
+                for a in load_config().unit_names}
+    messages = [m for m in db.messages if m.name not in per_unit]
+    io = db.get_message_by_name(IO_MODULE)
+    io.length = 8
+    for unit in cfg.unit_names:
+        for kind in _PER_ACTUATOR:
+            m = copy.deepcopy(db.get_message_by_name(message_name(kind, template)))
+            m.name = message_name(kind, unit)
+            ids = cfg.can.units[unit]
+            node_id = ids.sensor_node_id if kind in _SENSOR_KINDS else ids.sevcon_node_id
+            m.frame_id = (m.frame_id & ~0x7F) | node_id
+            messages.append(m)
+    path.write_text(Database(messages=messages, nodes=db.nodes,
+                             dbc_specifics=db.dbc).as_dbc_string())
+    return path
