@@ -606,33 +606,31 @@ class Service:
                 self._widen(unit, self.max_speed_mm_s[unit.actuator] * gap_s,
                             "Sevcon frame time went back")
         unit.first_held_t = None
-        u_before = est.uncertainty_mm
         was_referenced = est.referenced
         step = est.step(sample.t_s, sample.speed_rpm, sample.torque_nm, oil,
                         self.inputs.refs(unit.actuator))
         unit.last_step = step
         unit.last_frame_t, unit.last_rx_s = sample.t_s, now
         unit.integrated += 1
-        if not was_referenced and est.referenced:       # only a reference does that
+        if step.reference is not None and not was_referenced:
             # Taken in full from an unreferenced estimate: the edge lies somewhere within its
             # sample, whose travel an estimate clipped at a stroke end did not record, and the
             # travel from the edge to its acceptance (debounce) is the model's: widen by both.
             period_s = unit.input_period_s or est.max_gap_s
             est.add_uncertainty(abs(step.velocity_mm_s)
                                 * (self.cfg.estimator.debounce_s + 2.0 * period_s))
-        confirmed = unit.provisional and est.referenced
-        # a reference resets the travel and lowers the bound (Step does not carry the event)
-        referenced = confirmed or (step.uncertainty_mm < u_before - 1e-9
-                                   and est.travel_mm == 0.0)
+        confirmed = unit.provisional and step.reference is not None
         if confirmed:
             unit.provisional = False
             if unit.preset_pending:
                 unit.preset_pending = False
                 log.info("%s: preset confirmed by a reference switch", unit.actuator)
-        if referenced:
+        if step.reference is not None:
             unit.references += 1
-            self._log.info(f"ref-{unit.actuator}", "%s: reference switch: position %.2f mm, "
-                           "uncertainty %.2f mm", unit.actuator, step.position_mm,
+            self._log.info(f"ref-{unit.actuator}", "%s: reference switch %s (%s): position "
+                           "%.2f mm, uncertainty %.2f mm", unit.actuator, step.reference,
+                           "taken whole" if step.reference_gain >= 1.0 else
+                           f"{step.reference_gain:.0%} taken", step.position_mm,
                            step.uncertainty_mm)
         if self.options.record_latency:
             self.latency_s.append(time.time() - msg.timestamp)
