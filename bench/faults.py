@@ -390,7 +390,7 @@ def main() -> int:
     print("simulating the paper cycle ...", flush=True)
     result = simulate_with_truth(cfg, [RunSpec(speed=4)])[0]
     runs = {a: run for a, (run, _) in result.items()}
-    paper = {"frames": machine_frames(cfg, runs, heartbeat_period_s=0.1),
+    paper = {"frames": list(machine_frames(cfg, runs, heartbeat_period_s=0.1)),
              "truth": {a: (truth.time_s, truth.x_m * 1e3) for a, (_, truth) in result.items()}}
     tables = {a: build_unit_tables(cfg, a) for a in cfg.can.units}
     figures = campaign(cfg, tables, paper, args.faults, args.seed)

@@ -111,7 +111,7 @@ def _run(args: argparse.Namespace) -> int:
     bar.close()
     runs = {a: run for a, (run, _) in result.items()}
     truths = {a: truth for a, (_, truth) in result.items()}
-    frames = machine_frames(cfg, runs, HEARTBEAT_PERIOD_S)
+    frames = list(machine_frames(cfg, runs, HEARTBEAT_PERIOD_S))
     pairing = asyncio.run(_demo(cfg, frames, truths, args.rate, extensions))
     if not args.no_figure:
         path = write_figure(pairing, truths, args.figure)
@@ -162,11 +162,10 @@ def write_figure(pairing: dict[str, "_Pairing"], truths: dict, path: str) -> Pat
 async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
                 ) -> dict[str, _Pairing]:
     import can
-    import canopen
 
     from ..canbus.dbc import FrameCodec, message_name
     from ..service import Service, ServiceOptions
-    from ..service.node import EDS_PATH
+    from ..service.client import sdo_network
     from ..service.replay import replay
     from ..service.watch import OutputWatcher, flag_text
     from ..tables.build import build_unit_tables
@@ -191,13 +190,9 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
         await service.start()
         # Commissioning over SDO, from a master node on the bus: true start positions as
         # presets, and the diagnostic frame every position frame.
-        network = canopen.Network(master)
-        notifier = can.Notifier(master, network.listeners, 0.1)
-        try:
+        with sdo_network(master) as network:
             await asyncio.get_running_loop().run_in_executor(
-                None, _commission, network, cfg, truths, str(EDS_PATH))
-        finally:
-            notifier.stop(1.0)
+                None, _commission, network, cfg, truths)
         now_log = [0.0]
         latest: dict[str, tuple[float, float, float]] = {}
         done = asyncio.Event()
@@ -253,18 +248,16 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
     return pairing
 
 
-def _commission(network, cfg, truths: dict, eds: str) -> None:
+def _commission(network, cfg, truths: dict) -> None:
     import canopen
-    step = cfg.can.position_step_mm
-    for actuator, unit in cfg.can.units.items():
-        node = network.add_node(unit.sensor_node_id, eds)
-        node.sdo.RESPONSE_TIMEOUT = 2.0
+
+    from ..service.client import clients
+    for unit, client in clients(network, cfg).items():
         try:
-            node.sdo[0x1801][5].raw = node.sdo[0x1800][5].raw
-            start_mm = float(truths[actuator].x_m[0] * 1e3)
-            node.sdo[0x6010][1].raw = round(start_mm / step)
+            client.diag_timer_ms = client.event_timer_ms
+            client.preset(float(truths[unit].x_m[0] * 1e3))
         except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
-            raise UserError(f"demo: commissioning the {actuator} sensor over SDO failed: "
+            raise UserError(f"demo: commissioning the {unit} sensor over SDO failed: "
                             f"{exc}") from None
 
 

@@ -50,8 +50,8 @@ class Paper:
 def paper(cfg: Config) -> Paper:
     result = simulate_with_truth(cfg, [RunSpec(speed=4)])[0]
     runs = {a: run for a, (run, _) in result.items()}
-    return Paper(machine_frames(cfg, runs, heartbeat_period_s=0.1),
-                 machine_frames(cfg, runs, heartbeat_period_s=None),
+    return Paper(list(machine_frames(cfg, runs, heartbeat_period_s=0.1)),
+                 list(machine_frames(cfg, runs, heartbeat_period_s=None)),
                  {a: truth.time_s for a, (_, truth) in result.items()},
                  {a: truth.x_m * 1e3 for a, (_, truth) in result.items()})
 

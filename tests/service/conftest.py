@@ -59,7 +59,7 @@ def machine_runs(cfg: Config) -> dict[str, Run]:
 
 @pytest.fixture(scope="session")
 def frames(cfg: Config, machine_runs: dict[str, Run]) -> list[can.Message]:
-    return machine_frames(cfg, machine_runs, heartbeat_period_s=0.1)
+    return list(machine_frames(cfg, machine_runs, heartbeat_period_s=0.1))
 
 
 def channel_name() -> str:

@@ -246,7 +246,7 @@ def test_one_millisecond_inputs_and_event_timer(cfg, unit_tables) -> None:
     fast = dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, event_timer_ms=1.0))
     runs = {a: synthetic_run(fast, a, seconds=1.0, period_s=0.001, cycle_s=1.0)
             for a in fast.can.units}
-    fast_frames = machine_frames(fast, runs, heartbeat_period_s=0.1)
+    fast_frames = list(machine_frames(fast, runs, heartbeat_period_s=0.1))
     codec = FrameCodec(fast)
     sent = {a: sum(m.arbitration_id == codec.ids[message_name("sevcon", a)]
                    for m in fast_frames) for a in fast.can.units}
