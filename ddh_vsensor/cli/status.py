@@ -6,7 +6,6 @@ import argparse
 import json
 from typing import Any
 
-from ..config import DEFAULT_BUS
 from ..errors import UserError
 from .common import add_config_arg, config_from
 from .run import add_bus_args, bus_from_args
@@ -42,7 +41,7 @@ def _run(args: argparse.Namespace) -> int:
     import can
     import canopen
 
-    from ..service.bus import bus_settings, open_bus
+    from ..service.bus import machine_buses, open_bus
     from ..service.client import clients, sdo_network
 
     cfg = config_from(args)
@@ -50,12 +49,10 @@ def _run(args: argparse.Namespace) -> int:
     if not 0.01 <= args.timeout <= 60:
         raise UserError(f"--timeout {args.timeout}: outside 0.01..60 s")
     out: dict[str, Any] = {}
-    for bus_name in cfg.bus_names:
+    for bus_name, settings in machine_buses(cfg, bus_from_args(args, cfg)).items():
         units = cfg.units_on_bus(bus_name)
         if not units:
             continue
-        settings = bus_from_args(args, cfg) if bus_name == DEFAULT_BUS else \
-            bus_settings(cfg.bus_kwargs(bus_name))
         try:
             bus = open_bus(settings)
         except (can.CanError, OSError) as exc:

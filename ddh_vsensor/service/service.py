@@ -65,7 +65,7 @@ from ..estimator.flags import Flags, flag_text
 from ..estimator.extension import Extension
 from ..estimator.state import EstimatorState, load_state, save_state
 from ..tables.lookup import UnitTables
-from .bus import BusLink, bus_settings, exact_filters
+from .bus import BusLink, exact_filters, machine_buses
 from .heartbeat import HeartbeatConsumer
 from .inputs import Inputs, LogLimiter, RateLimitedLog, TokenBucket
 from .node import UINT24_MAX, UNCERTAINTY_STEP_MM, Published, SensorNode, ServiceNetwork
@@ -172,7 +172,10 @@ class Service:
         # The default bus carries the oil temperature and the I/O module; the others are
         # opened when a unit is on them. One canopen network per bus: a broadcast NMT command
         # reaches the nodes of the bus it came on.
-        self.bus_names = (DEFAULT_BUS, *(n for n in cfg.buses if cfg.units_on_bus(n)))
+        settings = machine_buses(cfg, bus)
+        settings.update({name: kwargs for name, kwargs in (buses or {}).items()
+                         if name in settings})
+        self.bus_names = tuple(settings)
         self.networks = {name: ServiceNetwork(lambda msg, name=name: self._send(name, msg))
                          for name in self.bus_names}
         self._log = RateLimitedLog(log, self.faults.log_interval_s)
@@ -204,10 +207,8 @@ class Service:
         filters = exact_filters(self._routes)
         self.links: dict[str, BusLink] = {}
         for name in self.bus_names:
-            settings = bus if name == DEFAULT_BUS else (buses or {}).get(name) or \
-                bus_settings(cfg.bus_kwargs(name))
             self.links[name] = BusLink(
-                settings, filters, lambda batch, name=name: self._on_frames(batch, name),
+                settings[name], filters, lambda batch, name=name: self._on_frames(batch, name),
                 on_state=lambda state, reason, name=name: self._bus_state(name, state, reason),
                 watch_fd=self.options.fd_reader, coalesce_s=self._coalesce_s(),
                 log_interval_s=self.faults.log_interval_s, **link_kwargs)
