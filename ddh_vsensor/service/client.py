@@ -19,7 +19,8 @@ import canopen
 
 from ..config import Config
 from ..estimator.flags import flag_text
-from .node import EDS_PATH, SPEED_STEP_MM_S, UNCERTAINTY_STEP_MM
+from .node import EDS_PATH
+from .objects import SPEED_STEP_MM_S, UNCERTAINTY_STEP_MM
 
 SDO_TIMEOUT_S = 2.0
 

@@ -68,7 +68,9 @@ from ..tables.lookup import UnitTables
 from .bus import BusLink, exact_filters, machine_buses
 from .heartbeat import HeartbeatConsumer
 from .inputs import Inputs, LogLimiter, RateLimitedLog, TokenBucket
-from .node import UINT24_MAX, UNCERTAINTY_STEP_MM, Published, SensorNode, ServiceNetwork
+from .network import ServiceNetwork
+from .node import SensorNode
+from .objects import UINT24_MAX, UNCERTAINTY_STEP_MM, Published
 from .scheduler import Ticker
 from .sdnotify import SystemdNotifier
 

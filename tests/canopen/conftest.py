@@ -23,7 +23,7 @@ import pytest
 from ddh_vsensor.config import Config
 from ddh_vsensor.service import Service, ServiceOptions
 from ddh_vsensor.service.client import clients
-from ddh_vsensor.service.node import Published
+from ddh_vsensor.service.objects import Published
 
 WAIT_S = 10.0          # bound of every wait: generous, a loaded machine only makes it slower
 
