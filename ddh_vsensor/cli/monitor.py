@@ -83,7 +83,8 @@ def _from_log(args: argparse.Namespace, watcher, screen: _Screen) -> int:
 def _from_bus(args: argparse.Namespace, cfg, watcher, screen: _Screen) -> int:
     import can
 
-    from ..service.bus import exact_filters, machine_buses, open_bus
+    from ..service.bus import exact_filters, open_bus
+    from ..service.buses import machine_buses
     buses: list[can.BusABC] = []
     try:
         for settings in machine_buses(cfg, bus_from_args(args, cfg)).values():

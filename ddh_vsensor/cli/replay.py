@@ -71,7 +71,7 @@ def _run(args: argparse.Namespace) -> int:
             codec.ids[message_name(k, a)] for a in cfg.can.units for k in ("sevcon", "heartbeat")}
         skip |= {m.arbitration_id for m in frames} - keep
     from ..config import DEFAULT_BUS
-    from ..service.bus import frame_buses, machine_buses
+    from ..service.buses import frame_buses, machine_buses
     all_settings = machine_buses(cfg, bus_from_args(args, cfg))
     if args.stamp == "log":
         for settings in all_settings.values():

@@ -41,7 +41,8 @@ def _run(args: argparse.Namespace) -> int:
     import can
     import canopen
 
-    from ..service.bus import machine_buses, open_bus
+    from ..service.bus import open_bus
+    from ..service.buses import machine_buses
     from ..service.client import clients, sdo_network
 
     cfg = config_from(args)

@@ -29,8 +29,6 @@ from typing import Any
 
 import can
 
-from ..canbus.dbc import FrameCodec, message_name
-from ..config import DEFAULT_BUS, Config
 from ..errors import UserError
 from .inputs import RateLimitedLog
 
@@ -43,9 +41,6 @@ BACKOFF_MAX_S = 5.0
 CAN_ERR_BUSOFF = 0x40      # error class bit of a SocketCAN error frame's ID
 
 FramesCallback = Callable[[list[can.Message]], None]
-# A unit's own frames: its controller's and its emulated sensor's; they travel on its bus.
-UNIT_FRAME_KINDS = ("sevcon", "heartbeat", "position", "diag", "sensor_heartbeat", "emcy",
-                    "sdo_tx", "sdo_rx")
 
 
 def exact_filters(ids: Iterable[int]) -> list[dict[str, Any]]:
@@ -66,21 +61,6 @@ def bus_settings(bus_cfg: dict[str, Any], interface: str | None = None,
     if not settings.get("interface"):
         raise UserError("no CAN interface: set bus.interface in the config or give --interface")
     return settings
-
-
-def machine_buses(cfg: Config, default: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Settings of every bus the machine's frames are on, by name: the default bus
-    (``default``: the config's ``bus:`` with any command-line overrides; it carries the oil
-    temperature and the I/O module) and each bus under ``buses:`` that a unit is on."""
-    return {DEFAULT_BUS: default, **{name: bus_settings(cfg.bus_kwargs(name))
-                                     for name in cfg.buses if cfg.units_on_bus(name)}}
-
-
-def frame_buses(cfg: Config, codec: FrameCodec) -> dict[int, str]:
-    """Frame ID -> name of the bus it travels on, for each unit's own frames (the rest,
-    oil temperature, I/O module and NMT, are on the default bus)."""
-    return {codec.ids[message_name(kind, unit)]: cfg.can.units[unit].bus
-            for unit in cfg.unit_names for kind in UNIT_FRAME_KINDS}
 
 
 def open_bus(settings: dict[str, Any], filters: list[dict[str, Any]] | None = None) -> can.BusABC:

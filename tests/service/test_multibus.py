@@ -26,12 +26,12 @@ SENSOR_KINDS = ("position", "diag", "sensor_heartbeat")
 def _handled_in_order(service) -> list[can.Message]:
     """Every frame the service handles, in the order it handles them (across buses)."""
     seen: list[can.Message] = []
-    handle = service._handle                                # noqa: SLF001
+    handle = service.ingest.handle
 
     def recording(batch, now, bus=DEFAULT_BUS):
         seen.extend(batch)
         handle(batch, now, bus)
-    service._handle = recording                             # noqa: SLF001
+    service.ingest.handle = recording
     return seen
 
 
