@@ -164,6 +164,7 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
     import can
 
     from ..canbus.dbc import FrameCodec, message_name
+    from ..config import DEFAULT_BUS
     from ..service import Service, ServiceOptions
     from ..service.client import sdo_network
     from ..service.replay import replay
@@ -172,7 +173,10 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
 
     channel = f"ddh-vsensor-demo-{os.getpid()}"
     tables = {a: build_unit_tables(cfg, a) for a in cfg.can.units}
-    service = Service(cfg, tables, {"interface": "virtual", "channel": channel},
+    # one virtual bus for the whole demo, whichever buses the machine's units are on
+    on_one_bus = dataclasses.replace(cfg, buses={}, can=dataclasses.replace(cfg.can, units={
+        u: dataclasses.replace(c, bus=DEFAULT_BUS) for u, c in cfg.can.units.items()}))
+    service = Service(on_one_bus, tables, {"interface": "virtual", "channel": channel},
                       ServiceOptions(state_dir=None, extensions=extensions))
     machine = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
     listener = can.Bus(interface="virtual", channel=channel)
