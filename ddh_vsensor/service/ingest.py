@@ -4,7 +4,7 @@ across the machine's buses), in arrival order, in bounded slices.
 Sevcon TPDO -> that unit's estimator step with the frame's own timestamp; oil and I/O frames
 -> latest values; NMT -> the canopen network of the bus it came on (a broadcast reaches that
 bus's nodes only); SDO requests and consumed heartbeats -> the network that serves them, each
-canopen COB-ID through its own token bucket; frames on the emulated nodes' own IDs -> counted
+canopen COB-ID through its own rate limiter; frames on the emulated nodes' own IDs -> counted
 as ID clashes; anything else counted as unknown. A batch is handled at once when nothing is
 waiting and it is small (the common case, a few frames per wake), else queued for the
 dispatcher task, which works through the queue yielding between slices so that a flood never
@@ -25,7 +25,7 @@ from typing import Any
 import can
 
 from ..config import DEFAULT_BUS, FaultsConfig
-from .inputs import Inputs, RateLimitedLog, TokenBucket
+from .inputs import Inputs, RateLimitedLog, RateLimiter
 from .network import ServiceNetwork
 from .units import Unit
 
@@ -56,7 +56,7 @@ class Ingest:
         self.backlog_max_frames = faults.backlog_max_frames
         self._log = RateLimitedLog(log, faults.log_interval_s)
         self.routes = self._build_routes()
-        self._canopen_buckets: dict[tuple[str, int], TokenBucket] = {}
+        self._canopen_limiters: dict[tuple[str, int], RateLimiter] = {}
         self.inbox: deque[tuple[float, str, list[can.Message]]] = deque()
         self._inbox_frames = 0
         self._event = asyncio.Event()
@@ -175,18 +175,18 @@ class Ingest:
             self.inputs.clash(msg)
 
     def _canopen_allowed(self, msg: can.Message, bus: str) -> bool:
-        """Token bucket per bus and canopen COB-ID: the excess of a flood is dropped,
+        """A rate limiter per bus and canopen COB-ID: the excess of a flood is dropped,
         counted."""
         can_id = msg.arbitration_id
-        bucket = self._canopen_buckets.get((bus, can_id))
-        if bucket is None:
+        limiter = self._canopen_limiters.get((bus, can_id))
+        if limiter is None:
             kind = "nmt" if can_id == 0 else "sdo" if 0x600 <= can_id < 0x680 else "heartbeat"
-            bucket = TokenBucket(CANOPEN_RATE_HZ[kind], CANOPEN_BURST[kind])
-            self._canopen_buckets[(bus, can_id)] = bucket
-        if bucket.take(time.monotonic()):
+            limiter = RateLimiter(CANOPEN_RATE_HZ[kind], CANOPEN_BURST[kind])
+            self._canopen_limiters[(bus, can_id)] = limiter
+        if limiter.take(time.monotonic()):
             return True
         self.canopen_dropped += 1
         self._log.warning(f"canopen-{msg.arbitration_id}", "canopen frames on 0x%03X arrive "
                           "faster than %.0f/s: the excess is dropped (%d so far)",
-                          msg.arbitration_id, bucket.rate_hz, self.canopen_dropped)
+                          msg.arbitration_id, limiter.rate_hz, self.canopen_dropped)
         return False
