@@ -157,3 +157,28 @@ def test_any_number_of_units_publish_as_many_sensor_nodes(cfg, unit_tables, tmp_
         assert service.inputs.units[unit].rejected == 0
         publishing += 1
     assert publishing == count and service.inputs.counts["unknown"] == 0
+
+
+def test_a_broadcast_nmt_command_reaches_the_nodes_of_its_own_bus(cfg, unit_tables) -> None:
+    """"Stop all nodes" on the second bus stops the sensor there; the one on the default bus
+    stays OPERATIONAL (one canopen network per bus)."""
+    first, second = cfg.unit_names
+    channels = {DEFAULT_BUS: channel_name(), "second": channel_name()}
+    two = on_buses(cfg, {second: "second"},
+                   {"second": {"interface": "virtual", "channel": channels["second"]}})
+
+    async def scenario():
+        async with running_service(two, unit_tables, channels[DEFAULT_BUS]) as service:
+            ingest = service.ingest
+            handled = ingest.inputs.counts.copy()
+            with can.Bus(interface="virtual", channel=channels["second"]) as master:
+                master.send(can.Message(arbitration_id=0, data=[0x02, 0], is_extended_id=False))
+            await until(lambda: service.units[second].node.node.nmt.state == "STOPPED",
+                        "the second bus's sensor stopped")
+            await ticks_after(service)
+            return {u: service.units[u].node.node.nmt.state for u in two.unit_names}, \
+                handled == ingest.inputs.counts
+
+    states, nothing_unknown = asyncio.run(scenario())
+    assert states == {first: "OPERATIONAL", second: "STOPPED"}
+    assert nothing_unknown
