@@ -28,8 +28,8 @@ def _frame_id(text: str) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="send a CAN log onto a bus in real time (or --rate X)",
                        description="Timed replay of a CAN log (BLF, ASC, candump, CSV, ...) "
-                       "onto the machine's buses (each unit's frames onto the bus it is on, the rest "
-                       "onto the default bus): frame k goes out at its log time divided by "
+                       "onto the machine's buses (each unit's frames onto the bus it is on, the "
+                       "rest onto the default bus): frame k goes out at its log time divided by "
                        "--rate, from absolute deadlines.")
     p.add_argument("log", metavar="LOG")
     add_config_arg(p)

@@ -179,7 +179,8 @@ class SensorNode:
             self._next_heartbeat_s = base + self.heartbeat_period_s
             if self._next_heartbeat_s <= now_s:            # far behind: do not burst
                 self._next_heartbeat_s = now_s + self.heartbeat_period_s
-            self.network.send_message(0x700 + self.node_id, bytes([self.node.nmt._state]))  # noqa: SLF001
+            state = self.node.nmt._state                              # noqa: SLF001
+            self.network.send_message(0x700 + self.node_id, bytes([state]))
 
     # --- publishing ------------------------------------------------------------------------
 
@@ -268,8 +269,10 @@ class SensorNode:
         if index == 0x6400:
             return self._area_state(p.position_mm)
         if index == 0x6503:
-            return ALARM_POSITION_ERROR if p.flags & (Flags.STALE_INPUT | Flags.CONTROLLER_NOT_OPERATIONAL) else 0
-        return ((WARNING_NO_REFERENCE if p.flags & (Flags.NOT_REFERENCED | Flags.PRESET_UNCONFIRMED) else 0)
+            alarm = Flags.STALE_INPUT | Flags.CONTROLLER_NOT_OPERATIONAL
+            return ALARM_POSITION_ERROR if p.flags & alarm else 0
+        no_reference = Flags.NOT_REFERENCED | Flags.PRESET_UNCONFIRMED
+        return ((WARNING_NO_REFERENCE if p.flags & no_reference else 0)
                 | (WARNING_CLAMPED if p.flags & Flags.TABLE_CLAMPED else 0)
                 | (WARNING_SOFT_LIMIT if p.flags & Flags.AT_SOFT_LIMIT else 0))      # 0x6505
 

@@ -408,8 +408,9 @@ class Service:
             label = "bus" if len(self.links) == 1 else f"bus {name}"
             parts.append(f"{label} {link.state}"
                          + (f" ({link.reason})" if link.state != "open" else ""))
-        parts.append(f"in {sum(u.received for u in self.inputs.units.values())} "
-                     f"rejected {self.inputs.rejected_total} unknown {self.inputs.counts['unknown']}")
+        inputs = self.inputs
+        parts.append(f"in {sum(u.received for u in inputs.units.values())} "
+                     f"rejected {inputs.rejected_total} unknown {inputs.counts['unknown']}")
         presets = [f"{a} {u.presets_accepted}/{u.presets_refused}"
                    for a, u in self.units.items() if u.presets_accepted or u.presets_refused]
         if presets:
