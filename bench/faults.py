@@ -109,7 +109,7 @@ class Episode:
 
     def _route(self, msg: can.Message, t: float) -> None:
         self.clock.now = self._now(t)
-        self.service._handle([msg], self.clock.now)            # noqa: SLF001
+        self.service.ingest.handle([msg], self.clock.now)
 
     def _inject(self, t: float, kind: str) -> None:
         rng, cfg = self.rng, self.cfg
@@ -371,8 +371,8 @@ def soak(cfg: Config, tables: dict, paper: dict, seconds: float, flood_hz: float
                 "housekeeping_ticks": len(ticks),
                 "housekeeping_max_gap_ms": round(float(gaps.max()) * 1000, 1),
                 "watchdog_eligible_share": round(healthy[0] / max(healthy[1], 1), 4),
-                "backlog_dropped_frames": service.dropped_frames,
-                "canopen_dropped_frames": service.canopen_dropped,
+                "backlog_dropped_frames": service.ingest.dropped_frames,
+                "canopen_dropped_frames": service.ingest.canopen_dropped,
                 "integrated_boom": service.units["boom"].integrated}
 
     return asyncio.run(run())
@@ -390,7 +390,7 @@ def main() -> int:
     print("simulating the paper cycle ...", flush=True)
     result = simulate_with_truth(cfg, [RunSpec(speed=4)])[0]
     runs = {a: run for a, (run, _) in result.items()}
-    paper = {"frames": machine_frames(cfg, runs, heartbeat_period_s=0.1),
+    paper = {"frames": list(machine_frames(cfg, runs, heartbeat_period_s=0.1)),
              "truth": {a: (truth.time_s, truth.x_m * 1e3) for a, (_, truth) in result.items()}}
     tables = {a: build_unit_tables(cfg, a) for a in cfg.can.units}
     figures = campaign(cfg, tables, paper, args.faults, args.seed)

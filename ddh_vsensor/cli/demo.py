@@ -115,7 +115,7 @@ def _run(args: argparse.Namespace) -> int:
     bar.close()
     runs = {a: run for a, (run, _) in result.items()}
     truths = {a: truth for a, (_, truth) in result.items()}
-    frames = machine_frames(cfg, runs, HEARTBEAT_PERIOD_S)
+    frames = list(machine_frames(cfg, runs, HEARTBEAT_PERIOD_S))
     pairing = asyncio.run(_demo(cfg, frames, truths, args.rate, extensions))
     if not args.no_figure:
         path = write_figure(pairing, truths, args.figure)
@@ -166,18 +166,21 @@ def write_figure(pairing: dict[str, "_Pairing"], truths: dict, path: str) -> Pat
 async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
                 ) -> dict[str, _Pairing]:
     import can
-    import canopen
 
     from ..canbus.dbc import FrameCodec, message_name
+    from ..config import DEFAULT_BUS
     from ..service import Service, ServiceOptions
-    from ..service.node import EDS_PATH
+    from ..service.client import sdo_network
     from ..service.replay import replay
     from ..service.watch import OutputWatcher, flag_text
     from ..tables.build import build_unit_tables
 
     channel = f"ddh-vsensor-demo-{os.getpid()}"
     tables = {a: build_unit_tables(cfg, a) for a in cfg.can.units}
-    service = Service(cfg, tables, {"interface": "virtual", "channel": channel},
+    # one virtual bus for the whole demo, whichever buses the machine's units are on
+    on_one_bus = dataclasses.replace(cfg, buses={}, can=dataclasses.replace(cfg.can, units={
+        u: dataclasses.replace(c, bus=DEFAULT_BUS) for u, c in cfg.can.units.items()}))
+    service = Service(on_one_bus, tables, {"interface": "virtual", "channel": channel},
                       ServiceOptions(state_dir=None, extensions=extensions))
     machine = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
     listener = can.Bus(interface="virtual", channel=channel)
@@ -195,13 +198,9 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
         await service.start()
         # Commissioning over SDO, from a master node on the bus: true start positions as
         # presets, and the diagnostic frame every position frame.
-        network = canopen.Network(master)
-        notifier = can.Notifier(master, network.listeners, 0.1)
-        try:
+        with sdo_network(master) as network:
             await asyncio.get_running_loop().run_in_executor(
-                None, _commission, network, cfg, truths, str(EDS_PATH))
-        finally:
-            notifier.stop(1.0)
+                None, _commission, network, cfg, truths)
         now_log = [0.0]
         latest: dict[str, tuple[float, float, float]] = {}
         done = asyncio.Event()
@@ -257,18 +256,16 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
     return pairing
 
 
-def _commission(network, cfg, truths: dict, eds: str) -> None:
+def _commission(network, cfg, truths: dict) -> None:
     import canopen
-    step = cfg.can.position_step_mm
-    for actuator, unit in cfg.can.units.items():
-        node = network.add_node(unit.sensor_node_id, eds)
-        node.sdo.RESPONSE_TIMEOUT = 2.0
+
+    from ..service.client import clients
+    for unit, client in clients(network, cfg).items():
         try:
-            node.sdo[0x1801][5].raw = node.sdo[0x1800][5].raw
-            start_mm = float(truths[actuator].x_m[0] * 1e3)
-            node.sdo[0x6010][1].raw = round(start_mm / step)
+            client.diag_timer_ms = client.event_timer_ms
+            client.preset(float(truths[unit].x_m[0] * 1e3))
         except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
-            raise UserError(f"demo: commissioning the {actuator} sensor over SDO failed: "
+            raise UserError(f"demo: commissioning the {unit} sensor over SDO failed: "
                             f"{exc}") from None
 
 

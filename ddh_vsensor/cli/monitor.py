@@ -16,8 +16,10 @@ from .run import add_bus_args, bus_from_args
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("monitor", help="live view of the emulated position sensors",
                        description="Shows what the emulated CiA 406 sensors publish: position, "
-                       "speed, uncertainty, flags, input counters, NMT state. From a bus "
-                       "(--interface/--channel, default the config's bus) or a CAN log (--log).")
+                       "speed, uncertainty, flags, input counters, NMT state. From the machine's "
+                       "buses (the default one as --interface/--channel say, default the "
+                       "config's bus:; the others as configured under buses:) or a CAN log "
+                       "(--log).")
     add_config_arg(p)
     add_bus_args(p)
     p.add_argument("--log", metavar="LOG", help="read a recorded CAN log instead of a bus")
@@ -82,25 +84,34 @@ def _from_bus(args: argparse.Namespace, cfg, watcher, screen: _Screen) -> int:
     import can
 
     from ..service.bus import exact_filters, open_bus
-    settings = bus_from_args(args, cfg)
+    from ..service.buses import machine_buses
+    buses: list[can.BusABC] = []
     try:
-        bus = open_bus(settings, exact_filters(watcher.ids))
-    except (can.CanError, OSError) as exc:
-        raise UserError(f"cannot open the bus {settings}: {exc}") from None
-    start = time.monotonic()
-    next_show = start + args.every
-    try:
-        while args.duration is None or time.monotonic() - start < args.duration:
-            msg = bus.recv(max(0.0, next_show - time.monotonic()))
-            if msg is not None:
-                watcher.feed(msg)
-            if time.monotonic() >= next_show:
-                next_show += args.every
-                screen.show(f"{settings.get('interface')} {settings.get('channel', '')}  "
-                            f"{time.strftime('%H:%M:%S')}", watcher.lines())
-    except KeyboardInterrupt:
-        pass
+        for settings in machine_buses(cfg, bus_from_args(args, cfg)).values():
+            try:
+                buses.append(open_bus(settings, exact_filters(watcher.ids)))
+            except (can.CanError, OSError) as exc:
+                raise UserError(f"cannot open the bus {settings}: {exc}") from None
+        where = ", ".join(f"{b.channel_info}" for b in buses)
+        # One reader thread per bus, one queue: a unit's sensor is on its own bus.
+        reader = can.BufferedReader()
+        notifier = can.Notifier(buses, [reader], 0.1)
+        start = time.monotonic()
+        next_show = start + args.every
+        try:
+            while args.duration is None or time.monotonic() - start < args.duration:
+                msg = reader.get_message(max(0.0, next_show - time.monotonic()))
+                if msg is not None:
+                    watcher.feed(msg)
+                if time.monotonic() >= next_show:
+                    next_show += args.every
+                    screen.show(f"{where}  {time.strftime('%H:%M:%S')}", watcher.lines())
+        except KeyboardInterrupt:
+            pass
+        finally:
+            notifier.stop(1.0)
     finally:
-        bus.shutdown()
+        for bus in buses:
+            bus.shutdown()
     screen.show(f"{watcher.frames} sensor frames seen", watcher.lines())
     return 0 if watcher.frames else 1

@@ -28,8 +28,9 @@ def _frame_id(text: str) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="send a CAN log onto a bus in real time (or --rate X)",
                        description="Timed replay of a CAN log (BLF, ASC, candump, CSV, ...) "
-                       "onto a bus: frame k goes out at its log time divided by --rate, from "
-                       "absolute deadlines.")
+                       "onto the machine's buses (each unit's frames onto the bus it is on, the "
+                       "rest onto the default bus): frame k goes out at its log time divided by "
+                       "--rate, from absolute deadlines.")
     p.add_argument("log", metavar="LOG")
     add_config_arg(p)
     add_bus_args(p)
@@ -64,21 +65,38 @@ def _run(args: argparse.Namespace) -> int:
         raise UserError(f"--rate {args.rate}: must be positive (or 0)")
     frames = read_log(args.log)
     skip = set(args.skip_id)
+    codec = FrameCodec(cfg)
     if args.inputs_only:
-        codec = FrameCodec(cfg)
         keep = {codec.ids[OIL_TEMP], codec.ids[IO_MODULE]} | {
             codec.ids[message_name(k, a)] for a in cfg.can.units for k in ("sevcon", "heartbeat")}
         skip |= {m.arbitration_id for m in frames} - keep
-    settings = bus_from_args(args, cfg)
+    from ..config import DEFAULT_BUS
+    from ..service.buses import frame_buses, machine_buses
+    all_settings = machine_buses(cfg, bus_from_args(args, cfg))
     if args.stamp == "log":
-        if settings["interface"] not in STAMP_KEEPING_INTERFACES:
-            raise UserError(f"--stamp log: the {settings['interface']} interface stamps frames "
-                            f"itself (use {' or '.join(STAMP_KEEPING_INTERFACES)})")
-        settings["preserve_timestamps"] = True
+        for settings in all_settings.values():
+            if settings["interface"] not in STAMP_KEEPING_INTERFACES:
+                raise UserError(f"--stamp log: the {settings['interface']} interface stamps "
+                                f"frames itself (use {' or '.join(STAMP_KEEPING_INTERFACES)})")
+            settings["preserve_timestamps"] = True
+    buses: dict[str, can.BusABC] = {}
     try:
-        bus = open_bus(settings)
-    except (can.CanError, OSError) as exc:
-        raise UserError(f"cannot open the bus {settings}: {exc}") from None
+        for name, settings in all_settings.items():
+            try:
+                buses[name] = open_bus(settings)
+            except (can.CanError, OSError) as exc:
+                raise UserError(f"cannot open the bus {settings}: {exc}") from None
+    except UserError:
+        for bus in buses.values():
+            bus.shutdown()
+        raise
+    # Each unit's frames onto its own bus; oil temperature, I/O module and the rest onto the
+    # default one.
+    senders = {name: bus_sender(bus) for name, bus in buses.items()}
+    on_bus = frame_buses(cfg, codec) if len(buses) > 1 else {}
+
+    def send(msg: can.Message) -> bool:
+        return senders[on_bus.get(msg.arbitration_id, DEFAULT_BUS)](msg)
     span_s = max(frames[-1].timestamp - frames[0].timestamp, 1e-9)
     bar = ProgressBar("replay")
     reached = [0.0]
@@ -88,10 +106,11 @@ def _run(args: argparse.Namespace) -> int:
         bar.update(log_time_s / span_s, f"{log_time_s:.1f} of {span_s:.1f} s of log")
 
     try:
-        stats = asyncio.run(replay(frames, bus_sender(bus), rate=args.rate, stamp=args.stamp,
+        stats = asyncio.run(replay(frames, send, rate=args.rate, stamp=args.stamp,
                                    skip_ids=skip, progress=progress))
     finally:
-        bus.shutdown()
+        for bus in buses.values():
+            bus.shutdown()
         bar.close(f"{reached[0]:.1f} of {span_s:.1f} s of log")
     print(f"replayed {stats.frames} frames ({stats.skipped} skipped, {stats.send_errors} send "
           f"errors) spanning {stats.log_span_s:.3f} s of log in {stats.duration_s:.3f} s; "

@@ -25,13 +25,15 @@ SAVE_SIGNALS = (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)
 
 
 def add_bus_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--interface", metavar="I", help="python-can interface, overrides bus.interface "
-                   "(socketcan, virtual, remote, ...)")
-    p.add_argument("--channel", metavar="C", help="channel, overrides bus.channel (can0, "
-                   "ws://127.0.0.1:54701/, ...)")
+    p.add_argument("--interface", metavar="I", help="python-can interface of the default bus, "
+                   "overrides bus.interface (socketcan, virtual, remote, ...); the buses "
+                   "named under buses: are opened as configured")
+    p.add_argument("--channel", metavar="C", help="channel of the default bus, overrides "
+                   "bus.channel (can0, ws://127.0.0.1:54701/, ...); not the buses under buses:")
 
 
 def bus_from_args(args: argparse.Namespace, cfg: Config) -> dict[str, Any]:
+    """The default bus's settings (``bus:``) with the command line's overrides."""
     from ..service.bus import bus_settings
     return bus_settings(cfg.bus, args.interface, args.channel)
 

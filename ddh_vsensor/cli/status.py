@@ -37,73 +37,51 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run)
 
 
-def _read_node(node: Any, step_mm: float) -> dict[str, Any]:
-    from ..service.watch import flag_text
-    sdo = node.sdo
-    position = sdo[0x6020][1].raw
-    flags = sdo[0x2002].raw
-    return {
-        "device_type": f"0x{sdo[0x1000].raw:08X}",
-        "position_mm": position * step_mm,
-        "position_steps": position,
-        "measuring_step_nm": sdo[0x6005][1].raw,
-        "speed_mm_s": sdo[0x6030][1].raw * 0.1,
-        "uncertainty_mm": sdo[0x2001].raw * 0.01,
-        "flags": flags,
-        "flag_names": flag_text(flags),
-        "input_frames": sdo[0x2003].raw,
-        "rejected_frames": sdo[0x2004].raw,
-        "tpdo1_event_timer_ms": sdo[0x1800][5].raw,
-        "tpdo2_event_timer_ms": sdo[0x1801][5].raw,
-        "heartbeat_ms": sdo[0x1017].raw,
-    }
-
-
 def _run(args: argparse.Namespace) -> int:
     import can
     import canopen
 
-    from ..canbus.eds import unit_object_dictionary
     from ..service.bus import open_bus
+    from ..service.buses import machine_buses
+    from ..service.client import clients, sdo_network
 
     cfg = config_from(args)
+    presets = [(cfg.require_unit(unit), mm) for unit, mm in args.preset]
     if not 0.01 <= args.timeout <= 60:
         raise UserError(f"--timeout {args.timeout}: outside 0.01..60 s")
-    settings = bus_from_args(args, cfg)
-    try:
-        bus = open_bus(settings)
-    except (can.CanError, OSError) as exc:
-        raise UserError(f"cannot open the bus {settings}: {exc}") from None
-    network = canopen.Network(bus)
-    # canopen's MessageListener guards its callbacks; one listener, a thread Notifier: the
-    # SDO client blocks this thread while the notifier delivers the responses.
-    notifier = can.Notifier(bus, network.listeners, 0.1)
-    step = cfg.can.position_step_mm
     out: dict[str, Any] = {}
-    try:
-        nodes = {a: network.add_node(u.sensor_node_id, unit_object_dictionary(cfg, a))
-                 for a, u in cfg.can.units.items()}
-        for node in nodes.values():
-            node.sdo.RESPONSE_TIMEOUT = args.timeout
-            node.sdo.MAX_RETRIES = 1     # canopen counts attempts: 0 would retry forever
-        for actuator, mm in args.preset:
-            try:
-                nodes[actuator].sdo[0x6010][1].raw = round(mm / step)
-            except canopen.SdoAbortedError as exc:
-                raise UserError(f"{actuator}: preset {mm} mm refused by node "
-                                f"{nodes[actuator].id}: {exc}") from None
-            except canopen.SdoCommunicationError as exc:
-                raise UserError(_no_answer(actuator, nodes[actuator].id, exc)) from None
-        for actuator, node in nodes.items():
-            try:
-                out[actuator] = {"node_id": node.id, **_read_node(node, step)}
-            except canopen.SdoCommunicationError as exc:
-                raise UserError(_no_answer(actuator, node.id, exc)) from None
-            except canopen.SdoAbortedError as exc:
-                raise UserError(f"{actuator}: node {node.id} refused a read: {exc}") from None
-    finally:
-        notifier.stop(1.0)
-        bus.shutdown()
+    for bus_name, settings in machine_buses(cfg, bus_from_args(args, cfg)).items():
+        units = cfg.units_on_bus(bus_name)
+        if not units:
+            continue
+        try:
+            bus = open_bus(settings)
+        except (can.CanError, OSError) as exc:
+            raise UserError(f"cannot open the bus {settings}: {exc}") from None
+        try:
+            with sdo_network(bus) as network:
+                nodes = clients(network, cfg, units, timeout_s=args.timeout, attempts=1)
+                for unit, mm in presets:
+                    if unit not in nodes:
+                        continue
+                    try:
+                        nodes[unit].preset(mm)
+                    except canopen.SdoAbortedError as exc:
+                        raise UserError(f"{unit}: preset {mm} mm refused by node "
+                                        f"{nodes[unit].node_id}: {exc}") from None
+                    except canopen.SdoCommunicationError as exc:
+                        raise UserError(_no_answer(unit, nodes[unit].node_id, exc)) from None
+                for unit, client in nodes.items():
+                    try:
+                        out[unit] = {"node_id": client.node_id, **client.read_all()}
+                    except canopen.SdoCommunicationError as exc:
+                        raise UserError(_no_answer(unit, client.node_id, exc)) from None
+                    except canopen.SdoAbortedError as exc:
+                        raise UserError(f"{unit}: node {client.node_id} refused a read: "
+                                        f"{exc}") from None
+        finally:
+            bus.shutdown()
+    out = {unit: out[unit] for unit in cfg.unit_names}
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
@@ -120,6 +98,6 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _no_answer(actuator: str, node_id: int, exc: Exception) -> str:
-    return (f"{actuator}: node {node_id} did not answer over SDO ({exc}): is "
+def _no_answer(unit: str, node_id: int, exc: Exception) -> str:
+    return (f"{unit}: node {node_id} did not answer over SDO ({exc}): is "
             f"`ddh-vsensor run` running on this bus?")

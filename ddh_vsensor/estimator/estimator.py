@@ -38,6 +38,11 @@ class Step:
     velocity_mm_s: float
     uncertainty_mm: float
     flags: int
+    # The reference switch whose edge was taken in this step (None: no reference), and the
+    # share of its error corrected: 1.0 taken whole, less when taken partly (an error of
+    # transient size met at speed, see Estimator._reference).
+    reference: str | None = None
+    reference_gain: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,7 @@ class ReferenceEvent:
     switch_position_mm: float
     error_mm: float         # estimate minus switching position, at the edge
     adapted: bool
+    gain: float = 1.0       # share of the error corrected (1.0: whole)
 
 
 @dataclass(frozen=True)
@@ -198,7 +204,7 @@ class Estimator:
         self.u_base = self.u_ref + abs(snap.dx) + (1.0 - k) * abs(error)
         self.referenced = True
         return self._clip(x_now - k * error), ReferenceEvent(
-            index, snap.index, sw.name, rising, p, error, adapted)
+            index, snap.index, sw.name, rising, p, error, adapted, k)
 
     # --- online face -----------------------------------------------------------------------
 
@@ -234,6 +240,7 @@ class Estimator:
             on.s_up += dx_raw
         else:
             on.s_down += dx_raw
+        taken: ReferenceEvent | None = None
         if refs:
             accepted = []
             for i, (sw, deb) in enumerate(zip(self.switches, on.debouncers)):
@@ -249,8 +256,8 @@ class Estimator:
                 if edge is not None:
                     accepted.append((sw, edge[1], on.snapshots[i]))
             for sw, rising, snap in accepted:
-                self.position_mm, _ = self._reference(sw, rising, snap, self.position_mm,
-                                                      (on.s_up, on.s_down), on.index)
+                self.position_mm, taken = self._reference(sw, rising, snap, self.position_mm,
+                                                          (on.s_up, on.s_down), on.index)
                 if self.dynamic is not None:
                     self.dynamic.set_position(self.position_mm)
         flags = self.state_flags()
@@ -258,7 +265,9 @@ class Estimator:
             flags |= Flags.STALE_INPUT
         if clamped:
             flags |= Flags.TABLE_CLAMPED
-        return Step(self.position_mm, v, self.uncertainty_mm, flags)
+        if taken is None:
+            return Step(self.position_mm, v, self.uncertainty_mm, flags)
+        return Step(self.position_mm, v, self.uncertainty_mm, flags, taken.switch, taken.gain)
 
     # --- offline face ----------------------------------------------------------------------
 

@@ -455,14 +455,14 @@ class ExtendedEstimator:
         self._v = step.velocity_mm_s
         self._t = t_s
         correction = self._correction()
-        if refs and self.estimator.travel_mm == 0.0 and self.estimator.hold_s == 0.0:
+        if step.reference is not None:
             self._offset_mm = correction          # a reference was just accepted
         return self._output(step, x + correction - self._offset_mm)
 
     def _output(self, step: Step, x: float) -> Step:
         x = min(max(x, self.estimator.lower_mm), self.estimator.upper_mm)
         self._out = x
-        return Step(x, step.velocity_mm_s, step.uncertainty_mm, step.flags)
+        return dataclasses.replace(step, position_mm=x)
 
     def _delay(self, t_s: float, delay_s: float, values: Any) -> Any:
         """``values`` as they were ``delay_s`` ago: motor signals interpolated linearly, switch

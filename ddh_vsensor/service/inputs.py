@@ -29,7 +29,8 @@ log = logging.getLogger(__name__)
 # A Sevcon value beyond this multiple of the motor's limit is a broken frame, not motion.
 PLAUSIBLE_LIMIT_FACTOR = 2.0
 OIL_TEMP_RANGE_C = (-40.0, 150.0)
-# Flood guard per input ID: a token bucket refilled at this rate (frames/s) holding this many.
+# Flood guard per input ID: a rate limiter whose tokens refill at this rate (frames/s), up
+# to this many.
 # The fastest legitimate input is a 1 ms TPDO (1000 frames/s).
 FLOOD_RATE_HZ = 2500.0
 FLOOD_BURST = 50
@@ -107,7 +108,9 @@ class RateLimitedLog:
 
 
 @dataclass
-class TokenBucket:
+class RateLimiter:
+    """Tokens refilled at ``rate_hz`` up to ``burst``; each frame let through takes one."""
+
     rate_hz: float
     burst: float
     tokens: float = 0.0
@@ -156,7 +159,7 @@ class Inputs:
         self._limits = {a: (PLAUSIBLE_LIMIT_FACTOR * cfg.unit(a).motor.speed_limit_rpm,
                             PLAUSIBLE_LIMIT_FACTOR * cfg.unit(a).motor.torque_limit_nm)
                         for a in cfg.can.units}
-        self._buckets = {i: TokenBucket(flood_rate_hz, flood_burst)
+        self._limiters = {i: RateLimiter(flood_rate_hz, flood_burst)
                          for i in (*self.sevcon_ids, self.oil_id, self.io_id)}
         self._last_t: dict[int, float] = {}
         self.units = {a: UnitCounters() for a in cfg.can.units}
@@ -185,11 +188,11 @@ class Inputs:
     def _not_flooded(self, msg: can.Message, what: str) -> bool:
         # Frame timestamps, not arrival times: a backlog of frames received in time but
         # handled late is no flood.
-        if self._buckets[msg.arbitration_id].take(msg.timestamp):
+        if self._limiters[msg.arbitration_id].take(msg.timestamp):
             return True
         self.log.warning(f"flood-{msg.arbitration_id}", "%s frames on 0x%03X arrive faster "
                          "than %.0f/s: the excess is rejected", what, msg.arbitration_id,
-                         self._buckets[msg.arbitration_id].rate_hz)
+                         self._limiters[msg.arbitration_id].rate_hz)
         return False
 
     def _check_time(self, msg: can.Message, what: str) -> None:

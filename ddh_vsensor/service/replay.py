@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -119,31 +119,77 @@ def bus_sender(bus: can.BusABC) -> Callable[[can.Message], bool]:
 
 
 def machine_frames(cfg: Config, runs: Mapping[str, Run],
-                   heartbeat_period_s: float | None = 0.1) -> list[can.Message]:
-    """The frames a machine with these runs would put on the bus for the service: Sevcon,
-    oil temperature and Hall inputs (the project's BLF writer, without the logged position
-    frames, which are the service's own IDs) plus, optionally, the controllers' OPERATIONAL
-    heartbeats; in log order, timestamps the runs' times."""
-    import dataclasses
-    import tempfile
+                   heartbeat_period_s: float | None = 0.1) -> Iterator[can.Message]:
+    """The frames a machine with these runs would put on the bus for the service, one at a
+    time: per sample the oil temperature (from the first run), the I/O module's Hall inputs
+    (every unit's latest switch states) and the unit's Sevcon TPDO1, as ``write_blf``
+    orders them (no draw-wire position frames: those are the service's own IDs), plus,
+    optionally, the controllers' OPERATIONAL heartbeats; in log order, timestamps the
+    runs' times."""
+    import heapq
 
+    frames = _input_frames(cfg, runs)
+    if not heartbeat_period_s:
+        yield from frames
+        return
+    yield from heapq.merge(frames, _heartbeats(cfg, runs, heartbeat_period_s),
+                           key=lambda m: m.timestamp)      # equal times: inputs first
+
+
+def _input_frames(cfg: Config, runs: Mapping[str, Run]) -> Iterator[can.Message]:
+    import numpy as np
+
+    from ..canbus.dbc import FrameCodec
+    from ..measured import MeasuredDataError
+    if not runs:
+        raise MeasuredDataError("<runs>", "no run to send")
+    for unit, run in runs.items():
+        unknown = sorted(set(run.refs) - set(cfg.can.units[cfg.require_unit(unit)].hall_bits))
+        if unknown:
+            raise MeasuredDataError(run.source, f"reference(s) {', '.join(unknown)} have no "
+                                    f"input bit in can.units.{unit}.hall_bits of {cfg.source}")
+    codec = FrameCodec(cfg)
+    units = list(runs)
+    oil_run = runs[units[0]]
+    io_time_s = np.unique(np.concatenate([run.time_s for run in runs.values()]))
+    # Rows (time, kind, unit index, sample), sorted by time, then kind (oil, I/O, Sevcon:
+    # a sample's inputs before its Sevcon frame), then unit.
+    parts = [(oil_run.time_s, 0, 0), (io_time_s, 1, 0)]
+    parts += [(runs[u].time_s, 2, k) for k, u in enumerate(units)]
+    time_s = np.concatenate([p[0] for p in parts])
+    kind = np.concatenate([np.full(len(p[0]), p[1]) for p in parts])
+    unit_index = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])
+    sample = np.concatenate([np.arange(len(p[0])) for p in parts])
+    order = np.lexsort((unit_index, kind, time_s))
+    held = {u: np.maximum(np.searchsorted(runs[u].time_s, io_time_s, "right") - 1, 0).tolist()
+            for u in units}
+    refs = {u: {name: state.tolist() for name, state in runs[u].refs.items()} for u in units}
+    columns = {u: (runs[u].torque_nm.tolist(), runs[u].speed_rpm.tolist()) for u in units}
+    oil_temp_c = oil_run.oil_temp_c.tolist()
+    for t, k, a, i in zip(time_s[order].tolist(), kind[order].tolist(),
+                          unit_index[order].tolist(), sample[order].tolist()):
+        if k == 0:
+            yield codec.encode_oil_temp(oil_temp_c[i], t)
+        elif k == 1:
+            yield codec.encode_inputs({u: {name: state[held[u][i]]
+                                           for name, state in refs[u].items()}
+                                       for u in units}, t)
+        else:
+            torque_nm, speed_rpm = columns[units[a]]
+            yield codec.encode_sevcon(units[a], torque_nm[i], speed_rpm[i], t)
+
+
+def _heartbeats(cfg: Config, runs: Mapping[str, Run],
+                period_s: float) -> Iterator[can.Message]:
+    """Every unit's controller reporting OPERATIONAL every ``period_s`` from 0 s to the end
+    of the longest run."""
     import numpy as np
 
     from ..canbus.dbc import FrameCodec, message_name
-    from ..canbus.log import write_blf
-    inputs_only = {a: dataclasses.replace(r, position_mm=np.full(len(r.time_s), np.nan))
-                   for a, r in runs.items()}
-    with tempfile.TemporaryDirectory(prefix="ddh-vsensor-frames-") as tmp:
-        path = Path(tmp) / "machine.blf"
-        write_blf(path, inputs_only, cfg)
-        frames = read_log(path)
-    if heartbeat_period_s:
-        codec = FrameCodec(cfg)
-        end = max(float(r.time_s[-1]) for r in runs.values())
-        for a in runs:
-            frame_id = codec.ids[message_name("heartbeat", a)]
-            frames += [can.Message(timestamp=float(t), arbitration_id=frame_id,
-                                   is_extended_id=False, data=bytes([5]))
-                       for t in np.arange(0.0, end + 1e-9, heartbeat_period_s)]
-        frames.sort(key=lambda m: m.timestamp)     # stable: the log's order within a time
-    return frames
+    codec = FrameCodec(cfg)
+    ids = [codec.ids[message_name("heartbeat", u)] for u in runs]
+    end = max(float(r.time_s[-1]) for r in runs.values())
+    for t in np.arange(0.0, end + 1e-9, period_s).tolist():
+        for frame_id in ids:
+            yield can.Message(timestamp=t, arbitration_id=frame_id, is_extended_id=False,
+                              data=bytes([5]))

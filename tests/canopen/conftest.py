@@ -22,7 +22,8 @@ import pytest
 
 from ddh_vsensor.config import Config
 from ddh_vsensor.service import Service, ServiceOptions
-from ddh_vsensor.service.node import EDS_PATH, Published
+from ddh_vsensor.service.client import clients
+from ddh_vsensor.service.objects import Published
 
 WAIT_S = 10.0          # bound of every wait: generous, a loaded machine only makes it slower
 
@@ -135,11 +136,7 @@ def master_on(cfg: Config, channel: str) -> Iterator[Master]:
     frames = Frames()
     network.listeners.append(frames)
     network.connect(interface="virtual", channel=channel)
-    nodes = {}
-    for actuator, unit in cfg.can.units.items():
-        node = network.add_node(unit.sensor_node_id, str(EDS_PATH))
-        node.sdo.RESPONSE_TIMEOUT = 2.0
-        nodes[actuator] = node
+    nodes = {unit: client.node for unit, client in clients(network, cfg).items()}
     try:
         yield Master(network, frames, nodes)
     finally:

@@ -7,7 +7,7 @@ import pytest
 
 from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.service import ServiceOptions
-from ddh_vsensor.service.node import ABORT_VALUE_RANGE
+from ddh_vsensor.service.objects import ABORT_VALUE_RANGE
 
 from .conftest import Feeder, FlaggedService, master_on, service_thread, wait_for
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import canopen
 import pytest
 
-from ddh_vsensor.service.node import (ABORT_MAP_LENGTH, ABORT_NOT_MAPPABLE,
-                                      ABORT_UNSUPPORTED_ACCESS, ABORT_VALUE_RANGE)
+from ddh_vsensor.service.objects import (ABORT_MAP_LENGTH, ABORT_NOT_MAPPABLE,
+                                         ABORT_UNSUPPORTED_ACCESS, ABORT_VALUE_RANGE)
 
 PRESET_MM = 123.45
 

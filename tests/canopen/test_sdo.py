@@ -8,8 +8,9 @@ import struct
 import canopen
 import pytest
 
-from ddh_vsensor.service.node import (ABORT_COMMAND, ABORT_LENGTH_TOO_HIGH, ABORT_MAX_BELOW_MIN,
-                                      ABORT_READ_ONLY, ABORT_VALUE_RANGE)
+from ddh_vsensor.service.objects import (ABORT_COMMAND, ABORT_LENGTH_TOO_HIGH,
+                                         ABORT_MAX_BELOW_MIN, ABORT_READ_ONLY,
+                                         ABORT_VALUE_RANGE)
 
 from .conftest import wait_for
 

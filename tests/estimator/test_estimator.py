@@ -156,3 +156,23 @@ def test_a_cold_start_does_not_learn_from_its_first_reference(cfg, boom, unit_ta
     assert abs(res.events[0].error_mm) > 20.0 and not res.events[0].adapted
     assert any(e.adapted for e in res.events[1:])
     assert np.all(np.abs(cold.gain.gain - 1.0) < cold.gain.bound)
+
+
+def test_step_carries_the_reference_taken_in_it(cfg, boom, unit_tables, make_run):
+    """Each step names the switch whose edge it took, and how much of the error it
+    corrected: exactly the offline run's events, nothing in any other step. Started 20 mm
+    off, the first edge is taken whole; later ones, met at speed with a transient-sized
+    error, partly."""
+    run = make_run(boom, seconds=40, leakage=1.02, unit_cfg=cfg.unit("boom"))
+    start_mm = run.position_mm[0] + 20.0
+    off = Estimator(cfg, "boom", unit_tables["boom"], initial_position_mm=start_mm)
+    res = off.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+    on = Estimator(cfg, "boom", unit_tables["boom"], initial_position_mm=start_mm)
+    steps = _online(on, run)
+    taken = {k: (s.reference, s.reference_gain) for k, s in enumerate(steps)
+             if s.reference is not None}
+    assert len(res.events) >= 4
+    assert taken == {e.index: (e.switch, e.gain) for e in res.events}
+    gains = {g for _, g in taken.values()}
+    assert 1.0 in gains and cfg.estimator.resync_gain_moving in gains
+    assert all(s.reference_gain == 0.0 for s in steps if s.reference is None)

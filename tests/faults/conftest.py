@@ -18,10 +18,11 @@ import pytest
 import yaml
 
 from ddh_vsensor.config import Config
+from ddh_vsensor.service.client import commission
 from ddh_vsensor.service.replay import machine_frames
 from ddh_vsensor.sim import RunSpec, simulate_with_truth
 
-from .harness import Daemon, Hub, Recorder, commission, feed, write_config
+from .harness import Daemon, Hub, Recorder, feed, write_config
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -49,8 +50,8 @@ class Paper:
 def paper(cfg: Config) -> Paper:
     result = simulate_with_truth(cfg, [RunSpec(speed=4)])[0]
     runs = {a: run for a, (run, _) in result.items()}
-    return Paper(machine_frames(cfg, runs, heartbeat_period_s=0.1),
-                 machine_frames(cfg, runs, heartbeat_period_s=None),
+    return Paper(list(machine_frames(cfg, runs, heartbeat_period_s=0.1)),
+                 list(machine_frames(cfg, runs, heartbeat_period_s=None)),
                  {a: truth.time_s for a, (_, truth) in result.items()},
                  {a: truth.x_m * 1e3 for a, (_, truth) in result.items()})
 

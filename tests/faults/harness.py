@@ -234,28 +234,6 @@ def feed(hub: Hub, frames: list[can.Message], *, base_wall: float | None = None,
     return base_wall
 
 
-def commission(bus_kwargs: dict, cfg: Config, presets: dict[str, float] | None = None,
-               diag_ms: int | None = None, timeout_s: float = 3.0) -> None:
-    """An SDO client on the bus: presets and the diagnostic frame's event timer."""
-    import canopen
-
-    from ddh_vsensor.service.node import EDS_PATH
-    bus = can.Bus(**bus_kwargs)
-    network = canopen.Network(bus)
-    notifier = can.Notifier(bus, network.listeners, 0.1)
-    try:
-        for actuator, unit in cfg.can.units.items():
-            node = network.add_node(unit.sensor_node_id, str(EDS_PATH))
-            node.sdo.RESPONSE_TIMEOUT = timeout_s
-            if diag_ms is not None:
-                node.sdo[0x1801][5].raw = diag_ms
-            if presets and actuator in presets:
-                node.sdo[0x6010][1].raw = round(presets[actuator] / cfg.can.position_step_mm)
-    finally:
-        notifier.stop(1.0)
-        bus.shutdown()
-
-
 @dataclass
 class Output:
     t_wall: float

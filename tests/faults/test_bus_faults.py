@@ -4,6 +4,7 @@ beyond the published uncertainty only with a flag saying why) and the row's own 
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
 import time
@@ -13,11 +14,10 @@ import canopen
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.service.node import EDS_PATH
+from ddh_vsensor.service.client import SensorClient, commission, sdo_network
 
 from .conftest import CURRENT, Flood, run_row, start_daemon
-from .harness import (EXPLAINING, Recorder, check_invariant, commission, feed,
-                      outputs)
+from .harness import EXPLAINING, Recorder, check_invariant, feed, outputs
 
 T0, T1 = 3.8, 8.8            # the boom is referenced at 4.44 s (bottom switch), rises 5..8.5 s
 MEANINGFUL = 0.3             # at least this share of outputs unflagged: the check has teeth
@@ -139,44 +139,33 @@ def test_kill_9_and_restart_allows_for_the_time_since_the_save(cfg, cfg_raw, pap
     assert restored.flags & Flags.NOT_REFERENCED
 
 
-def _sdo_client(url: str, node_id: int):
-    bus = can.Bus(interface="remote", channel=url)
-    network = canopen.Network(bus)
-    notifier = can.Notifier(bus, network.listeners, 0.1)
-    node = network.add_node(node_id, str(EDS_PATH))
-    node.sdo.RESPONSE_TIMEOUT = 3.0
-    return bus, notifier, node
+def _sdo_client(stack: contextlib.ExitStack, url: str, cfg, unit: str) -> SensorClient:
+    """A master of its own on the hub, open until ``stack`` closes."""
+    bus = stack.enter_context(can.Bus(interface="remote", channel=url))
+    return SensorClient(stack.enter_context(sdo_network(bus)), cfg, unit, timeout_s=3.0)
 
 
 def test_presets_from_any_node_are_bounded_and_flagged(cfg, cfg_raw, paper, hub,
                                                        tmp_path) -> None:
     results: dict[str, object] = {}
-    step = cfg.can.position_step_mm
 
     def writer():
-        buses = []
-        try:
+        with contextlib.ExitStack() as stack:
             for actuator in ("bucket", "boom"):
-                bus, notifier, node = _sdo_client(hub.url, cfg.can.units[actuator].sensor_node_id)
-                buses.append((bus, notifier))
+                client = _sdo_client(stack, hub.url, cfg, actuator)
                 if actuator == "bucket":           # standing still at 200 mm
                     for name, offset in (("jump", 47.0), ("small", 3.0)):
                         try:
-                            node.sdo[0x6010][1].raw = round((paper.at("bucket", 5.0) + offset)
-                                                            / step)
+                            client.preset(paper.at("bucket", 5.0) + offset)
                             results[name] = "accepted"
                         except canopen.SdoAbortedError as exc:
                             results[name] = exc.code
                 else:                              # rising at ~100 mm/s
                     try:
-                        node.sdo[0x6010][1].raw = round(paper.at("boom", 6.5) / step)
+                        client.preset(paper.at("boom", 6.5))
                         results["moving"] = "accepted"
                     except canopen.SdoAbortedError as exc:
                         results["moving"] = exc.code
-        finally:
-            for bus, notifier in buses:
-                notifier.stop(1.0)
-                bus.shutdown()
 
     thread = threading.Thread(target=writer)
 
@@ -200,25 +189,21 @@ def test_event_timers_bounded_and_timing_owned_by_the_service(cfg, cfg_raw, pape
     codec = FrameCodec(cfg)
 
     def writer():
-        clients = [_sdo_client(hub.url, u.sensor_node_id) for u in cfg.can.units.values()]
-        try:
-            for _, _, node in clients:
+        with contextlib.ExitStack() as stack:
+            nodes = [_sdo_client(stack, hub.url, cfg, u).node for u in cfg.unit_names]
+            for node in nodes:
                 try:
                     node.sdo[0x1800][5].raw = 65535
                     results.setdefault("65535", []).append("accepted")
                 except canopen.SdoAbortedError as exc:
                     results.setdefault("65535", []).append(exc.code)
-            for _, _, node in clients:
+            for node in nodes:
                 node.sdo[0x1800][5].raw = 1000
             results["slow_wall"] = time.time()
             time.sleep(2.5)
-            for _, _, node in clients:
+            for node in nodes:
                 node.sdo[0x1800][5].raw = 10
             results["fast_wall"] = time.time()
-        finally:
-            for bus, notifier, _ in clients:
-                notifier.stop(1.0)
-                bus.shutdown()
 
     thread = threading.Thread(target=writer)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import uuid
 from collections.abc import AsyncIterator, Iterable
 from dataclasses import dataclass
@@ -56,7 +57,7 @@ def machine_runs(cfg: Config) -> dict[str, Run]:
 
 @pytest.fixture(scope="session")
 def frames(cfg: Config, machine_runs: dict[str, Run]) -> list[can.Message]:
-    return machine_frames(cfg, machine_runs, heartbeat_period_s=0.1)
+    return list(machine_frames(cfg, machine_runs, heartbeat_period_s=0.1))
 
 
 def channel_name() -> str:
@@ -167,23 +168,28 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
     return Offline(result.position_mm, held)
 
 
-def commission(bus_kwargs: dict, cfg: Config, presets: dict[str, float] | None = None,
-               diag_ms: int | None = None, timeout_s: float = 2.0) -> None:
-    """An SDO client on the bus (blocking: run it in a thread): presets, diag event timer."""
-    import canopen
+def on_buses(cfg: Config, placement: dict[str, str],
+             buses: dict[str, dict]) -> Config:
+    """``cfg`` with units moved to other buses (unit -> bus name) and those buses named."""
+    units = {u: dataclasses.replace(c, bus=placement.get(u, c.bus))
+             for u, c in cfg.can.units.items()}
+    return dataclasses.replace(cfg, buses=buses, can=dataclasses.replace(cfg.can, units=units))
 
-    from ddh_vsensor.service.node import EDS_PATH
-    bus = can.Bus(**bus_kwargs)
-    network = canopen.Network(bus)
-    notifier = can.Notifier(bus, network.listeners, 0.1)
-    try:
-        for actuator, unit in cfg.can.units.items():
-            node = network.add_node(unit.sensor_node_id, str(EDS_PATH))
-            node.sdo.RESPONSE_TIMEOUT = timeout_s
-            if diag_ms is not None:
-                node.sdo[0x1801][5].raw = diag_ms
-            if presets and actuator in presets:
-                node.sdo[0x6010][1].raw = round(presets[actuator] / cfg.can.position_step_mm)
-    finally:
-        notifier.stop(1.0)
-        bus.shutdown()
+
+def machine_of(cfg: Config, count: int, tables: dict) -> tuple[Config, dict]:
+    """A machine of ``count`` units named u0, u1, ..., copies of the reference loader's
+    units in turn, with node IDs of their own (controllers 1.., sensors 49..), Hall bits
+    3 per unit; and its tables (the copied units' tables)."""
+    names = [f"u{k}" for k in range(count)]
+    source = [cfg.unit_names[k % len(cfg.unit_names)] for k in range(count)]
+    can_units = {}
+    for k, (name, src) in enumerate(zip(names, source)):
+        bits = {ref: 3 * k + j for j, ref in enumerate(cfg.can.units[src].hall_bits)}
+        can_units[name] = dataclasses.replace(cfg.can.units[src], sevcon_node_id=1 + k,
+                                              sensor_node_id=49 + k, hall_bits=bits)
+    machine = dataclasses.replace(
+        cfg, units={n: cfg.units[s] for n, s in zip(names, source)},
+        can=dataclasses.replace(cfg.can, units=can_units),
+        faults=dataclasses.replace(cfg.faults, heartbeat_node_ids={
+            n: c.sevcon_node_id for n, c in can_units.items()}))
+    return machine, {n: tables[s] for n, s in zip(names, source)}

@@ -48,6 +48,41 @@ def test_replay_sends_a_log_onto_a_bus(cfg, frames, tmp_path: Path, capsys) -> N
     assert re.search(r"^replay \[#+\] 100\.0% .* of 0\.\d s of log", err, re.M), err
 
 
+def _two_buses(cfg, channel: str, tmp_path: Path) -> Path:
+    """The reference config with its second unit on a second (virtual) bus."""
+    import yaml
+    raw = yaml.safe_load(Path(cfg.source).read_text())
+    raw["buses"] = {"second": {"interface": "virtual", "channel": channel}}
+    raw["can"]["units"][cfg.unit_names[1]]["bus"] = "second"
+    path = tmp_path / "two-buses.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+def test_replay_sends_each_units_frames_onto_its_bus(cfg, frames, tmp_path: Path) -> None:
+    log = tmp_path / "machine.blf"
+    part = [m for m in frames if m.timestamp <= 0.3]
+    _write_log(log, part)
+    channel, other = channel_name(), channel_name()
+    path = _two_buses(cfg, other, tmp_path)
+    listeners = [can.Bus(interface="virtual", channel=c) for c in (channel, other)]
+    try:
+        assert main(["replay", str(log), "--config", str(path), "--interface", "virtual",
+                     "--channel", channel, "--rate", "0"]) == 0
+        got = [[], []]
+        for bus, out in zip(listeners, got):
+            while (msg := bus.recv(0.0)) is not None:
+                out.append((msg.arbitration_id, bytes(msg.data)))
+    finally:
+        for bus in listeners:
+            bus.shutdown()
+    codec = FrameCodec(cfg)
+    second = {codec.ids[message_name(k, cfg.unit_names[1])] for k in ("sevcon", "heartbeat")}
+    frames_of = [[(m.arbitration_id, bytes(m.data)) for m in part
+                  if (m.arbitration_id in second) == on_second] for on_second in (False, True)]
+    assert got == frames_of and got[1]
+
+
 def test_replay_inputs_only_drops_logged_positions(cfg, tmp_path: Path) -> None:
     codec = FrameCodec(cfg)
     log = tmp_path / "with_positions.blf"
@@ -170,3 +205,31 @@ def test_demo_runs_and_ends_with_its_summary_and_figure(tmp_path: Path, capsys) 
 def test_demo_refuses_a_figure_name_that_is_no_png(capsys) -> None:
     assert main(["demo", "--figure", "demo.pdf"]) == 2
     assert "--figure demo.pdf" in capsys.readouterr().err
+
+
+def test_status_and_monitor_reach_units_on_every_bus(cfg, unit_tables, tmp_path: Path,
+                                                    capsys) -> None:
+    """A machine with its second unit on a second bus: ``status`` presets and reads both
+    sensor nodes, each on its own bus, and ``monitor`` shows both from the buses, while
+    --interface/--channel set only the default bus."""
+    from ddh_vsensor.config import load_config
+
+    first, second = cfg.unit_names
+    channel, other = channel_name(), channel_name()
+    path = _two_buses(cfg, other, tmp_path)
+    two = load_config(path)
+    runner = ServiceThread(two, unit_tables, channel)
+    args = ["--config", str(path), "--interface", "virtual", "--channel", channel]
+    try:
+        assert main(["status", *args, "--preset", f"{first}=12.34",
+                     "--preset", f"{second}=56.78"]) == 0
+        out = capsys.readouterr().out
+        assert main(["monitor", *args, "--every", "0.1", "--duration", "0.5"]) == 0
+        seen = capsys.readouterr().out
+    finally:
+        runner.stop()
+    assert set(runner.service.links) == {"default", "second"}
+    assert re.search(rf"{first} \(node 49.*\n\s+position\s+12\.34 mm", out)
+    assert re.search(rf"{second} \(node 50.*\n\s+position\s+56\.78 mm", out)
+    last = seen.strip().split("\n\n")[-1]
+    assert re.search(rf"{first}\s+12\.34 mm", last) and re.search(rf"{second}\s+56\.78 mm", last)

@@ -24,9 +24,10 @@ import pytest
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.canbus.log import write_blf
 from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.service.client import commission
 from ddh_vsensor.service.replay import read_log
 
-from .conftest import commission, paired_outputs
+from .conftest import paired_outputs
 
 pytest.importorskip("can_remote", reason="python-can-remote is not installed")
 

@@ -22,9 +22,10 @@ import pytest
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.state import load_state
+from ddh_vsensor.service.client import commission
 from ddh_vsensor.service.replay import replay
 
-from .conftest import START_MM, commission, offline_estimate, paired_outputs
+from .conftest import START_MM, offline_estimate, paired_outputs
 
 pytest.importorskip("can_remote", reason="python-can-remote is not installed")
 

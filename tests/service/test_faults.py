@@ -318,36 +318,28 @@ def test_preset_modes_and_their_abort_codes(cfg, unit_tables, mode) -> None:
     import canopen
 
     from ddh_vsensor.estimator.flags import Flags
-    from ddh_vsensor.service.node import EDS_PATH
+    from ddh_vsensor.service.client import SensorClient, sdo_network
     modal = dataclasses.replace(cfg, faults=dataclasses.replace(cfg.faults, preset=mode))
     channel = channel_name()
     node_id = cfg.can.units["boom"].sensor_node_id
-    step = cfg.can.position_step_mm
 
     def client() -> dict:
-        bus = can.Bus(interface="virtual", channel=channel)
-        network = canopen.Network(bus)
-        notifier = can.Notifier(bus, network.listeners, 0.1)
         out: dict = {}
+        with can.Bus(interface="virtual", channel=channel) as bus, sdo_network(bus) as network:
+            boom = SensorClient(network, cfg, "boom")
 
-        def write(name: str, mm: float) -> None:
-            try:
-                node.sdo[0x6010][1].raw = round(mm / step)
-                out[name] = "accepted"
-            except canopen.SdoAbortedError as exc:
-                out[name] = exc.code
-        try:
-            node = network.add_node(node_id, str(EDS_PATH))
-            node.sdo.RESPONSE_TIMEOUT = 2.0
+            def write(name: str, mm: float) -> None:
+                try:
+                    boom.preset(mm)
+                    out[name] = "accepted"
+                except canopen.SdoAbortedError as exc:
+                    out[name] = exc.code
             write("operational", 100.0)
             bus.send(can.Message(arbitration_id=0, data=[0x80, node_id], is_extended_id=False))
             time.sleep(0.1)                                   # -> PRE-OPERATIONAL
             write("pre-operational", 100.0)
             write("jump", 160.0)                              # 60 mm from a referenced 100
             write("small", 103.0)
-        finally:
-            notifier.stop(1.0)
-            bus.shutdown()
         return out
 
     async def scenario():

@@ -5,17 +5,17 @@ from __future__ import annotations
 import logging
 
 from ddh_vsensor.canbus.dbc import FrameCodec
-from ddh_vsensor.service.inputs import Inputs, RateLimitedLog, TokenBucket
+from ddh_vsensor.service.inputs import Inputs, RateLimitedLog, RateLimiter
 
 
-def test_token_bucket_counts_frame_time_not_arrival() -> None:
-    bucket = TokenBucket(rate_hz=1000.0, burst=5)
+def test_rate_limiter_counts_frame_time_not_arrival() -> None:
+    limiter = RateLimiter(rate_hz=1000.0, burst=5)
     # a backlog of 1 kHz frames handled all at once is no flood: their own times are 1 ms apart
-    assert all(bucket.take(100.0 + k * 1e-3) for k in range(1000))
+    assert all(limiter.take(100.0 + k * 1e-3) for k in range(1000))
     # 20 frames within 20 us are: the burst passes, the rest does not
-    passed = sum(bucket.take(200.0 + k * 1e-6) for k in range(20))
+    passed = sum(limiter.take(200.0 + k * 1e-6) for k in range(20))
     assert passed == 5
-    assert not bucket.take(199.0)                 # time going back earns no tokens
+    assert not limiter.take(199.0)                 # time going back earns no tokens
 
 
 def test_rate_limited_log_reports_what_it_held_back(caplog) -> None:

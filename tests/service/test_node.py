@@ -7,7 +7,9 @@ import pytest
 from canopen.sdo import SdoAbortedError
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
-from ddh_vsensor.service.node import Published, SensorNode, ServiceNetwork
+from ddh_vsensor.service.network import ServiceNetwork
+from ddh_vsensor.service.node import SensorNode
+from ddh_vsensor.service.objects import Published
 
 
 @pytest.fixture

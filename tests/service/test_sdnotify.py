@@ -86,11 +86,11 @@ def test_service_ready_status_watchdog_stopping(cfg, unit_tables, systemd) -> No
             await settle(0.2)
             pings_healthy = sum("WATCHDOG" in m for m in systemd.read())
             # a received batch nobody integrates for > 1 s: the integrator is not advancing
-            service._inbox.append((time.monotonic() - 5.0, []))
+            service.ingest.inbox.append((time.monotonic() - 5.0, "default", []))
             n = len(systemd.read())
             await settle(0.2)
             pings_stuck = sum("WATCHDOG" in m for m in systemd.read()[n:])
-            service._inbox.clear()
+            service.ingest.inbox.clear()
         return pings_healthy, pings_stuck
 
     pings_healthy, pings_stuck = asyncio.run(scenario())

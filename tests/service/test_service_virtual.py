@@ -12,10 +12,10 @@ import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.service.node import EDS_PATH
+from ddh_vsensor.service.client import SensorClient, commission, sdo_network
 from ddh_vsensor.service.replay import replay
 
-from .conftest import (START_MM, Recorder, channel_name, commission, offline_estimate,
+from .conftest import (START_MM, Recorder, channel_name, offline_estimate,
                        paired_outputs, running_service)
 
 HANG_GUARD_S = 30.0     # bounds the waits below; no assertion depends on how fast they end
@@ -150,35 +150,27 @@ def test_input_stops_then_returns_stale_held_growing_then_clear(cfg, unit_tables
 def test_sdo_reads_live_values_and_refuses_presets_outside_the_stroke(cfg, unit_tables) -> None:
     channel = channel_name()
 
-    def client(service_node_ids: dict[str, int]) -> dict:
-        bus = can.Bus(interface="virtual", channel=channel)
-        network = canopen.Network(bus)
-        notifier = can.Notifier(bus, network.listeners, 0.1)
+    def client() -> dict:
         out = {}
-        try:
-            node = network.add_node(service_node_ids["boom"], str(EDS_PATH))
-            node.sdo.RESPONSE_TIMEOUT = 2.0
-            node.sdo[0x6010][1].raw = round(42.5 / cfg.can.position_step_mm)
-            out["position"] = node.sdo[0x6020][1].raw
-            out["step"] = node.sdo[0x6005][1].raw
-            out["flags"] = node.sdo[0x2002].raw
-            out["device"] = node.sdo[0x1000].raw
+        with can.Bus(interface="virtual", channel=channel) as bus, sdo_network(bus) as network:
+            boom = SensorClient(network, cfg, "boom")
+            boom.preset(42.5)
+            out["position"] = boom.position_steps
+            out["step"] = boom.sdo[0x6005][1].raw
+            out["flags"] = boom.flags
+            out["device"] = boom.sdo[0x1000].raw
             with pytest.raises(canopen.SdoAbortedError) as exc:
-                node.sdo[0x6010][1].raw = round(400.0 / cfg.can.position_step_mm)  # > 311 mm
+                boom.preset(400.0)                                   # > 311 mm
             out["abort"] = exc.value.code
             with pytest.raises(canopen.SdoAbortedError):
-                node.sdo[0x6010][1].raw = -100
-            node.sdo[0x1800][5].raw = 5
-            out["timer"] = node.sdo[0x1800][5].raw
-        finally:
-            notifier.stop(1.0)
-            bus.shutdown()
+                boom.sdo[0x6010][1].raw = -100
+            boom.sdo[0x1800][5].raw = 5
+            out["timer"] = boom.event_timer_ms
         return out
 
     async def scenario():
         async with running_service(cfg, unit_tables, channel) as service:
-            ids = {a: u.sensor_node_id for a, u in cfg.can.units.items()}
-            out = await asyncio.get_running_loop().run_in_executor(None, client, ids)
+            out = await asyncio.get_running_loop().run_in_executor(None, client)
             return service, out
 
     service, out = asyncio.run(scenario())
@@ -254,7 +246,7 @@ def test_one_millisecond_inputs_and_event_timer(cfg, unit_tables) -> None:
     fast = dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, event_timer_ms=1.0))
     runs = {a: synthetic_run(fast, a, seconds=1.0, period_s=0.001, cycle_s=1.0)
             for a in fast.can.units}
-    fast_frames = machine_frames(fast, runs, heartbeat_period_s=0.1)
+    fast_frames = list(machine_frames(fast, runs, heartbeat_period_s=0.1))
     codec = FrameCodec(fast)
     sent = {a: sum(m.arbitration_id == codec.ids[message_name("sevcon", a)]
                    for m in fast_frames) for a in fast.can.units}
