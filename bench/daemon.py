@@ -249,15 +249,23 @@ def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
             until: float) -> dict[str, float]:
     """Latency (publish - newest included input) and jitter from the recorded bus: every
     frame from the service's start, figures from frames sent between ``since`` and
-    ``until`` (wall time: the measurement window, inputs flowing)."""
+    ``until`` (wall time: the measurement window, inputs flowing).
+
+    The latency holds the age of the newest input at the moment of publishing, which is up
+    to one input period whatever the service does (the controllers are not synchronised to
+    the sensor's tick); so two more figures: ``input_age_at_publish`` (publish - the newest
+    Sevcon frame *sent* before it: the part no service can remove) and ``inputs_behind``
+    (Sevcon frames sent before the publish but not in the published value: 0 when the
+    service included everything it could)."""
     codec = FrameCodec(cfg)
-    out: dict[str, list[float]] = {"latency": [], "jitter": []}
+    out: dict[str, list[float]] = {"latency": [], "jitter": [], "age": [], "behind": []}
     for a in cfg.can.units:
         sev_id = codec.ids[message_name("sevcon", a)]
         pos_id = codec.ids[message_name("position", a)]
         diag_id = codec.ids[message_name("diag", a)]
         sevcon_t: list[float] = []
         pos_t: list[float] = []
+        pairs: list[tuple[float, int]] = []          # (publish time, inputs included)
         pending = None
         received, last_raw = 0, 0
         for m in frames:
@@ -273,13 +281,25 @@ def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
                 last_raw = int(raw)
                 if 0 < received <= len(sevcon_t) and since <= pending <= until:
                     out["latency"].append(pending - sevcon_t[received - 1])
+                    pairs.append((pending, received))
                 pending = None
         periods = np.diff(pos_t)
         out["jitter"] += list(np.abs(periods - period_s))
+        sent = np.sort(np.array(sevcon_t))
+        for publish_t, included in pairs:
+            before = int(np.searchsorted(sent, publish_t, side="right"))
+            out["age"].append(publish_t - sent[before - 1])
+            out["behind"].append(max(before - included, 0))
     lat, jit = np.array(out["latency"]), np.array(out["jitter"])
+    age, behind = np.array(out["age"]), np.array(out["behind"])
     return {"latency_p50_ms": round(float(np.percentile(lat, 50)) * 1e3, 3),
             "latency_p99_ms": round(float(np.percentile(lat, 99)) * 1e3, 3),
             "latency_max_ms": round(float(lat.max()) * 1e3, 3),
+            "input_age_at_publish_p50_ms": round(float(np.percentile(age, 50)) * 1e3, 3),
+            "input_age_at_publish_p99_ms": round(float(np.percentile(age, 99)) * 1e3, 3),
+            "inputs_behind_p50": float(np.percentile(behind, 50)),
+            "inputs_behind_p99": float(np.percentile(behind, 99)),
+            "inputs_behind_share_pct": round(100 * float(np.mean(behind > 0)), 1),
             "jitter_p99_ms": round(float(np.percentile(jit, 99)) * 1e3, 3),
             "jitter_max_ms": round(float(jit.max()) * 1e3, 3),
             "published_positions": int(len(jit) + len(cfg.can.units))}
