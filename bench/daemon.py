@@ -863,7 +863,7 @@ def main() -> None:
     if args.units is not None and not 1 <= args.units <= 16:
         parser.error("--units: a machine has 1 to 16 units")
     large = args.units is not None and args.units > 2
-    input_hz = args.input_hz or (500.0 if large else INPUT_HZ)
+    input_hz = args.input_hz if args.input_hz is not None else (500.0 if large else INPUT_HZ)
     if not 1.0 <= input_hz <= 2000.0:
         parser.error("--input-hz: 1 to 2000")
     wanted_buses = args.buses or (2 if large else 1)
