@@ -312,6 +312,9 @@ def _realtime(pid: int = 0) -> None:
 
 REALTIME = False
 COALESCE_S: float | None = None          # socket mode's fd reader pause (None: the service's)
+# TPDO2 (diagnostics: the input counter that pairs an output with its inputs) event timer in
+# socket and profile modes; None: with every TPDO1, so that every position is paired
+DIAG_MS: int | None = None
 
 
 def _thread_cpu_s(thread: threading.Thread | None) -> float:
@@ -584,8 +587,8 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float,
     service.observers.append(lambda a, p, t: sends.append(time.monotonic()) if a == first
                              else None)
     await service.start()
-    for unit in service.units.values():           # diag every tick (SDO, in process)
-        unit.node.node.sdo[0x1801][5].raw = unit.node.node.sdo[0x1800][5].raw
+    for unit in service.units.values():           # diag timer (SDO, in process)
+        unit.node.node.sdo[0x1801][5].raw = DIAG_MS or unit.node.node.sdo[0x1800][5].raw
     links = list(getattr(service, "links", {DEFAULT_BUS: service.link}).values())
     go.set()
     await asyncio.sleep(1.0)
@@ -705,8 +708,8 @@ def profile(cfg, tables, ms: int, input_hz: float) -> dict[str, object]:
                       opener=lambda settings, filters: buses[settings["channel"]], **extra)
     loop = asyncio.new_event_loop()
     loop.run_until_complete(service.start())      # opens the links; the loop never runs again
-    for unit in service.units.values():           # diag every tick, as in the socket mode
-        unit.node.node.sdo[0x1801][5].raw = unit.node.node.sdo[0x1800][5].raw
+    for unit in service.units.values():           # diag timer, as in the socket mode
+        unit.node.node.sdo[0x1801][5].raw = DIAG_MS or unit.node.node.sdo[0x1800][5].raw
     links = list(getattr(service, "links", {DEFAULT_BUS: service.link}).values())
 
     class Recorder(can.BusABC):
@@ -853,12 +856,22 @@ def main() -> None:
                         help="socket mode: the fd reader's pause after a wake (default: the "
                              "service's, 2 ms); the tick drains the socket before publishing "
                              "whatever this is")
+    parser.add_argument("--housekeeping-ms", type=float, default=None,
+                        help="the service's housekeeping tick (faults.housekeeping_tick_ms; "
+                             "default: the configuration's, 10 ms): each tick is a wake")
+    parser.add_argument("--diag-ms", type=int, default=None,
+                        help="socket and profile modes: TPDO2 event timer (default: with every "
+                             "TPDO1, every position paired with its inputs; 100 is the EDS "
+                             "default, what a machine runs: latency from every tenth position)")
     parser.add_argument("--profile", type=int, metavar="MS", default=None,
                         help="only profile MS milliseconds of traffic through the service's "
                              "path (no event loop): results in daemon_profile.json")
     args = parser.parse_args()
-    global REALTIME, COALESCE_S
+    global REALTIME, COALESCE_S, DIAG_MS
     REALTIME = args.rt
+    DIAG_MS = args.diag_ms
+    if DIAG_MS is not None and not 1 <= DIAG_MS <= 1000:
+        parser.error("--diag-ms: 1 to 1000")
     COALESCE_S = None if args.coalesce_ms is None else args.coalesce_ms / 1000.0
     if args.units is not None and not 1 <= args.units <= 16:
         parser.error("--units: a machine has 1 to 16 units")
@@ -869,6 +882,9 @@ def main() -> None:
     wanted_buses = args.buses or (2 if large else 1)
     buses = wanted_buses if service_reads_buses() else 1
     cfg = machine_config(args.units, buses)
+    if args.housekeeping_ms is not None:
+        cfg = dataclasses.replace(cfg, faults=dataclasses.replace(
+            cfg.faults, housekeeping_tick_ms=args.housekeeping_ms))
     ensure_frame_layout(cfg)
     tables = machine_tables(cfg)
     figures: dict[str, object] = {
@@ -877,7 +893,9 @@ def main() -> None:
     if args.profile is not None:
         figures.update(profile(cfg, tables, args.profile, input_hz))
         figures["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
-        publish("daemon_profile", figures)
+        figures["diag_timer_ms"] = args.diag_ms or cfg.can.event_timer_ms
+        publish("daemon_profile" + ("" if args.diag_ms is None else f"_diag{args.diag_ms}ms"),
+                figures)
         return
     if args.units is not None:
         figures.update({"units": len(cfg.unit_names), "input_hz_per_unit": input_hz,
@@ -893,6 +911,9 @@ def main() -> None:
         if args.coalesce_ms is not None:
             figures["socket_coalesce_ms"] = args.coalesce_ms
         suffix = "" if args.coalesce_ms is None else f"_coalesce{args.coalesce_ms:g}ms"
+        if args.diag_ms is not None:
+            figures["diag_timer_ms"] = args.diag_ms
+            suffix += f"_diag{args.diag_ms}ms"
         publish(f"daemon_units{len(cfg.unit_names)}" + ("_rt" if args.rt else "") + suffix,
                 figures)
         return
@@ -921,6 +942,12 @@ def main() -> None:
     if args.coalesce_ms is not None:
         figures["socket_coalesce_ms"] = args.coalesce_ms
     suffix = "" if args.coalesce_ms is None else f"_coalesce{args.coalesce_ms:g}ms"
+    if args.housekeeping_ms is not None:
+        figures["housekeeping_tick_ms"] = args.housekeeping_ms
+        suffix += f"_housekeeping{args.housekeeping_ms:g}ms"
+    if args.diag_ms is not None:
+        figures["diag_timer_ms"] = args.diag_ms
+        suffix += f"_diag{args.diag_ms}ms"
     publish(("daemon_rt" if args.rt else "daemon") + suffix, figures)
 
 
