@@ -38,6 +38,14 @@ class FullTable:
         nq = self.torque.count
         object.__setattr__(self, "_fast", (*axes, nq, self.speed.count * nq, flat))
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (worker processes, deep copies) without the memoryview: rebuilt on load."""
+        return {k: v for k, v in self.__dict__.items() if k != "_fast"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self.__post_init__()
+
     def velocity(self, speed_rpm: float, torque_nm: float,
                  oil_temp_c: float) -> tuple[float, bool]:
         """Velocity in mm/s at one operating point, and whether any input was clamped.

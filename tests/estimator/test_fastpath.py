@@ -6,6 +6,9 @@ writes out the clip, the gain, the flags and the uncertainty. These tests feed r
 
 from __future__ import annotations
 
+import copy
+import pickle
+
 import numpy as np
 import pytest
 
@@ -30,6 +33,14 @@ def test_scalar_lookup_equals_the_vectorised_one_to_the_bit(unit, unit_tables):
     assert [s[0] for s in scalar] == v.tolist()
     assert [s[1] for s in scalar] == clamped.tolist()
     assert clamped.any() and (~clamped).any()
+
+
+def test_tables_still_pickle_and_copy(unit_tables):
+    """Worker processes receive tables pickled: the fast path's view is rebuilt, not sent."""
+    tables = unit_tables["boom"]
+    for back in (pickle.loads(pickle.dumps(tables)), copy.deepcopy(tables)):
+        assert np.array_equal(back.full.velocity_mm_s, tables.full.velocity_mm_s)
+        assert back.full.velocity(1234.5, 12.3, 31.0) == tables.full.velocity(1234.5, 12.3, 31.0)
 
 
 def _inputs(seed: int, count: int) -> tuple[np.ndarray, ...]:
