@@ -25,12 +25,28 @@ Modes (this machine has no SocketCAN):
   GIL), the service's bus reader a thread;
 - ``remote``: the daemon as its own process (``ddh-vsensor run``) behind python-can-remote on
   127.0.0.1: websocket decoding in the daemon and a server process in between.
+
+``--units N`` (socket mode): a larger machine, N copies of the reference loader's first unit
+(``u1``..``uN``, Sevcon node i, sensor node 48 + i, three Hall bits each), inputs at
+``--input-hz`` (500 Hz for N > 2), split over ``--buses`` (2 by default for N > 2: the upper
+half of the units on a second bus, ``can.units.*.bus``) where the service reads several buses;
+results in ``daemon_units<N>.json``.
+
+``--profile MS``: where the time goes, independent of the machine's load: MS milliseconds of
+the machine's traffic pushed through the service's own receive, routing, estimator and publish
+path synchronously (no event loop, frame times from a virtual clock), once to count CPU time
+per frame and once under cProfile for each stage's share; results in ``daemon_profile.json``.
+The event loop's own cost is what the socket mode's CPU share adds to this.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
+import cProfile
+import dataclasses
+import pstats
 import multiprocessing
 import os
 import select
@@ -51,9 +67,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import publish  # noqa: E402
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name  # noqa: E402
-from ddh_vsensor.config import load_config  # noqa: E402
+from ddh_vsensor.config import DEFAULT_BUS, load_config  # noqa: E402
 from ddh_vsensor.service import Service, ServiceOptions  # noqa: E402
-from ddh_vsensor.service.node import EDS_PATH  # noqa: E402
+from ddh_vsensor.service.client import clients, sdo_network  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
 INPUT_HZ = 1000.0
@@ -61,13 +77,19 @@ OTHER_IDS = [0x200 + i for i in range(1, 40)] + [0x300 + i for i in range(1, 40)
 
 
 class Feeder(threading.Thread):
-    """Sends the machine's traffic (and ``other_hz`` frames/s of other nodes) in 1 ms slots
-    from absolute deadlines; counts what it sent."""
+    """Sends the machine's traffic (and ``other_hz`` frames/s of other nodes) in slots of
+    1 / ``input_hz`` from absolute deadlines; counts what it sent. ``buses``: bus name ->
+    bus; each unit's frames go to its unit's bus, the oil, I/O and other frames to the
+    default bus (one bus for all: every name maps to it)."""
 
-    def __init__(self, bus: can.BusABC, cfg, other_hz: float) -> None:
+    def __init__(self, buses: dict[str, can.BusABC], cfg, other_hz: float,
+                 input_hz: float = INPUT_HZ) -> None:
         super().__init__(daemon=True)
-        self.bus, self.codec, self.other_hz = bus, FrameCodec(cfg), other_hz
+        self.codec, self.other_hz, self.input_hz = FrameCodec(cfg), other_hz, input_hz
         self.units = list(cfg.can.units)
+        self.default = buses[DEFAULT_BUS]
+        self.bus_of = {a: buses.get(cfg.can.units[a].bus, self.default) for a in self.units}
+        self.bus = self.default
         self.stop_event = threading.Event()
         self.sent = {a: 0 for a in self.units}
         self.sevcon_times: dict[str, list[float]] = {a: [] for a in self.units}
@@ -76,9 +98,9 @@ class Feeder(threading.Thread):
         self.skipped_slots = 0          # slots the feeder was too late for (not sent)
         self.started_s = self.ended_s = 0.0
 
-    def _send(self, msg: can.Message) -> None:
+    def _send(self, msg: can.Message, bus: can.BusABC | None = None) -> None:
         try:
-            self.bus.send(msg)
+            (bus or self.default).send(msg)
             self.total += 1
         except can.CanError:
             self.errors += 1
@@ -87,7 +109,8 @@ class Feeder(threading.Thread):
         c = self.codec
         self._send(c.encode_oil_temp(30.0))
         self._send(c.encode_inputs({a: {} for a in self.units}))
-        slot, k = 1.0 / INPUT_HZ, 0
+        slot, k = 1.0 / self.input_hz, 0
+        per_10ms = max(1, round(0.01 * self.input_hz))
         other_acc, other_i = 0.0, 0
         start = time.monotonic() + 0.01
         self.started_s = start
@@ -105,16 +128,18 @@ class Feeder(threading.Thread):
             for i, a in enumerate(self.units):
                 speed = 3000.0 * np.sin(2 * np.pi * t / (6.0 + i))
                 self.sevcon_times[a].append(time.time())
-                self._send(c.encode_sevcon(a, 10.0 + 5 * np.sin(t), round(speed)))
+                self._send(c.encode_sevcon(a, 10.0 + 5 * np.sin(t), round(speed)),
+                           self.bus_of[a])
                 self.sent[a] += 1
-            if k % 10 == 0:
+            if k % per_10ms == 0:
                 refs = {a: {"mid": int(np.sin(2 * np.pi * t / (6.0 + i)) > 0.9)}
                         for i, a in enumerate(self.units)}
                 self._send(c.encode_inputs(refs))
-            if k % 100 == 0:
+            if k % (10 * per_10ms) == 0:
                 self._send(c.encode_oil_temp(30.0 + t * 0.01))
                 for a in self.units:
-                    self._send(c.encode(message_name("heartbeat", a), {"NmtState": 5}))
+                    self._send(c.encode(message_name("heartbeat", a), {"NmtState": 5}),
+                               self.bus_of[a])
             other_acc += self.other_hz * slot
             while other_acc >= 1.0:
                 other_acc -= 1.0
@@ -126,33 +151,73 @@ class Feeder(threading.Thread):
         self.ended_s = time.monotonic()
 
 
+def machine_config(units: int | None, buses: int):
+    """The reference loader, or ``units`` copies of its first unit named u1..uN (Sevcon node
+    i, sensor node 48 + i, consecutive Hall bits), the upper half on a second bus when
+    ``buses`` is 2. Tables are built once and shared: the copies have the same physics."""
+    cfg = load_config(None)
+    if units is None and buses == 1:
+        return cfg
+    count = units or len(cfg.unit_names)
+    first = cfg.unit_names[0]
+    unit, can_unit = cfg.units[first], cfg.can.units[first]
+    names = [f"u{i}" for i in range(1, count + 1)]
+    refs = list(unit.references_mm)
+    split = count - count // 2 if buses > 1 else count
+    can_units = {name: dataclasses.replace(
+        can_unit, sevcon_node_id=i + 1, sensor_node_id=48 + i + 1,
+        hall_bits={r: len(refs) * i + b for b, r in enumerate(refs)},
+        bus=DEFAULT_BUS if i < split else "second") for i, name in enumerate(names)}
+    bus_kwargs = {"interface": "socketpair", "channel": DEFAULT_BUS}
+    return dataclasses.replace(
+        cfg, units={name: unit for name in names}, bus=bus_kwargs,
+        buses={"second": {"interface": "socketpair", "channel": "second"}} if buses > 1
+        else {},
+        can=dataclasses.replace(cfg.can, units=can_units),
+        faults=dataclasses.replace(cfg.faults, heartbeat_node_ids={
+            name: i + 1 for i, name in enumerate(names)}))
+
+
+def machine_tables(cfg) -> dict:
+    """Tables per unit; units with the same physics share one build."""
+    built: dict[str, object] = {}
+    tables = {}
+    for name in cfg.unit_names:
+        key = repr(cfg.units[name])
+        if key not in built:
+            built[key] = build_unit_tables(cfg, name)
+        tables[name] = dataclasses.replace(built[key], actuator=name)
+    return tables
+
+
 def _commission(bus: can.BusABC, cfg) -> None:
     """Diagnostic frame every position frame (SDO), so that each output pairs with inputs."""
-    import canopen
-    network = canopen.Network(bus)
-    notifier = can.Notifier(bus, network.listeners, 0.1)
-    try:
-        for unit in cfg.can.units.values():
-            node = network.add_node(unit.sensor_node_id, str(EDS_PATH))
-            node.sdo.RESPONSE_TIMEOUT = 3.0
-            node.sdo[0x1801][5].raw = node.sdo[0x1800][5].raw
-    finally:
-        notifier.stop(1.0)
+    with sdo_network(bus) as network:
+        for client in clients(network, cfg, timeout_s=3.0).values():
+            client.node.sdo[0x1801][5].raw = client.node.sdo[0x1800][5].raw
 
 
 def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
             until: float) -> dict[str, float]:
     """Latency (publish - newest included input) and jitter from the recorded bus: every
     frame from the service's start, figures from frames sent between ``since`` and
-    ``until`` (wall time: the measurement window, inputs flowing)."""
+    ``until`` (wall time: the measurement window, inputs flowing).
+
+    The latency holds the age of the newest input at the moment of publishing, which is up
+    to one input period whatever the service does (the controllers are not synchronised to
+    the sensor's tick); so two more figures: ``input_age_at_publish`` (publish - the newest
+    Sevcon frame *sent* before it: the part no service can remove) and ``inputs_behind``
+    (Sevcon frames sent before the publish but not in the published value: 0 when the
+    service included everything it could)."""
     codec = FrameCodec(cfg)
-    out: dict[str, list[float]] = {"latency": [], "jitter": []}
+    out: dict[str, list[float]] = {"latency": [], "jitter": [], "age": [], "behind": []}
     for a in cfg.can.units:
         sev_id = codec.ids[message_name("sevcon", a)]
         pos_id = codec.ids[message_name("position", a)]
         diag_id = codec.ids[message_name("diag", a)]
         sevcon_t: list[float] = []
         pos_t: list[float] = []
+        pairs: list[tuple[float, int]] = []          # (publish time, inputs included)
         pending = None
         received, last_raw = 0, 0
         for m in frames:
@@ -168,13 +233,25 @@ def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
                 last_raw = int(raw)
                 if 0 < received <= len(sevcon_t) and since <= pending <= until:
                     out["latency"].append(pending - sevcon_t[received - 1])
+                    pairs.append((pending, received))
                 pending = None
         periods = np.diff(pos_t)
         out["jitter"] += list(np.abs(periods - period_s))
+        sent = np.sort(np.array(sevcon_t))
+        for publish_t, included in pairs:
+            before = int(np.searchsorted(sent, publish_t, side="right"))
+            out["age"].append(publish_t - sent[before - 1])
+            out["behind"].append(max(before - included, 0))
     lat, jit = np.array(out["latency"]), np.array(out["jitter"])
+    age, behind = np.array(out["age"]), np.array(out["behind"])
     return {"latency_p50_ms": round(float(np.percentile(lat, 50)) * 1e3, 3),
             "latency_p99_ms": round(float(np.percentile(lat, 99)) * 1e3, 3),
             "latency_max_ms": round(float(lat.max()) * 1e3, 3),
+            "input_age_at_publish_p50_ms": round(float(np.percentile(age, 50)) * 1e3, 3),
+            "input_age_at_publish_p99_ms": round(float(np.percentile(age, 99)) * 1e3, 3),
+            "inputs_behind_p50": float(np.percentile(behind, 50)),
+            "inputs_behind_p99": float(np.percentile(behind, 99)),
+            "inputs_behind_share_pct": round(100 * float(np.mean(behind > 0)), 1),
             "jitter_p99_ms": round(float(np.percentile(jit, 99)) * 1e3, 3),
             "jitter_max_ms": round(float(jit.max()) * 1e3, 3),
             "published_positions": int(len(jit) + len(cfg.can.units))}
@@ -186,6 +263,10 @@ def _realtime(pid: int = 0) -> None:
 
 
 REALTIME = False
+COALESCE_S: float | None = None          # socket mode's fd reader pause (None: the service's)
+# TPDO2 (diagnostics: the input counter that pairs an output with its inputs) event timer in
+# socket and profile modes; None: with every TPDO1, so that every position is paired
+DIAG_MS: int | None = None
 
 
 def _thread_cpu_s(thread: threading.Thread | None) -> float:
@@ -204,7 +285,7 @@ async def run_inproc(cfg, tables, seconds: float, other_hz: float) -> dict[str, 
     await service.start()
     await asyncio.get_running_loop().run_in_executor(None, _commission, sdo_bus, cfg)
     sdo_bus.shutdown()
-    feeder = Feeder(feeder_bus, cfg, other_hz)
+    feeder = Feeder({DEFAULT_BUS: feeder_bus}, cfg, other_hz)
     feeder.start()
     await asyncio.sleep(1.0)                       # warm up
     since = time.time()
@@ -304,7 +385,7 @@ def run_remote(cfg, seconds: float, other_hz: float) -> dict[str, float]:
         sdo_bus.shutdown()
         recorder = _RemoteRecorder(url)
         recorder.start()
-        feeder = Feeder(can.Bus(interface="remote", channel=url), cfg, other_hz)
+        feeder = Feeder({DEFAULT_BUS: can.Bus(interface="remote", channel=url)}, cfg, other_hz)
         feeder.start()
         time.sleep(1.0)
         since = time.time()
@@ -384,20 +465,20 @@ class SocketPairBus(can.BusABC):
         return self.sock.fileno()
 
 
-def _machine_process(cfg, sock: socket.socket, other_hz: float, go, stop, conn,
-                     realtime: bool) -> None:
-    """Child process (forked: the parent's config): the machine's traffic out, the sensors'
-    frames in, all time-stamped (SCHED_FIFO 40 with --rt, so that its stamps are the
-    service's timing, not this process's waiting for a CPU)."""
+def _machine_process(cfg, socks: dict[str, socket.socket], other_hz: float, input_hz: float,
+                     go, stop, conn, realtime: bool) -> None:
+    """Child process (forked: the parent's config): the machine's traffic out on each bus,
+    the sensors' frames in, all time-stamped (SCHED_FIFO 40 with --rt, so that its stamps are
+    the service's timing, not this process's waiting for a CPU)."""
     if realtime:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(40))
-    bus = SocketPairBus(sock)
+    buses = {name: SocketPairBus(sock) for name, sock in socks.items()}
     received: list[tuple[float, int, bytes]] = []
     done = threading.Event()
 
     def receive() -> None:
         while not done.is_set():
-            if select.select([sock], [], [], 0.1)[0]:
+            for sock in select.select(list(socks.values()), [], [], 0.1)[0]:
                 try:
                     data = sock.recv(16)
                 except BlockingIOError:
@@ -408,7 +489,7 @@ def _machine_process(cfg, sock: socket.socket, other_hz: float, go, stop, conn,
     receiver = threading.Thread(target=receive, daemon=True)
     receiver.start()
     go.wait()
-    feeder = Feeder(bus, cfg, other_hz)
+    feeder = Feeder(buses, cfg, other_hz, input_hz)
     feeder.start()
     stop.wait()
     feeder.stop_event.set()
@@ -422,40 +503,52 @@ def _machine_process(cfg, sock: socket.socket, other_hz: float, go, stop, conn,
     conn.close()
 
 
-async def run_socket(cfg, tables, seconds: float, other_hz: float) -> dict[str, float]:
+async def run_socket(cfg, tables, seconds: float, other_hz: float,
+                     input_hz: float = INPUT_HZ) -> dict[str, float]:
     ctx = multiprocessing.get_context("fork")      # before the service starts any thread
-    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    for s_ in (mine, theirs):       # SocketCAN's default receive buffer (net.core.rmem_default)
-        s_.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 212992)
+    bus_names = [DEFAULT_BUS, *(b for b in cfg.buses if cfg.units_on_bus(b))]
+    pairs = {name: socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+             for name in bus_names}
+    for pair in pairs.values():     # SocketCAN's default receive buffer (net.core.rmem_default)
+        for s_ in pair:
+            s_.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 212992)
     go, stop = ctx.Event(), ctx.Event()
     parent_conn, child_conn = ctx.Pipe()
     child = ctx.Process(target=_machine_process,
-                        args=(cfg, theirs, other_hz, go, stop, child_conn, REALTIME))
+                        args=(cfg, {n: p[1] for n, p in pairs.items()}, other_hz, input_hz,
+                              go, stop, child_conn, REALTIME))
     child.start()
-    theirs.close()
+    for _, theirs in pairs.values():
+        theirs.close()
     if REALTIME:
         _realtime()
-    bus = SocketPairBus(mine)
-    service = Service(cfg, tables, {"interface": "socketpair"},
-                      ServiceOptions(record_latency=True, fd_reader=True),
-                      opener=lambda settings, filters: bus)
+    buses = {name: SocketPairBus(mine) for name, (mine, _) in pairs.items()}
+    extra = {"buses": {name: {"interface": "socketpair", "channel": name}
+                       for name in bus_names[1:]}} if len(bus_names) > 1 else {}
+    service = Service(cfg, tables, {"interface": "socketpair", "channel": DEFAULT_BUS},
+                      ServiceOptions(record_latency=True, fd_reader=True,
+                                     coalesce_s=COALESCE_S),
+                      opener=lambda settings, filters: buses[settings["channel"]], **extra)
     sends: list[float] = []
     first = next(iter(cfg.can.units))
     service.observers.append(lambda a, p, t: sends.append(time.monotonic()) if a == first
                              else None)
     await service.start()
-    for unit in service.units.values():           # diag every tick (SDO, in process)
-        unit.node.node.sdo[0x1801][5].raw = unit.node.node.sdo[0x1800][5].raw
+    for unit in service.units.values():           # diag timer (SDO, in process)
+        unit.node.node.sdo[0x1801][5].raw = DIAG_MS or unit.node.node.sdo[0x1800][5].raw
+    links = list(getattr(service, "links", {DEFAULT_BUS: service.link}).values())
     go.set()
     await asyncio.sleep(1.0)
     since = time.time()
     service.latency_s.clear()
     received0 = {a: service.inputs.units[a].received for a in cfg.can.units}
-    t0, cpu0 = time.monotonic(), sum(os.times()[:2])
+    t0, times0 = time.monotonic(), os.times()
+    wakes0 = sum(link.wakes for link in links)
     n_sends0 = len(sends)
     missed0 = service.ticker.missed_total
     await asyncio.sleep(seconds)
-    t1, cpu1 = time.monotonic(), sum(os.times()[:2])
+    t1, times1 = time.monotonic(), os.times()
+    wakes = sum(link.wakes for link in links) - wakes0
     until = time.time()
     send_jitter = np.abs(np.diff(sends[n_sends0:]) - service.ticker.period_s)
     received1 = {a: service.inputs.units[a].received for a in cfg.can.units}
@@ -475,9 +568,16 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float) -> dict[str, 
     frames += [can.Message(timestamp=t, arbitration_id=i, data=d, is_extended_id=False)
                for t, i, d in result["received"]]
     figures = analyse(cfg, frames, service.ticker.period_s, since, until)
+    in_window = int(sum(received1[a] - received0[a] for a in cfg.can.units))
+    wall = t1 - t0
     figures.update({
         "bus_frames_per_s": round(result["total"] / result["span"]),
-        "cpu_share_pct": round(100 * (cpu1 - cpu0) / (t1 - t0), 1),
+        "cpu_share_pct": round(100 * (sum(times1[:2]) - sum(times0[:2])) / wall, 1),
+        "cpu_user_pct": round(100 * (times1[0] - times0[0]) / wall, 1),
+        "cpu_system_pct": round(100 * (times1[1] - times0[1]) / wall, 1),
+        "cpu_us_per_sevcon_frame": round(1e6 * (sum(times1[:2]) - sum(times0[:2]))
+                                         / max(in_window, 1), 1),
+        "reader_wakes_per_s": round(wakes / wall),
         "service_side_jitter_p99_ms": round(float(np.percentile(send_jitter, 99)) * 1e3, 3),
         "service_side_jitter_max_ms": round(float(send_jitter.max()) * 1e3, 3),
         "processing_p50_ms": round(float(np.percentile(processing, 50)) * 1e3, 3),
@@ -486,12 +586,198 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float) -> dict[str, 
         "sevcon_frames_lost": int(sum(result["sent"].values())
                                   - sum(service.inputs.units[a].received for a in cfg.can.units)),
         "send_errors_queue_full": result["errors"],
-        "sevcon_frames_in_window": int(sum(received1[a] - received0[a] for a in cfg.can.units)),
+        "sevcon_frames_in_window": in_window,
         "missed_ticks": int(missed),
         "feeder_skipped_slots": result["skipped"],
         "ticks": service.ticker.kind,
     })
     return figures
+
+
+# --- where the time goes: the service's path without the event loop -------------------------
+
+class _ClockBus(SocketPairBus):
+    """A SocketPairBus whose frames carry the profile's virtual time of their sending (kept
+    in ``stamps`` in sending order, as a SocketCAN socket stamps frames on arrival)."""
+
+    def __init__(self, sock: socket.socket, stamps: collections.deque) -> None:
+        super().__init__(sock)
+        self.stamps = stamps
+
+    def _recv_internal(self, timeout):
+        try:
+            data = self.sock.recv(16)
+        except BlockingIOError:
+            return None, False
+        can_id, dlc, payload = self.FRAME.unpack(data)
+        return can.Message(timestamp=self.stamps.popleft(), arbitration_id=can_id,
+                           data=payload[:dlc], is_extended_id=False), True
+
+
+# (label, file the function is in, function): cumulative time of each, in the profile
+STAGES = (
+    ("receive_and_handle", "service/bus.py", "_drain"),
+    ("python_can_recv", "can/bus.py", "recv"),
+    ("route", "", "_route"),
+    ("sevcon_frame", "", "_on_sevcon"),
+    ("input_checks_and_decode", "service/inputs.py", "sevcon"),
+    ("cantools_decode", "canbus/dbc.py", "decode"),
+    ("estimator_step", "estimator/estimator.py", "step"),
+    ("table_lookup", "tables/lookup.py", "velocity"),
+    ("publish_tick", "", "_on_tick"),
+    ("published_values", "", "published"),
+    ("pdo_encode_and_transmit", "", "publish"),
+    ("pdo_encode_canopen", "", "_encode"),
+    ("emcy_check", "", "report_faults"),
+    ("bus_send", "service/bus.py", "send"),
+    ("housekeeping", "", "_on_housekeeping"),
+    ("logging", "logging/__init__.py", "log"),
+)
+
+
+def profile(cfg, tables, ms: int, input_hz: float) -> dict[str, object]:
+    """``ms`` milliseconds of the machine's traffic (as the socket mode's feeder sends it)
+    through the service's receive, routing, estimator and publish path, driven here: a
+    reader wake every 2 ms (the fd reader's coalescing), a tick every event timer, the
+    housekeeping tick every 10 ms. CPU time per Sevcon frame without the profiler, then each
+    stage's share under cProfile (its cumulative time; stages nest)."""
+    bus_names = [DEFAULT_BUS, *(b for b in cfg.buses if cfg.units_on_bus(b))]
+    pairs = {name: socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+             for name in bus_names}
+    for _, theirs in pairs.values():
+        theirs.setblocking(False)
+    stamps = {name: collections.deque() for name in bus_names}
+    buses = {name: _ClockBus(mine, stamps[name]) for name, (mine, _) in pairs.items()}
+    extra = {"buses": {name: {"interface": "socketpair", "channel": name}
+                       for name in bus_names[1:]}} if len(bus_names) > 1 else {}
+    service = Service(cfg, tables, {"interface": "socketpair", "channel": DEFAULT_BUS},
+                      ServiceOptions(fd_reader=True),
+                      opener=lambda settings, filters: buses[settings["channel"]], **extra)
+    loop = asyncio.new_event_loop()
+    loop.run_until_complete(service.start())      # opens the links; the loop never runs again
+    for unit in service.units.values():           # diag timer, as in the socket mode
+        unit.node.node.sdo[0x1801][5].raw = DIAG_MS or unit.node.node.sdo[0x1800][5].raw
+    links = list(getattr(service, "links", {DEFAULT_BUS: service.link}).values())
+
+    class Recorder(can.BusABC):
+        """Collects the feeder's frames as SocketCAN records per bus."""
+
+        def __init__(self, name: str) -> None:
+            self.name, self.records = name, []
+            super().__init__(channel=name)
+
+        def send(self, msg, timeout=None):
+            self.records.append((self.name, SocketPairBus.FRAME.pack(
+                msg.arbitration_id, msg.dlc, bytes(msg.data).ljust(8, b"\0"))))
+
+        def _recv_internal(self, timeout):
+            return None, False
+
+    slots = round(ms * input_hz / 1000.0)
+    recorders = {name: Recorder(name) for name in bus_names}
+    feeder = Feeder(recorders, cfg, 0.0, input_hz)
+    traffic: list[list[tuple[str, bytes]]] = []
+    feeder.stop_event.set()                       # encode slot by slot, no sending thread
+    for k in range(slots):
+        for r in recorders.values():
+            r.records.clear()
+        _feed_slot(feeder, k)
+        traffic.append([rec for r in recorders.values() for rec in r.records])
+    slot_s = 1.0 / input_hz
+    wake_every = max(1, round(0.002 / slot_s))
+    tick_every = max(1, round(service.ticker.period_s / slot_s))
+    house_every = max(1, round(cfg.faults.housekeeping_tick_ms / 1000.0 / slot_s))
+    socks = {name: theirs for name, (_, theirs) in pairs.items()}
+
+    def run(first: int) -> None:
+        # frame times ahead of the wall clock: a slow run is never mistaken for late frames
+        t0 = time.time() + 10.0 * slots * slot_s + 1.0
+        for k, records in enumerate(traffic):
+            now = t0 + (first + k) * slot_s
+            for name, rec in records:
+                stamps[name].append(now)
+                socks[name].send(rec)
+            if k % wake_every == wake_every - 1:
+                for link in links:
+                    link.drain()
+            if k % tick_every == tick_every - 1:
+                service._on_tick(time.monotonic(), 0)               # noqa: SLF001
+                for sock in socks.values():                          # the sensors' frames
+                    while True:
+                        try:
+                            sock.recv(16)
+                        except BlockingIOError:
+                            break
+            if k % house_every == house_every - 1:
+                service._on_housekeeping()                           # noqa: SLF001
+
+    units = cfg.unit_names
+    run(0)                                        # warm up: first frames, oil, references
+    n0 = sum(service.inputs.units[a].received for a in units)
+    cpu0 = time.thread_time()
+    run(slots)
+    cpu = time.thread_time() - cpu0
+    frames = sum(service.inputs.units[a].received for a in units) - n0
+    prof = cProfile.Profile()
+    prof.enable()
+    run(2 * slots)
+    prof.disable()
+    loop.run_until_complete(service.shutdown())
+    loop.close()
+    stats = pstats.Stats(prof).stats              # type: ignore[attr-defined]
+    everything = sum(tt for _, _, tt, _, _ in stats.values())
+    # The machine's side (this loop, its sends and reads) is not the service's time.
+    run_key = next(k for k in stats if k[2] == "run" and k[0] == __file__)
+    harness = stats[run_key][2] + sum(
+        v[4][run_key][3] for k, v in stats.items()
+        if run_key in v[4] and k[0] == "~" and ("send" in k[2] or "recv" in k[2]
+                                                or "append" in k[2]))
+    total = everything - harness
+    cpu *= total / everything
+    us_frame = 1e6 * cpu / max(frames, 1)
+    out: dict[str, object] = {
+        "profile_units": len(units), "profile_input_hz_per_unit": input_hz,
+        "profile_sevcon_frames": frames,
+        "profile_cpu_us_per_sevcon_frame": round(us_frame, 2),
+        "profile_cpu_share_at_this_load_pct": round(
+            100 * cpu / (slots * slot_s), 1),
+        "profile_published_frames": service.frames_published,
+        "profile_harness_share_removed_pct": round(100 * harness / everything, 1),
+    }
+    for label, path, func in STAGES:
+        ct = sum(v[3] for (file, _, name), v in stats.items()
+                 if name == func and file.replace("\\", "/").endswith(".py")
+                 and (not path or file.replace("\\", "/").endswith(path))
+                 and ("ddh_vsensor" in file or path.startswith(("can/", "logging/"))))
+        out[f"stage_{label}_pct"] = round(100 * ct / total, 1)
+        out[f"stage_{label}_us_per_sevcon_frame"] = round(us_frame * ct / total, 2)
+    top = sorted(stats.items(), key=lambda kv: -kv[1][2])[:15]
+    out["top_self_time"] = [f"{Path(f).name}:{n} {100 * v[2] / total:.1f}% ({v[1]} calls)"
+                            for (f, _, n), v in top]
+    return out
+
+
+def _feed_slot(feeder: Feeder, k: int) -> None:
+    """One slot of the feeder's traffic, sent to its buses now."""
+    c, units = feeder.codec, feeder.units
+    per_10ms = max(1, round(0.01 * feeder.input_hz))
+    t = k / feeder.input_hz
+    if k == 0:
+        feeder._send(c.encode_oil_temp(30.0))                      # noqa: SLF001
+        feeder._send(c.encode_inputs({a: {} for a in units}))       # noqa: SLF001
+    for i, a in enumerate(units):
+        speed = 3000.0 * np.sin(2 * np.pi * t / (6.0 + i))
+        feeder._send(c.encode_sevcon(a, 10.0 + 5 * np.sin(t), round(speed)),  # noqa: SLF001
+                     feeder.bus_of[a])
+    if k % per_10ms == 0:
+        refs = {a: {"mid": int(np.sin(2 * np.pi * t / (6.0 + i)) > 0.9)}
+                for i, a in enumerate(units)}
+        feeder._send(c.encode_inputs(refs))                        # noqa: SLF001
+    if k % (10 * per_10ms) == 0:
+        feeder._send(c.encode_oil_temp(30.0 + t * 0.01))           # noqa: SLF001
+        for a in units:
+            feeder._send(c.encode(message_name("heartbeat", a), {"NmtState": 5}),  # noqa: SLF001
+                         feeder.bus_of[a])
 
 
 def main() -> None:
@@ -504,23 +790,84 @@ def main() -> None:
     parser.add_argument("--rt", action="store_true",
                         help="run the service SCHED_FIFO 50 (as CPUSchedulingPolicy=fifo "
                              "would): results go to daemon_rt.json")
+    parser.add_argument("--units", type=int, default=None,
+                        help="a machine of this many copies of the loader's first unit, "
+                             "socket mode, nominal load only: results in daemon_units<N>.json")
+    parser.add_argument("--input-hz", type=float, default=None,
+                        help="Sevcon frames per second per unit (default 1000; 500 for "
+                             "--units above 2)")
+    parser.add_argument("--buses", type=int, choices=(1, 2), default=None,
+                        help="buses the units are split over (default 2 for --units above 2, "
+                             "where the service reads several buses)")
+    parser.add_argument("--coalesce-ms", type=float, default=None,
+                        help="socket mode: the fd reader's pause after a wake (default: the "
+                             "service's, 2 ms); the tick drains the socket before publishing "
+                             "whatever this is")
+    parser.add_argument("--housekeeping-ms", type=float, default=None,
+                        help="the service's housekeeping tick (faults.housekeeping_tick_ms; "
+                             "default: the configuration's, 10 ms): each tick is a wake")
+    parser.add_argument("--diag-ms", type=int, default=None,
+                        help="socket and profile modes: TPDO2 event timer (default: with every "
+                             "TPDO1, every position paired with its inputs; 100 is the EDS "
+                             "default, what a machine runs: latency from every tenth position)")
+    parser.add_argument("--profile", type=int, metavar="MS", default=None,
+                        help="only profile MS milliseconds of traffic through the service's "
+                             "path (no event loop): results in daemon_profile.json")
     args = parser.parse_args()
-    global REALTIME
+    global REALTIME, COALESCE_S, DIAG_MS
     REALTIME = args.rt
-    cfg = load_config(None)
-    tables = {a: build_unit_tables(cfg, a) for a in cfg.can.units}
-    machine = 2 * INPUT_HZ + 100 + 10 + 2 * 10        # Sevcon, I/O, oil, heartbeats
-    other_hz = max(args.bus_rate - machine, 0.0)
+    DIAG_MS = args.diag_ms
+    if DIAG_MS is not None and not 1 <= DIAG_MS <= 1000:
+        parser.error("--diag-ms: 1 to 1000")
+    COALESCE_S = None if args.coalesce_ms is None else args.coalesce_ms / 1000.0
+    if args.units is not None and not 1 <= args.units <= 16:
+        parser.error("--units: a machine has 1 to 16 units")
+    large = args.units is not None and args.units > 2
+    input_hz = args.input_hz if args.input_hz is not None else (500.0 if large else INPUT_HZ)
+    if not 1.0 <= input_hz <= 2000.0:
+        parser.error("--input-hz: 1 to 2000")
+    buses = args.buses or (2 if large else 1)
+    cfg = machine_config(args.units, buses)
+    if args.housekeeping_ms is not None:
+        cfg = dataclasses.replace(cfg, faults=dataclasses.replace(
+            cfg.faults, housekeeping_tick_ms=args.housekeeping_ms))
+    tables = machine_tables(cfg)
     figures: dict[str, object] = {
-        "goal_latency_p99_ms": 2.0, "goal_jitter_p99_ms": 1.0, "goal_cpu_share_pct": 15.0,
-        "goal_lost_at_8000_fps": 0,
         "cpus": os.cpu_count(), "load_avg_1min_at_start": round(os.getloadavg()[0], 2),
     }
+    if args.profile is not None:
+        figures.update(profile(cfg, tables, args.profile, input_hz))
+        figures["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
+        figures["diag_timer_ms"] = args.diag_ms or cfg.can.event_timer_ms
+        publish("daemon_profile" + ("" if args.diag_ms is None else f"_diag{args.diag_ms}ms"),
+                figures)
+        return
+    if args.units is not None:
+        figures.update({"units": len(cfg.unit_names), "input_hz_per_unit": input_hz,
+                        "buses": buses,
+                        "goal_latency_p99_ms": 2.0, "goal_lost": 0})
+        result = asyncio.run(run_socket(cfg, tables, args.seconds, 0.0, input_hz))
+        figures.update({f"socket_nominal_{k}": v for k, v in result.items()})
+        figures["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
+        figures["scheduling"] = "SCHED_FIFO 50" if args.rt else "SCHED_OTHER (default)"
+        if args.coalesce_ms is not None:
+            figures["socket_coalesce_ms"] = args.coalesce_ms
+        suffix = "" if args.coalesce_ms is None else f"_coalesce{args.coalesce_ms:g}ms"
+        if args.diag_ms is not None:
+            figures["diag_timer_ms"] = args.diag_ms
+            suffix += f"_diag{args.diag_ms}ms"
+        publish(f"daemon_units{len(cfg.unit_names)}" + ("_rt" if args.rt else "") + suffix,
+                figures)
+        return
+    machine = len(cfg.unit_names) * (input_hz + 10) + 100 + 10   # Sevcon+heartbeat, I/O, oil
+    other_hz = max(args.bus_rate - machine, 0.0)
+    figures.update({"goal_latency_p99_ms": 2.0, "goal_jitter_p99_ms": 1.0,
+                    "goal_cpu_share_pct": 10.0, "goal_lost_at_8000_fps": 0})
     modes = args.modes.split(",")
     if "socket" in modes:
         for name, seconds, other in (("nominal", args.seconds, 0.0),
                                      ("saturated", args.saturated_seconds, other_hz)):
-            result = asyncio.run(run_socket(cfg, tables, seconds, other))
+            result = asyncio.run(run_socket(cfg, tables, seconds, other, input_hz))
             figures.update({f"socket_{name}_{k}": v for k, v in result.items()})
     if "inproc" in modes and not args.rt:       # the feeder shares the process: no RT here
         for name, seconds, other in (("nominal", args.seconds, 0.0),
@@ -534,7 +881,16 @@ def main() -> None:
             figures.update({f"remote_{name}_{k}": v for k, v in result.items()})
     figures["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
     figures["scheduling"] = "SCHED_FIFO 50" if args.rt else "SCHED_OTHER (default)"
-    publish("daemon_rt" if args.rt else "daemon", figures)
+    if args.coalesce_ms is not None:
+        figures["socket_coalesce_ms"] = args.coalesce_ms
+    suffix = "" if args.coalesce_ms is None else f"_coalesce{args.coalesce_ms:g}ms"
+    if args.housekeeping_ms is not None:
+        figures["housekeeping_tick_ms"] = args.housekeeping_ms
+        suffix += f"_housekeeping{args.housekeeping_ms:g}ms"
+    if args.diag_ms is not None:
+        figures["diag_timer_ms"] = args.diag_ms
+        suffix += f"_diag{args.diag_ms}ms"
+    publish(("daemon_rt" if args.rt else "daemon") + suffix, figures)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,10 @@ from .references import Debouncer, Switch, accepted_edges, switches_from_config
 from .state import EstimatorState
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
+# The flags as plain ints for the per-sample path (IntFlag arithmetic costs a microsecond)
+_NOT_REFERENCED, _ADAPTING, _AT_SOFT_LIMIT, _STALE_INPUT, _TABLE_CLAMPED = (
+    int(f) for f in (Flags.NOT_REFERENCED, Flags.ADAPTING, Flags.AT_SOFT_LIMIT,
+                     Flags.STALE_INPUT, Flags.TABLE_CLAMPED))
 
 
 @dataclass(frozen=True)
@@ -210,9 +214,14 @@ class Estimator:
 
     def step(self, t_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float,
              refs: Mapping[str, bool] | None = None) -> Step:
-        """One sample in, position out. ``refs`` holds the Hall switch states by name."""
+        """One sample in, position out. ``refs`` holds the Hall switch states by name.
+
+        Runs per Sevcon frame: plain floats and locals throughout; :meth:`_clip`,
+        :meth:`.DirectionalGain.scale`, :meth:`state_flags` and :attr:`uncertainty_mm` are
+        written out with the same operations, so the result equals theirs to the bit."""
         on = self._on
-        dt = t_s - on.t if on.t is not None else 0.0
+        t_last = on.t
+        dt = t_s - t_last if t_last is not None else 0.0
         valid = 0.0 < dt <= self.max_gap_s
         if self.dynamic is not None:
             v, clamped = self.dynamic.step(dt, speed_rpm, torque_nm, oil_temp_c), False
@@ -222,7 +231,7 @@ class Estimator:
             v, clamped = self.model.velocity(speed_rpm, pump_torque, oil_temp_c)
         stale = False
         dx_raw = 0.0
-        if on.t is not None:
+        if t_last is not None:
             if valid:
                 dx_raw = 0.5 * (on.v + v) * dt
                 if abs(v) < HOLD_SPEED_MM_S:
@@ -230,11 +239,14 @@ class Estimator:
             else:
                 stale = dt > 0.0
                 self.hold_s += max(dt, 0.0)
-        on.t, on.v, on.n, on.index = t_s, v, speed_rpm, on.index + 1
-        dx = self.gain.scale(dx_raw)
+        index = on.index + 1
+        on.t, on.v, on.n, on.index = t_s, v, speed_rpm, index
+        gain = self.gain
+        dx = dx_raw * (gain._up if dx_raw > 0.0 else gain._down)
         before = self.position_mm
-        self.position_mm = self._clip(before + dx)
-        applied = self.position_mm - before
+        lower, upper = self.lower_mm, self.upper_mm
+        x = min(max(before + dx, lower), upper)
+        self.position_mm = x
         self.travel_mm += abs(dx)
         if dx_raw > 0.0:
             on.s_up += dx_raw
@@ -242,32 +254,40 @@ class Estimator:
             on.s_down += dx_raw
         taken: ReferenceEvent | None = None
         if refs:
-            accepted = []
-            for i, (sw, deb) in enumerate(zip(self.switches, on.debouncers)):
+            accepted = None
+            for i, deb in enumerate(on.debouncers):
+                sw = self.switches[i]
                 raw = refs.get(sw.name)
-                if raw is None:
-                    continue
+                if raw is None or (raw == deb.state and deb.candidate_since_s is None):
+                    continue            # no input, or no change: the debouncer has nothing to do
                 waiting = deb.candidate_since_s is not None
-                edge = deb.update(t_s, bool(raw), on.index)
+                edge = deb.update(t_s, bool(raw), index)
                 if deb.candidate_since_s is not None and not waiting or (
-                        edge is not None and edge[0] == on.index):
-                    on.snapshots[i] = _Snapshot(on.index, self.position_mm, applied, v,
-                                                on.s_up, on.s_down)
+                        edge is not None and edge[0] == index):
+                    on.snapshots[i] = _Snapshot(index, x, x - before, v, on.s_up, on.s_down)
                 if edge is not None:
+                    accepted = accepted or []
                     accepted.append((sw, edge[1], on.snapshots[i]))
-            for sw, rising, snap in accepted:
-                self.position_mm, taken = self._reference(sw, rising, snap, self.position_mm,
-                                                          (on.s_up, on.s_down), on.index)
-                if self.dynamic is not None:
-                    self.dynamic.set_position(self.position_mm)
-        flags = self.state_flags()
+            if accepted:
+                for sw, rising, snap in accepted:
+                    self.position_mm, taken = self._reference(sw, rising, snap, self.position_mm,
+                                                              (on.s_up, on.s_down), index)
+                    if self.dynamic is not None:
+                        self.dynamic.set_position(self.position_mm)
+                x = self.position_mm
+        flags = 0 if self.referenced else _NOT_REFERENCED
+        if gain.enabled and (gain._up != 1.0 or gain._down != 1.0):
+            flags |= _ADAPTING
+        if x <= lower or x >= upper:
+            flags |= _AT_SOFT_LIMIT
         if stale:
-            flags |= Flags.STALE_INPUT
+            flags |= _STALE_INPUT
         if clamped:
-            flags |= Flags.TABLE_CLAMPED
+            flags |= _TABLE_CLAMPED
+        u = self.u_base + self.per_travel * self.travel_mm + self.hold_rate * self.hold_s
         if taken is None:
-            return Step(self.position_mm, v, self.uncertainty_mm, flags)
-        return Step(self.position_mm, v, self.uncertainty_mm, flags, taken.switch, taken.gain)
+            return Step(x, v, u, flags)
+        return Step(x, v, u, flags, taken.switch, taken.gain)
 
     # --- offline face ----------------------------------------------------------------------
 

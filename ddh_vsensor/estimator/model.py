@@ -23,6 +23,8 @@ class VelocityModel:
         self.tables, self.mode = tables, mode
         self._full = tables.full.velocity
         self._paper = tables.paper.movement_mm_per_rev
+        if mode != "paper":             # per sample: straight to the table, one call less
+            self.velocity = self._full  # type: ignore[method-assign]
 
     def velocity(self, speed_rpm: float, torque_nm: float,
                  oil_temp_c: float) -> tuple[float, bool]:

@@ -26,26 +26,74 @@ class FullTable:
     torque: Axis
     temp: Axis
     velocity_mm_s: np.ndarray            # [temp, speed, torque]
-    _item: Any = field(init=False, repr=False, compare=False)
+    _fast: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        # Bound ``item`` of the flat table: the scalar path reads 8 Python floats per call.
-        object.__setattr__(self, "_item", np.ascontiguousarray(self.velocity_mm_s).ravel().item)
+        # The scalar path runs per Sevcon frame: each axis as plain numbers and the table as a
+        # flat memoryview (indexing it gives a Python float, no copy of the table, no numpy
+        # call), so one lookup is arithmetic on locals.
+        axes = tuple((a.start, a.step, float(a.count - 1), a.count - 2)
+                     for a in (self.temp, self.speed, self.torque))
+        flat = memoryview(np.ascontiguousarray(self.velocity_mm_s, dtype=float).ravel())
+        nq = self.torque.count
+        object.__setattr__(self, "_fast", (*axes, nq, self.speed.count * nq, flat))
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (worker processes, deep copies) without the memoryview: rebuilt on load."""
+        return {k: v for k, v in self.__dict__.items() if k != "_fast"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self.__post_init__()
 
     def velocity(self, speed_rpm: float, torque_nm: float,
                  oil_temp_c: float) -> tuple[float, bool]:
-        """Velocity in mm/s at one operating point, and whether any input was clamped."""
-        it, wt, ct = self.temp.locate(oil_temp_c)
-        i, ws, cs = self.speed.locate(speed_rpm)
-        j, wq, cq = self.torque.locate(torque_nm)
-        nq = self.torque.count
-        plane = self.speed.count * nq
-        k0 = it * plane + i * nq + j
-        k1 = k0 + plane
-        f = self._item
-        lo = lerp(lerp(f(k0), f(k0 + 1), wq), lerp(f(k0 + nq), f(k0 + nq + 1), wq), ws)
-        hi = lerp(lerp(f(k1), f(k1 + 1), wq), lerp(f(k1 + nq), f(k1 + nq + 1), wq), ws)
-        return lerp(lo, hi, wt), ct or cs or cq
+        """Velocity in mm/s at one operating point, and whether any input was clamped.
+
+        :meth:`.Axis.locate` and :func:`.lerp` written out (same operations in the same
+        order, so equal to :meth:`velocity_many` to the bit)."""
+        (t0, th, tn, tc), (s0, sh, sn, sc), (q0, qh, qn, qc), nq, plane, f = self._fast
+        clamped = False
+        x = (oil_temp_c - t0) / th
+        if x < 0.0 or x != x:
+            x, clamped = 0.0, True
+        elif x > tn:
+            x, clamped = tn, True
+        it = int(x)
+        if it > tc:
+            it = tc
+        wt = x - it
+        x = (speed_rpm - s0) / sh
+        if x < 0.0 or x != x:
+            x, clamped = 0.0, True
+        elif x > sn:
+            x, clamped = sn, True
+        i = int(x)
+        if i > sc:
+            i = sc
+        ws = x - i
+        x = (torque_nm - q0) / qh
+        if x < 0.0 or x != x:
+            x, clamped = 0.0, True
+        elif x > qn:
+            x, clamped = qn, True
+        j = int(x)
+        if j > qc:
+            j = qc
+        wq = x - j
+        k = it * plane + i * nq + j
+        a, b = f[k], f[k + 1]
+        c = a + (b - a) * wq
+        a, b = f[k + nq], f[k + nq + 1]
+        d = a + (b - a) * wq
+        lo = c + (d - c) * ws
+        k += plane
+        a, b = f[k], f[k + 1]
+        c = a + (b - a) * wq
+        a, b = f[k + nq], f[k + nq + 1]
+        d = a + (b - a) * wq
+        hi = c + (d - c) * ws
+        return lo + (hi - lo) * wt, clamped
 
     def velocity_many(self, speed_rpm: ArrayLike, torque_nm: ArrayLike,
                       oil_temp_c: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
