@@ -209,7 +209,7 @@ class CanUnitConfig:
 
 @dataclass(frozen=True)
 class CanConfig:
-    """Node IDs and output settings on the machine's CAN bus (layout in the shipped DBC)."""
+    """Node IDs and output settings on the machine's CAN buses (`ddh-vsensor dbc`: layout)."""
 
     io_module_node_id: int = field(metadata={"ge": 1, "le": 127})
     oil_temp_node_id: int = field(metadata={"ge": 1, "le": 127})
