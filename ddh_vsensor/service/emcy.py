@@ -16,21 +16,25 @@ import time
 import canopen
 from canopen.sdo import SdoAbortedError
 
+from ..canbus.layout import EMCY_CODES
 from ..estimator.flags import Flags
 from .objects import ABORT_NO_DATA, ABORT_VALUE_RANGE, PDO_INVALID, Published, value_of
 
 log = logging.getLogger(__name__)
 
 ERROR_FIELD_SIZE = 8                # sub-indices of the pre-defined error field 0x1003
-# Fault flag -> (EMCY error code, error register 0x1001 bits). Register bit 0 (generic) is
-# set with any fault; bit 4 communication (inputs), bit 7 manufacturer-specific.
-EMCY_FAULTS: dict[int, tuple[int, int]] = {
-    Flags.STALE_INPUT: (0x8100, 0x11),                  # communication: input frames missing
-    Flags.NOT_REFERENCED: (0xFF02, 0x81),               # device specific: not referenced
-    Flags.TABLE_CLAMPED: (0xFF10, 0x81),                # device specific: off the tables
-    Flags.PRESET_UNCONFIRMED: (0xFF20, 0x81),           # device specific: preset unconfirmed
-    Flags.CONTROLLER_NOT_OPERATIONAL: (0x8130, 0x11),   # the motor controller's heartbeat
+# Fault flag -> error register 0x1001 bits. Register bit 0 (generic) is set with any fault;
+# bit 4 communication (inputs), bit 7 manufacturer-specific.
+_REGISTER_BITS = {
+    Flags.STALE_INPUT: 0x11,                    # communication: input frames missing
+    Flags.NOT_REFERENCED: 0x81,                 # device specific: not referenced
+    Flags.TABLE_CLAMPED: 0x81,                  # device specific: off the tables
+    Flags.PRESET_UNCONFIRMED: 0x81,             # device specific: preset unconfirmed
+    Flags.CONTROLLER_NOT_OPERATIONAL: 0x11,     # the motor controller's heartbeat
 }
+# Fault flag -> (EMCY error code, register bits); the codes are the frame layout's.
+EMCY_FAULTS: dict[int, tuple[int, int]] = {
+    flag: (EMCY_CODES[flag][0], bits) for flag, bits in _REGISTER_BITS.items()}
 FAULT_FLAGS = sum(EMCY_FAULTS)
 
 
