@@ -23,13 +23,14 @@ log = logging.getLogger(__name__)
 
 ERROR_FIELD_SIZE = 8                # sub-indices of the pre-defined error field 0x1003
 # Fault flag -> (EMCY error code, error register 0x1001 bits). Register bit 0 (generic) is
-# set with any fault; bit 4 communication (inputs), bit 7 manufacturer-specific.
+# set with any fault; bit 4 communication (inputs), bit 7 manufacturer-specific. Plain int
+# keys: this is checked every tick.
 EMCY_FAULTS: dict[int, tuple[int, int]] = {
-    Flags.STALE_INPUT: (0x8100, 0x11),                  # communication: input frames missing
-    Flags.NOT_REFERENCED: (0xFF02, 0x81),               # device specific: not referenced
-    Flags.TABLE_CLAMPED: (0xFF10, 0x81),                # device specific: off the tables
-    Flags.PRESET_UNCONFIRMED: (0xFF20, 0x81),           # device specific: preset unconfirmed
-    Flags.CONTROLLER_NOT_OPERATIONAL: (0x8130, 0x11),   # the motor controller's heartbeat
+    int(Flags.STALE_INPUT): (0x8100, 0x11),                 # communication: inputs missing
+    int(Flags.NOT_REFERENCED): (0xFF02, 0x81),              # device specific: not referenced
+    int(Flags.TABLE_CLAMPED): (0xFF10, 0x81),               # device specific: off the tables
+    int(Flags.PRESET_UNCONFIRMED): (0xFF20, 0x81),          # device specific: preset pending
+    int(Flags.CONTROLLER_NOT_OPERATIONAL): (0x8130, 0x11),  # the motor controller's heartbeat
 }
 FAULT_FLAGS = sum(EMCY_FAULTS)
 
@@ -93,11 +94,12 @@ class EmcyProducer:
         then when that ends), at most one EMCY per inhibit time 0x1015 (a flapping flag
         cannot flood the bus). Returns the number of EMCY frames sent."""
         faults = p.flags & FAULT_FLAGS
-        for bit, (code, _) in EMCY_FAULTS.items():
-            if faults & bit and not self.active & bit:
-                self.errors.insert(0, code | bit << 16)
-                del self.errors[ERROR_FIELD_SIZE:]
-        self.active = faults
+        if faults != self.active:
+            for bit, (code, _) in EMCY_FAULTS.items():
+                if faults & bit and not self.active & bit:
+                    self.errors.insert(0, code | bit << 16)
+                    del self.errors[ERROR_FIELD_SIZE:]
+            self.active = faults
         if faults == self.reported or self.node.nmt.state in ("STOPPED", "INITIALISING"):
             return 0
         cob_id = value_of(self.node.get_data(0x1014, 0))
