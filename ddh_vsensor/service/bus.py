@@ -2,10 +2,11 @@
 without blocking the event loop, written without ever raising, reopened with back-off.
 
 Reading: on ``socketcan`` the socket is watched by the event loop (``add_reader``) and every
-readable wake drains it. With ``coalesce_s`` the watch pauses for that long after each wake
-(the frames wait in the kernel's socket buffer) and the service calls :meth:`BusLink.drain`
-right before it publishes: the published values still include every frame received before the
-tick, at a fraction of the wake-ups (one per 2 ms instead of one per frame); other interfaces (``virtual``, ``remote``, vendor drivers) get one
+readable wake drains it. With ``coalesce_s`` the watch pauses after each wake (the frames wait in the kernel's
+socket buffer): while frames keep coming a timer reads them every ``coalesce_s`` instead
+(one wake per period, no fd watch to re-arm), and the first read that finds none watches the
+fd again. The service calls :meth:`BusLink.drain` right before it publishes: the published
+values still include every frame received before the tick, at a fraction of the wake-ups; other interfaces (``virtual``, ``remote``, vendor drivers) get one
 reader thread that hands frames to the loop in batches (one ``call_soon_threadsafe`` per
 batch, not per frame). No ``can.Notifier``: its listener chain stops at the first listener
 that raises, and its error path leaves a dead reader behind; here a receive error closes the
@@ -243,8 +244,22 @@ class BusLink:
         if self.coalesce_s > 0.0 and self._loop is not None and self._fd is not None:
             self._loop.remove_reader(self._fd)
             self._watching = False
-            self._rearm = self._loop.call_later(self.coalesce_s, self._watch, bus, generation)
+            self._rearm = self._loop.call_later(self.coalesce_s, self._poll, bus, generation)
         self._drain(bus, generation)
+
+    def _poll(self, bus: can.BusABC, generation: int) -> None:
+        """Coalescing: while frames keep coming they are read every ``coalesce_s`` by this
+        timer alone (one wake per period, the fd not watched); a poll that finds none
+        watches the fd again."""
+        self._rearm = None
+        if generation != self._generation or self._loop is None:
+            return
+        self.wakes += 1
+        frames = self._drain(bus, generation)
+        if frames > 0:
+            self._rearm = self._loop.call_later(self.coalesce_s, self._poll, bus, generation)
+        elif frames == 0:
+            self._watch(bus, generation)          # (on a failure the reopen takes over)
 
     def drain(self) -> None:
         """Hand over every frame waiting in the socket now (fd reading only; a reader
@@ -252,7 +267,8 @@ class BusLink:
         if self._fd is not None and self.bus is not None:
             self._drain(self.bus, self._generation)
 
-    def _drain(self, bus: can.BusABC, generation: int) -> None:
+    def _drain(self, bus: can.BusABC, generation: int) -> int:
+        """Frames handed over (-1: the bus failed)."""
         batch: list[can.Message] = []
         try:
             while len(batch) < BATCH_MAX:
@@ -264,9 +280,10 @@ class BusLink:
             if batch:
                 self._deliver(generation, batch)
             self._lost(generation, exc)
-            return
+            return -1
         if batch:
             self._deliver(generation, batch)
+        return len(batch)
 
     def _deliver(self, generation: int, batch: list[can.Message]) -> None:
         if generation != self._generation:

@@ -346,8 +346,10 @@ class Service:
         self.ticks += 1
         self._tick_index += 1 + missed
         self._last_publish_s = now
-        for unit in self.units.values():
+        for i, unit in enumerate(self.units.values()):
             assert unit.node is not None
+            if i:                    # what arrived while the units before were published
+                self.links[self.cfg.can.units[unit.actuator].bus].drain()
             p = self.published(unit, now)
             self.frames_published += unit.node.publish(p, self._tick_index)
             unit.node.report_faults(p)
