@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -102,6 +103,10 @@ class BusLink:
         # wake drained); True: on any bus with a fileno() whose recv(0) drains it; False: thread
         self.watch_fd = watch_fd
         self.coalesce_s = coalesce_s
+        # reads on the grid grid_anchor_s + k * coalesce_s (monotonic; None: coalesce_s
+        # after each wake): the service puts it just before its ticks, so that the reads
+        # and the ticks share the loop's wakes
+        self.grid_anchor_s: float | None = None
         self.wakes = 0
         self._watching = False
         self._rearm: asyncio.TimerHandle | None = None
@@ -244,8 +249,18 @@ class BusLink:
         if self.coalesce_s > 0.0 and self._loop is not None and self._fd is not None:
             self._loop.remove_reader(self._fd)
             self._watching = False
-            self._rearm = self._loop.call_later(self.coalesce_s, self._poll, bus, generation)
+            self._schedule_poll(bus, generation)
         self._drain(bus, generation)
+
+    def _schedule_poll(self, bus: can.BusABC, generation: int) -> None:
+        assert self._loop is not None
+        now = self._loop.time()                   # time.monotonic()
+        anchor = self.grid_anchor_s
+        if anchor is None:
+            when = now + self.coalesce_s
+        else:
+            when = anchor + (math.floor((now - anchor) / self.coalesce_s) + 1) * self.coalesce_s
+        self._rearm = self._loop.call_at(when, self._poll, bus, generation)
 
     def _poll(self, bus: can.BusABC, generation: int) -> None:
         """Coalescing: while frames keep coming they are read every ``coalesce_s`` by this
@@ -257,7 +272,7 @@ class BusLink:
         self.wakes += 1
         frames = self._drain(bus, generation)
         if frames > 0:
-            self._rearm = self._loop.call_later(self.coalesce_s, self._poll, bus, generation)
+            self._schedule_poll(bus, generation)
         elif frames == 0:
             self._watch(bus, generation)          # (on a failure the reopen takes over)
 

@@ -93,6 +93,12 @@ class Ticker(_TimerFdUser):
     def kind(self) -> str:
         return "timerfd" if self._libc is not None else "asyncio"
 
+    @property
+    def anchor_s(self) -> float:
+        """A deadline of the current period setting (time.monotonic()): every deadline is
+        this plus a whole number of periods."""
+        return self._anchor
+
     def start(self, first_deadline: float | None = None) -> None:
         self._loop = asyncio.get_running_loop()
         self._anchor = time.monotonic() + self.period_s if first_deadline is None \

@@ -59,6 +59,7 @@ log = logging.getLogger(__name__)
 
 BACKLOG_UNHEALTHY_S = 1.0        # a frame waiting this long: integration is not keeping up
 STATUS_INTERVAL_S = 2.0
+PRE_TICK_READ_S = 0.001          # the fd readers' last read before a tick, ahead of it
 BUS_PATH_LOGGERS = ("canopen", "ddh_vsensor.service.node", "ddh_vsensor.service.pdo",
                     "ddh_vsensor.service.emcy", "can")
 
@@ -172,11 +173,19 @@ class Service:
         return min(n.event_timer_ms for n in nodes) / 1000.0
 
     def _coalesce_s(self) -> float:
-        """Fd reader wake-ups at most every 2 ms (a quarter period at short event timers):
-        the tick drains the socket before publishing, so outputs are as fresh regardless."""
+        """Fd reader wake-ups at most every 5 ms (half a period at short event timers): the
+        tick drains the socket before publishing, so outputs are as fresh regardless."""
         if self.options.coalesce_s is not None:
             return self.options.coalesce_s
-        return min(0.002, self._period_s() / 4)
+        return min(0.005, self._period_s() / 2)
+
+    def _poll_grid(self) -> None:
+        """The fd readers read on a grid PRE_TICK_READ_S (a tenth of the reading period at
+        most) before the ticks: the tick's own drain finds only what came since, the other
+        reads share the tick's wakes or fall between them."""
+        for link in self.links.values():
+            link.grid_anchor_s = self.ticker.anchor_s - min(PRE_TICK_READ_S,
+                                                            link.coalesce_s / 10)
 
     def _timers_changed(self) -> None:
         """One tick for all nodes at the fastest TPDO1 event timer; each node sends its TPDO1
@@ -189,6 +198,8 @@ class Service:
             self.ticker.set_period(period_ms / 1000.0)
             for link in self.links.values():
                 link.coalesce_s = self._coalesce_s()
+            if self.started:
+                self._poll_grid()
 
     # --- per unit ----------------------------------------------------------------------------
 
@@ -232,7 +243,9 @@ class Service:
         gc.collect()
         gc.freeze()
         self.ticker.start()
-        self.housekeeper.start()
+        # on the tick's deadlines: both fall in one wake of the loop where their periods meet
+        self.housekeeper.start(self.ticker.anchor_s)
+        self._poll_grid()
         now = time.monotonic()
         self._last_publish_s = now
         self._next_save_s = now + self.cfg.estimator.state_save_interval_s
