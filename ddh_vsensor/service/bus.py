@@ -2,16 +2,17 @@
 without blocking the event loop, written without ever raising, reopened with back-off.
 
 Reading: on ``socketcan`` the socket is watched by the event loop (``add_reader``) and every
-readable wake drains it. With ``coalesce_s`` the watch pauses after each wake (the frames wait in the kernel's
-socket buffer): while frames keep coming a timer reads them every ``coalesce_s`` instead
-(one wake per period, no fd watch to re-arm), and the first read that finds none watches the
-fd again. The service calls :meth:`BusLink.drain` right before it publishes: the published
-values still include every frame received before the tick, at a fraction of the wake-ups; other interfaces (``virtual``, ``remote``, vendor drivers) get one
-reader thread that hands frames to the loop in batches (one ``call_soon_threadsafe`` per
-batch, not per frame). No ``can.Notifier``: its listener chain stops at the first listener
-that raises, and its error path leaves a dead reader behind; here a receive error closes the
-bus and a new one is opened after a back-off (0.1 s doubling to 5 s), the service's state
-untouched. Every log line here is rate-limited (``log_interval_s``): error frames at
+readable wake drains it. With ``coalesce_s`` the watch pauses after each wake (the frames wait
+in the kernel's socket buffer): while frames keep coming a timer reads them every
+``coalesce_s`` instead (one wake per period, on the grid ``grid_anchor_s`` the service sets
+just before its ticks), and the first read that finds none watches the fd again. The service
+calls :meth:`BusLink.drain` right before it publishes: the published values still include
+every frame received before the tick, at a fraction of the wake-ups. Other interfaces
+(``virtual``, ``remote``, vendor drivers) get one reader thread that hands frames to the loop
+in batches (one ``call_soon_threadsafe`` per batch, not per frame). No ``can.Notifier``: its
+listener chain stops at the first listener that raises, and its error path leaves a dead
+reader behind; here a receive error closes the bus and a new one is opened after a back-off
+(0.1 s doubling to 5 s), the service's state untouched. Every log line here is rate-limited (``log_interval_s``): error frames at
 thousands per second are counted, not each written.
 
 Kernel filters (``can_filters``) are set on socketcan, the interface that applies them in
