@@ -4,8 +4,7 @@ without blocking the event loop, written without ever raising, reopened with bac
 Reading: on ``socketcan`` the socket is watched by the event loop (``add_reader``) and every
 readable wake drains it. With ``coalesce_s`` the watch pauses after each wake (the frames wait
 in the kernel's socket buffer): while frames keep coming a timer reads them every
-``coalesce_s`` instead (one wake per period, on the grid ``grid_anchor_s`` the service sets
-just before its ticks), and the first read that finds none watches the fd again. The service
+``coalesce_s`` instead (one wake per period, on the grid ``grid_anchor_s``: the service puts it on its ticks), and the first read that finds none watches the fd again. The service
 calls :meth:`BusLink.drain` right before it publishes: the published values still include
 every frame received before the tick, at a fraction of the wake-ups. Other interfaces
 (``virtual``, ``remote``, vendor drivers) get one reader thread that hands frames to the loop
@@ -105,8 +104,8 @@ class BusLink:
         self.watch_fd = watch_fd
         self.coalesce_s = coalesce_s
         # reads on the grid grid_anchor_s + k * coalesce_s (monotonic; None: coalesce_s
-        # after each wake): the service puts it just before its ticks, so that the reads
-        # and the ticks share the loop's wakes
+        # after each wake): the service puts it on its ticks, so that reads and ticks share
+        # the loop's wakes
         self.grid_anchor_s: float | None = None
         self.wakes = 0
         self._watching = False

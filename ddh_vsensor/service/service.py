@@ -59,7 +59,6 @@ log = logging.getLogger(__name__)
 
 BACKLOG_UNHEALTHY_S = 1.0        # a frame waiting this long: integration is not keeping up
 STATUS_INTERVAL_S = 2.0
-PRE_TICK_READ_S = 0.001          # the fd readers' last read before a tick, ahead of it
 BUS_PATH_LOGGERS = ("canopen", "ddh_vsensor.service.node", "ddh_vsensor.service.pdo",
                     "ddh_vsensor.service.emcy", "can")
 
@@ -180,12 +179,11 @@ class Service:
         return min(0.005, self._period_s() / 2)
 
     def _poll_grid(self) -> None:
-        """The fd readers read on a grid PRE_TICK_READ_S (a tenth of the reading period at
-        most) before the ticks: the tick's own drain finds only what came since, the other
-        reads share the tick's wakes or fall between them."""
+        """The fd readers read on the tick's deadlines (and between them): a read due with
+        a tick shares its wake of the loop (a read just before each tick was measured: more
+        jitter, no less CPU)."""
         for link in self.links.values():
-            link.grid_anchor_s = self.ticker.anchor_s - min(PRE_TICK_READ_S,
-                                                            link.coalesce_s / 10)
+            link.grid_anchor_s = self.ticker.anchor_s
 
     def _timers_changed(self) -> None:
         """One tick for all nodes at the fastest TPDO1 event timer; each node sends its TPDO1
