@@ -4,8 +4,9 @@ without blocking the event loop, written without ever raising, reopened with bac
 Reading: on ``socketcan`` the socket is watched by the event loop (``add_reader``) and every
 readable wake drains it. With ``coalesce_s`` the watch pauses after each wake (the frames wait
 in the kernel's socket buffer): while frames keep coming a timer reads them every
-``coalesce_s`` instead (one wake per period, on the grid ``grid_anchor_s``: the service puts it on its ticks), and the first read that finds none watches the fd again. The service
-calls :meth:`BusLink.drain` right before it publishes: the published values still include
+``coalesce_s`` instead (one wake per period, on the grid ``grid_anchor_s``: the service puts
+it on its ticks), and the first read that finds none watches the fd again. The service calls
+:meth:`BusLink.drain` right before it publishes: the published values still include
 every frame received before the tick, at a fraction of the wake-ups. Other interfaces
 (``virtual``, ``remote``, vendor drivers) get one reader thread that hands frames to the loop
 in batches (one ``call_soon_threadsafe`` per batch, not per frame). No ``can.Notifier``: its
