@@ -51,7 +51,7 @@ from .network import ServiceNetwork
 from .node import SensorNode
 from .objects import Published
 from .persistence import StateStore, write_states
-from .scheduler import Ticker
+from .scheduler import Tick, Ticker
 from .sdnotify import SystemdNotifier
 from .units import STALE_PERIODS, Unit
 
@@ -243,15 +243,15 @@ class Service:
         self.ticker.start()
         # on the tick's deadlines: both fall in one wake of the loop where their periods meet
         self.housekeeper.start(self.ticker.anchor_s)
+        self.ticker.call_every(self._tick)
+        self.housekeeper.call_every(self._housekeeping)
         self._poll_grid()
         now = time.monotonic()
         self._last_publish_s = now
         self._next_save_s = now + self.cfg.estimator.state_save_interval_s
-        for coro, name in ((self.ingest.run(), "dispatcher"), (self._ticks(), "tick"),
-                           (self._housekeeping(), "housekeeping")):
-            task = loop.create_task(coro, name=f"ddh-vsensor {name}")
-            task.add_done_callback(self._task_ended)
-            self._tasks.append(task)
+        task = loop.create_task(self.ingest.run(), name="ddh-vsensor dispatcher")
+        task.add_done_callback(self._task_ended)
+        self._tasks.append(task)
         self.started = True
         self._ready_when_open()
         log.info("running: %s, TPDO1 every %g ms (%s ticks), state %s",
@@ -340,14 +340,12 @@ class Service:
 
     # --- the ticks ---------------------------------------------------------------------------
 
-    async def _ticks(self) -> None:
-        while True:
-            tick = await self.ticker.wait()
-            try:
-                self._on_tick(tick.deadline, tick.missed)
-            except Exception:   # noqa: BLE001 - a failed tick must not end publishing
-                self._log.warning("tick", "tick failed")
-                log.debug("tick failed", exc_info=True)
+    def _tick(self, tick: Tick) -> None:
+        try:
+            self._on_tick(tick.deadline, tick.missed)
+        except Exception:   # noqa: BLE001 - a failed tick must not end publishing
+            self._log.warning("tick", "tick failed")
+            log.debug("tick failed", exc_info=True)
 
     def _on_tick(self, deadline: float, missed: int) -> None:
         """The publishing tick: TPDOs of the OPERATIONAL nodes."""
@@ -367,14 +365,12 @@ class Service:
             for observer in self.observers:
                 observer(unit.actuator, p, unit.last_frame_t)
 
-    async def _housekeeping(self) -> None:
-        while True:
-            await self.housekeeper.wait()
-            try:
-                self._on_housekeeping()
-            except Exception:   # noqa: BLE001 - a failed tick must not end the housekeeping
-                self._log.warning("housekeeping", "housekeeping tick failed")
-                log.debug("housekeeping tick failed", exc_info=True)
+    def _housekeeping(self, tick: Tick) -> None:
+        try:
+            self._on_housekeeping()
+        except Exception:   # noqa: BLE001 - a failed tick must not end the housekeeping
+            self._log.warning("housekeeping", "housekeeping tick failed")
+            log.debug("housekeeping tick failed", exc_info=True)
 
     def _on_housekeeping(self) -> None:
         """The service's own fixed tick, whatever the event timers: heartbeats, READY,
@@ -404,7 +400,7 @@ class Service:
         frame has waited longer than BACKLOG_UNHEALTHY_S, and the publishing tick ran within
         its period plus BACKLOG_UNHEALTHY_S."""
         now = time.monotonic() if now is None else now
-        if len(self._tasks) < 2 or any(t.done() for t in self._tasks[:2]):
+        if not self._tasks or self._tasks[0].done():
             return False
         if now - self._last_publish_s > self.ticker.period_s + BACKLOG_UNHEALTHY_S:
             return False
