@@ -5,7 +5,8 @@ Reading: on ``socketcan`` the socket is watched by the event loop (``add_reader`
 readable wake drains it. With ``coalesce_s`` the watch pauses after each wake (the frames wait
 in the kernel's socket buffer): while frames keep coming a timer reads them every
 ``coalesce_s`` instead (one wake per period, on the grid ``grid_anchor_s``: the service puts
-it on its ticks), and the first read that finds none watches the fd again. The service calls
+it on its ticks), and once a period passes without frames (the tick's drains count) the fd is
+watched again. The service calls
 :meth:`BusLink.drain` right before it publishes: the published values still include
 every frame received before the tick, at a fraction of the wake-ups. Other interfaces
 (``virtual``, ``remote``, vendor drivers) get one reader thread that hands frames to the loop
@@ -111,6 +112,7 @@ class BusLink:
         self.wakes = 0
         self._watching = False
         self._rearm: asyncio.TimerHandle | None = None
+        self._rx_at_poll = 0       # rx_frames when the pending timer read was scheduled
         self.on_frames, self.on_state = on_frames, on_state
         self.opener = opener
         self.backoff_start_s, self.backoff_max_s = backoff_start_s, backoff_max_s
@@ -261,6 +263,7 @@ class BusLink:
             when = now + self.coalesce_s
         else:
             when = anchor + (math.floor((now - anchor) / self.coalesce_s) + 1) * self.coalesce_s
+        self._rx_at_poll = self.rx_frames
         self._rearm = self._loop.call_at(when, self._poll, bus, generation)
 
     def _poll(self, bus: can.BusABC, generation: int) -> None:
@@ -272,10 +275,12 @@ class BusLink:
             return
         self.wakes += 1
         frames = self._drain(bus, generation)
-        if frames > 0:
+        if frames < 0:
+            return                                 # the reopen takes over
+        if self.rx_frames > self._rx_at_poll:      # frames came, read here or by drain()
             self._schedule_poll(bus, generation)
-        elif frames == 0:
-            self._watch(bus, generation)          # (on a failure the reopen takes over)
+        else:
+            self._watch(bus, generation)
 
     def drain(self) -> None:
         """Hand over every frame waiting in the socket now (fd reading only; a reader
