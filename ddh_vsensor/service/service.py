@@ -1,6 +1,6 @@
 """The daemon: Sevcon frames in, one emulated CiA 406 sensor per cylinder out.
 
-One asyncio loop, four activities:
+One asyncio loop:
 
 - the bus links (one per bus the machine's frames are on: :mod:`.buses`) hand received frames
   over in batches to one ingestion path (:mod:`.ingest`) that routes them by ID, with a
@@ -13,6 +13,9 @@ One asyncio loop, four activities:
   heartbeats, the systemd watchdog (while the integration keeps up), READY once every bus is
   open, the systemd status, and the estimates saved every ``state_save_interval_s`` (in a
   worker thread, atomically: :mod:`.persistence`);
+- both ticks run straight from the loop's wake on the same deadlines (one wake where their
+  periods meet), and the bus links read on the publishing tick's grid (:mod:`.bus`): the
+  loop's wake-ups, not the per-frame work, were most of the service's CPU;
 - stop (SIGTERM/SIGINT via :meth:`Service.request_stop`): STOPPING=1, state saved as a clean
   stop, buses closed, exit code 0.
 
