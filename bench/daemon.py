@@ -638,8 +638,8 @@ STAGES = (
 def profile(cfg, tables, ms: int, input_hz: float) -> dict[str, object]:
     """``ms`` milliseconds of the machine's traffic (as the socket mode's feeder sends it)
     through the service's receive, routing, estimator and publish path, driven here: a
-    reader wake every 2 ms (the fd reader's coalescing), a tick every event timer, the
-    housekeeping tick every 10 ms. CPU time per Sevcon frame without the profiler, then each
+    reader wake every reading period (the fd reader's coalescing), a tick every event timer,
+    the housekeeping tick every 10 ms. CPU time per Sevcon frame without the profiler, then each
     stage's share under cProfile (its cumulative time; stages nest)."""
     bus_names = [DEFAULT_BUS, *(b for b in cfg.buses if cfg.units_on_bus(b))]
     pairs = {name: socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -684,7 +684,7 @@ def profile(cfg, tables, ms: int, input_hz: float) -> dict[str, object]:
         _feed_slot(feeder, k)
         traffic.append([rec for r in recorders.values() for rec in r.records])
     slot_s = 1.0 / input_hz
-    wake_every = max(1, round(0.002 / slot_s))
+    wake_every = max(1, round(links[0].coalesce_s / slot_s))
     tick_every = max(1, round(service.ticker.period_s / slot_s))
     house_every = max(1, round(cfg.faults.housekeeping_tick_ms / 1000.0 / slot_s))
     socks = {name: theirs for name, (_, theirs) in pairs.items()}
@@ -800,8 +800,9 @@ def main() -> None:
                         help="buses the units are split over (default 2 for --units above 2, "
                              "where the service reads several buses)")
     parser.add_argument("--coalesce-ms", type=float, default=None,
-                        help="socket mode: the fd reader's pause after a wake (default: the "
-                             "service's, 2 ms); the tick drains the socket before publishing "
+                        help="socket mode: the fd reader's reading period while frames come "
+                             "(default: the service's, 5 ms); the tick drains the socket "
+                             "before publishing "
                              "whatever this is")
     parser.add_argument("--housekeeping-ms", type=float, default=None,
                         help="the service's housekeeping tick (faults.housekeeping_tick_ms; "

@@ -2,15 +2,18 @@
 without blocking the event loop, written without ever raising, reopened with back-off.
 
 Reading: on ``socketcan`` the socket is watched by the event loop (``add_reader``) and every
-readable wake drains it. With ``coalesce_s`` the watch pauses for that long after each wake
-(the frames wait in the kernel's socket buffer) and the service calls :meth:`BusLink.drain`
-right before it publishes: the published values still include every frame received before the
-tick, at a fraction of the wake-ups (one per 2 ms instead of one per frame); other interfaces (``virtual``, ``remote``, vendor drivers) get one
-reader thread that hands frames to the loop in batches (one ``call_soon_threadsafe`` per
-batch, not per frame). No ``can.Notifier``: its listener chain stops at the first listener
-that raises, and its error path leaves a dead reader behind; here a receive error closes the
-bus and a new one is opened after a back-off (0.1 s doubling to 5 s), the service's state
-untouched. Every log line here is rate-limited (``log_interval_s``): error frames at
+readable wake drains it. With ``coalesce_s`` the watch pauses after each wake (the frames wait
+in the kernel's socket buffer): while frames keep coming a timer reads them every
+``coalesce_s`` instead (one wake per period, on the grid ``grid_anchor_s``: the service puts
+it on its ticks), and once a period passes without frames (the tick's drains count) the fd is
+watched again. The service calls
+:meth:`BusLink.drain` right before it publishes: the published values still include
+every frame received before the tick, at a fraction of the wake-ups. Other interfaces
+(``virtual``, ``remote``, vendor drivers) get one reader thread that hands frames to the loop
+in batches (one ``call_soon_threadsafe`` per batch, not per frame). No ``can.Notifier``: its
+listener chain stops at the first listener that raises, and its error path leaves a dead
+reader behind; here a receive error closes the bus and a new one is opened after a back-off
+(0.1 s doubling to 5 s), the service's state untouched. Every log line here is rate-limited (``log_interval_s``): error frames at
 thousands per second are counted, not each written.
 
 Kernel filters (``can_filters``) are set on socketcan, the interface that applies them in
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -101,9 +105,14 @@ class BusLink:
         # wake drained); True: on any bus with a fileno() whose recv(0) drains it; False: thread
         self.watch_fd = watch_fd
         self.coalesce_s = coalesce_s
+        # reads on the grid grid_anchor_s + k * coalesce_s (monotonic; None: coalesce_s
+        # after each wake): the service puts it on its ticks, so that reads and ticks share
+        # the loop's wakes
+        self.grid_anchor_s: float | None = None
         self.wakes = 0
         self._watching = False
         self._rearm: asyncio.TimerHandle | None = None
+        self._rx_at_poll = 0       # rx_frames when the pending timer read was scheduled
         self.on_frames, self.on_state = on_frames, on_state
         self.opener = opener
         self.backoff_start_s, self.backoff_max_s = backoff_start_s, backoff_max_s
@@ -243,8 +252,35 @@ class BusLink:
         if self.coalesce_s > 0.0 and self._loop is not None and self._fd is not None:
             self._loop.remove_reader(self._fd)
             self._watching = False
-            self._rearm = self._loop.call_later(self.coalesce_s, self._watch, bus, generation)
+            self._schedule_poll(bus, generation)
         self._drain(bus, generation)
+
+    def _schedule_poll(self, bus: can.BusABC, generation: int) -> None:
+        assert self._loop is not None
+        now = self._loop.time()                   # time.monotonic()
+        anchor = self.grid_anchor_s
+        if anchor is None:
+            when = now + self.coalesce_s
+        else:
+            when = anchor + (math.floor((now - anchor) / self.coalesce_s) + 1) * self.coalesce_s
+        self._rx_at_poll = self.rx_frames
+        self._rearm = self._loop.call_at(when, self._poll, bus, generation)
+
+    def _poll(self, bus: can.BusABC, generation: int) -> None:
+        """Coalescing: while frames keep coming they are read every ``coalesce_s`` by this
+        timer alone (one wake per period, the fd not watched); a poll that finds none
+        watches the fd again."""
+        self._rearm = None
+        if generation != self._generation or self._loop is None:
+            return
+        self.wakes += 1
+        frames = self._drain(bus, generation)
+        if frames < 0:
+            return                                 # the reopen takes over
+        if self.rx_frames > self._rx_at_poll:      # frames came, read here or by drain()
+            self._schedule_poll(bus, generation)
+        else:
+            self._watch(bus, generation)
 
     def drain(self) -> None:
         """Hand over every frame waiting in the socket now (fd reading only; a reader
@@ -252,7 +288,8 @@ class BusLink:
         if self._fd is not None and self.bus is not None:
             self._drain(self.bus, self._generation)
 
-    def _drain(self, bus: can.BusABC, generation: int) -> None:
+    def _drain(self, bus: can.BusABC, generation: int) -> int:
+        """Frames handed over (-1: the bus failed)."""
         batch: list[can.Message] = []
         try:
             while len(batch) < BATCH_MAX:
@@ -264,9 +301,10 @@ class BusLink:
             if batch:
                 self._deliver(generation, batch)
             self._lost(generation, exc)
-            return
+            return -1
         if batch:
             self._deliver(generation, batch)
+        return len(batch)
 
     def _deliver(self, generation: int, batch: list[can.Message]) -> None:
         if generation != self._generation:

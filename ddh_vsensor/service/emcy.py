@@ -32,9 +32,10 @@ _REGISTER_BITS = {
     Flags.PRESET_UNCONFIRMED: 0x81,             # device specific: preset unconfirmed
     Flags.CONTROLLER_NOT_OPERATIONAL: 0x11,     # the motor controller's heartbeat
 }
-# Fault flag -> (EMCY error code, register bits); the codes are the frame layout's.
+# Fault flag -> (EMCY error code, register bits); the codes are the frame layout's. Plain int
+# keys: this is checked every tick.
 EMCY_FAULTS: dict[int, tuple[int, int]] = {
-    flag: (EMCY_CODES[flag][0], bits) for flag, bits in _REGISTER_BITS.items()}
+    int(flag): (EMCY_CODES[flag][0], bits) for flag, bits in _REGISTER_BITS.items()}
 FAULT_FLAGS = sum(EMCY_FAULTS)
 
 
@@ -97,11 +98,12 @@ class EmcyProducer:
         then when that ends), at most one EMCY per inhibit time 0x1015 (a flapping flag
         cannot flood the bus). Returns the number of EMCY frames sent."""
         faults = p.flags & FAULT_FLAGS
-        for bit, (code, _) in EMCY_FAULTS.items():
-            if faults & bit and not self.active & bit:
-                self.errors.insert(0, code | bit << 16)
-                del self.errors[ERROR_FIELD_SIZE:]
-        self.active = faults
+        if faults != self.active:
+            for bit, (code, _) in EMCY_FAULTS.items():
+                if faults & bit and not self.active & bit:
+                    self.errors.insert(0, code | bit << 16)
+                    del self.errors[ERROR_FIELD_SIZE:]
+            self.active = faults
         if faults == self.reported or self.node.nmt.state in ("STOPPED", "INITIALISING"):
             return 0
         cob_id = value_of(self.node.get_data(0x1014, 0))

@@ -16,7 +16,9 @@ import logging
 import math
 import time
 from collections import Counter
+import struct
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import can
 import cantools
@@ -107,22 +109,23 @@ class RateLimitedLog:
         self.logger.log(level, message + suffix, *args, stacklevel=3)
 
 
-@dataclass
 class RateLimiter:
     """Tokens refilled at ``rate_hz`` up to ``burst``; each frame let through takes one."""
 
-    rate_hz: float
-    burst: float
-    tokens: float = 0.0
-    last_s: float | None = None
+    __slots__ = ("rate_hz", "burst", "tokens", "last_s")
+
+    def __init__(self, rate_hz: float, burst: float) -> None:
+        self.rate_hz, self.burst = rate_hz, burst
+        self.tokens = 0.0
+        self.last_s: float | None = None
 
     def take(self, now_s: float) -> bool:
-        if self.last_s is None:
-            self.tokens = self.burst
-        else:
-            elapsed = max(now_s - self.last_s, 0.0)
-            self.tokens = min(self.burst, self.tokens + elapsed * self.rate_hz)
-        self.last_s = max(now_s, self.last_s if self.last_s is not None else now_s)
+        last = self.last_s
+        if last is None:
+            self.tokens, self.last_s = self.burst, now_s
+        elif now_s > last:
+            self.tokens = min(self.burst, self.tokens + (now_s - last) * self.rate_hz)
+            self.last_s = now_s
         if self.tokens >= 1.0:
             self.tokens -= 1.0
             return True
@@ -136,8 +139,7 @@ class UnitCounters:
     reasons: Counter[str] = field(default_factory=Counter)
 
 
-@dataclass(frozen=True)
-class SevconSample:
+class SevconSample(NamedTuple):
     t_s: float
     speed_rpm: float
     torque_nm: float
@@ -162,6 +164,10 @@ class Inputs:
         self._limiters = {i: RateLimiter(flood_rate_hz, flood_burst)
                          for i in (*self.sevcon_ids, self.oil_id, self.io_id)}
         self._last_t: dict[int, float] = {}
+        # per unit: what its Sevcon frames are checked against and decoded with
+        self._sevcon = {a: (ids[message_name("sevcon", a)], self._lengths[ids[message_name(
+            "sevcon", a)]], self._limiters[ids[message_name("sevcon", a)]],
+            codec.sevcon_decoder(a), *self._limits[a]) for a in cfg.can.units}
         self.units = {a: UnitCounters() for a in cfg.can.units}
         self.counts: Counter[str] = Counter()     # everything else, by kind
         self.unknown_ids: Counter[int] = Counter()
@@ -190,10 +196,13 @@ class Inputs:
         # handled late is no flood.
         if self._limiters[msg.arbitration_id].take(msg.timestamp):
             return True
+        self._flooded(msg, what)
+        return False
+
+    def _flooded(self, msg: can.Message, what: str) -> None:
         self.log.warning(f"flood-{msg.arbitration_id}", "%s frames on 0x%03X arrive faster "
                          "than %.0f/s: the excess is rejected", what, msg.arbitration_id,
                          self._limiters[msg.arbitration_id].rate_hz)
-        return False
 
     def _check_time(self, msg: can.Message, what: str) -> None:
         last = self._last_t.get(msg.arbitration_id)
@@ -205,34 +214,40 @@ class Inputs:
     # --- per input -------------------------------------------------------------------------
 
     def sevcon(self, actuator: str, msg: can.Message, now_s: float) -> SevconSample | None:
-        """The sample of a Sevcon TPDO, or None when rejected (counted)."""
+        """The sample of a Sevcon TPDO, or None when rejected (counted). The checks of
+        ``_shape_ok``, ``_not_flooded`` and ``_check_time`` inline: this runs for every
+        frame, the log text is built only for a rejected one."""
         counters = self.units[actuator]
         counters.received += 1
-        what = f"{actuator} Sevcon"
+        frame_id, length, limiter, decode, speed_max, torque_max = self._sevcon[actuator]
+        data, t = msg.data, msg.timestamp
         reason = None
-        if not self._shape_ok(msg, what):
+        if msg.is_remote_frame or msg.is_extended_id or msg.is_fd or msg.dlc != length \
+                or len(data) != length:
+            self._shape_ok(msg, f"{actuator} Sevcon")
             reason = "length"
-        elif not self._not_flooded(msg, what):
+        elif not limiter.take(t):
+            self._flooded(msg, f"{actuator} Sevcon")
             reason = "flood"
         else:
             try:
-                signals = self.codec.decode(msg)[1]  # type: ignore[index]
-            except (cantools.database.DecodeError, ValueError) as exc:
-                self.log.warning(f"decode-{msg.arbitration_id}", "%s frame undecodable: %s",
-                                 what, exc)
+                torque, speed = decode(data)
+            except (cantools.database.DecodeError, ValueError, struct.error) as exc:
+                self.log.warning(f"decode-{frame_id}", "%s Sevcon frame undecodable: %s",
+                                 actuator, exc)
                 reason = "decode"
             else:
-                speed, torque = float(signals["VelocityActual"]), float(signals["TorqueActual"])
-                speed_max, torque_max = self._limits[actuator]
-                if abs(speed) > speed_max or abs(torque) > torque_max:
-                    self.log.warning(f"range-{msg.arbitration_id}", "%s frame out of range "
-                                     "rejected: %.0f rpm, %.2f N*m (plausible: |speed| <= "
-                                     "%.0f, |torque| <= %.0f)", what, speed, torque, speed_max,
-                                     torque_max)
-                    reason = "range"
-                else:
-                    self._check_time(msg, what)
-                    return SevconSample(msg.timestamp, speed, torque)
+                if -speed_max <= speed <= speed_max and -torque_max <= torque <= torque_max:
+                    last = self._last_t.get(frame_id)
+                    if last is not None and t < last:
+                        self._check_time(msg, f"{actuator} Sevcon")
+                    self._last_t[frame_id] = t
+                    return SevconSample(t, float(speed), float(torque))
+                self.log.warning(f"range-{frame_id}", "%s Sevcon frame out of range "
+                                 "rejected: %.0f rpm, %.2f N*m (plausible: |speed| <= "
+                                 "%.0f, |torque| <= %.0f)", actuator, speed, torque, speed_max,
+                                 torque_max)
+                reason = "range"
         counters.rejected += 1
         counters.reasons[reason] += 1
         return None

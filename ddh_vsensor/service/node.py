@@ -43,7 +43,7 @@ from .objects import (ABORT_MAX_BELOW_MIN, ABORT_VALUE_RANGE, ABORT_VALUE_TOO_HI
                       INT16, INT32, LIVE_OBJECTS, PDO_INVALID, SPEED_STEP_MM_S, UINT24_MAX,
                       UNCERTAINTY_STEP_MM, WARNING_CLAMPED, WARNING_NO_REFERENCE,
                       WARNING_SOFT_LIMIT, Published, clamp, value_of)
-from .pdo import PdoConfig
+from .pdo import Getter, Packer, PdoConfig
 from .sdo_gate import SdoGate
 
 log = logging.getLogger(__name__)
@@ -189,12 +189,44 @@ class SensorNode:
         self._encode(self.tpdo2, p)
 
     def _encode(self, pdo: canopen.pdo.PdoMap, p: Published) -> None:
+        packers = self.pdos.packers
+        packer = packers[pdo] if pdo in packers else \
+            packers.setdefault(pdo, Packer.compile(pdo, self._getter))
+        data = packer.pack(p) if packer is not None else None
+        if data is not None:
+            pdo.data[:] = data
+            return
         for var in pdo.map:
             value = self._value(var.index, var.subindex, p)
             if value is not None:
                 var.raw = value
             elif var.index >= 0x20:                     # a stored object (dummies stay 0)
                 var.set_data(self.node.get_data(var.index, var.subindex))
+
+    def _getter(self, index: int, subindex: int, length_bytes: int) -> Getter:
+        """A mapped object's value from a published record, as :meth:`_value` gives it
+        (the estimate's objects directly), else its stored data (None: not that long)."""
+        step_mm = self.step_mm
+        live: dict[int, Getter] = {
+            0x6020: lambda p: min(max(round(p.position_mm / step_mm), INT32[0]), INT32[1]),
+            0x6030: lambda p: min(max(round(p.speed_mm_s / SPEED_STEP_MM_S), INT16[0]),
+                                  INT16[1]),
+            0x2001: lambda p: min(max(round(p.uncertainty_mm / UNCERTAINTY_STEP_MM), 0),
+                                  UINT24_MAX),
+            0x2000: lambda p: p.flags & 0xFF, 0x2002: lambda p: p.flags & 0xFF,
+            0x2003: lambda p: p.input_frames & 0xFFFF,
+            0x2004: lambda p: p.rejected_frames & 0xFFFF}
+        if index in live:
+            return live[index]
+        get_data, value = self.node.get_data, self._value
+
+        def other(p: Published) -> int | None:
+            v = value(index, subindex, p)
+            if v is not None:
+                return v
+            data = get_data(index, subindex)
+            return int.from_bytes(data, "little") if len(data) == length_bytes else None
+        return other
 
     def _transmit(self, pdo: canopen.pdo.PdoMap) -> None:
         """A TPDO goes out only while valid (COB-ID bit 31 clear)."""

@@ -2,11 +2,19 @@
 enable a TPDO (COB-ID bit 31), remap it (disable, sub 0 = 0, entries, sub 0 = n, enable) with
 any mappable object, set the transmission type 254/255. Everything else is refused with its
 abort code: the COB-IDs stay the pre-defined ones the service routes and the DBC describes
-(no RTR, bit 30 set), no SYNC, inhibit time 0. The event timers (sub 5) are the node's."""
+(no RTR, bit 30 set), no SYNC, inhibit time 0. The event timers (sub 5) are the node's.
+
+A TPDO's data is packed every tick: canopen encodes each mapped variable through its object
+dictionary (tens of microseconds per frame), so each mapping is compiled once into
+:class:`Packer` (one integer per frame, one shift per entry) and compiled again whenever a
+master changes it; a mapping it cannot pack the same way (bit fields, non-integer objects)
+stays with canopen's encoding."""
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from typing import Any
 
 import canopen
 from canopen.sdo import SdoAbortedError
@@ -17,6 +25,45 @@ from .objects import (ABORT_MAP_LENGTH, ABORT_NOT_MAPPABLE, ABORT_UNSUPPORTED_AC
 log = logging.getLogger(__name__)
 
 PDO_MAX_BITS = 64
+DUMMY_INDEX_END = 0x20          # indices below are the data type dummies: mapped, never written
+
+# A mapped object's value for what a node publishes (None: not known here, canopen's way).
+Getter = Callable[[Any], "int | None"]
+
+
+class Packer:
+    """The data of one TPDO mapping from a published record, equal to canopen's encoding of
+    every mapped variable: entries whole bytes at their offsets, integer objects, dummies
+    left 0. ``pack(p)`` returns None when a getter does (the caller then encodes the
+    canopen way)."""
+
+    def __init__(self, fields: list[tuple[Getter, int, int]], length_bytes: int) -> None:
+        self.fields, self.length_bytes = fields, length_bytes
+
+    @classmethod
+    def compile(cls, pdo: canopen.pdo.PdoMap,
+                getter: Callable[[int, int, int], Getter]) -> Packer | None:
+        """``getter(index, subindex, bytes)`` gives each mapped object's value getter; None
+        when an entry is a bit field or not an integer object."""
+        fields = []
+        for var in pdo.map:
+            bits = var.length
+            if var.offset % 8 or bits % 8 or bits != len(var.od) or \
+                    var.od.data_type not in canopen.objectdictionary.INTEGER_TYPES:
+                return None
+            if var.index >= DUMMY_INDEX_END:
+                fields.append((getter(var.index, var.subindex, bits // 8), var.offset,
+                               (1 << bits) - 1))
+        return cls(fields, len(pdo.data))
+
+    def pack(self, p: object) -> bytes | None:
+        value = 0
+        for get, shift, mask in self.fields:
+            v = get(p)
+            if v is None:
+                return None
+            value |= (v & mask) << shift
+        return value.to_bytes(self.length_bytes, "little")
 
 
 class PdoConfig:
@@ -29,6 +76,8 @@ class PdoConfig:
         self.tpdo1, self.tpdo2 = node.tpdo[1], node.tpdo[2]
         self.predefined_cob_ids = {pdo: pdo.cob_id for pdo in (self.tpdo1, self.tpdo2)}
         self.written: set[canopen.pdo.PdoMap] = set()   # configured over SDO since boot
+        # compiled mappings (None: canopen encodes it); dropped whenever a mapping changes
+        self.packers: dict[canopen.pdo.PdoMap, Packer | None] = {}
 
     def restore(self) -> None:
         """After the object dictionary's defaults came back: every TPDO a master changed
@@ -42,6 +91,7 @@ class PdoConfig:
         com, mapping = pdo.com_record.od.index, pdo.map_array.od.index
         pdo.enabled = not raw(self.node, com, 1) & PDO_INVALID
         pdo.trans_type = raw(self.node, com, 2)
+        self.packers.pop(pdo, None)
         pdo.clear()
         for sub in range(1, raw(self.node, mapping, 0) + 1):
             entry = raw(self.node, mapping, sub)

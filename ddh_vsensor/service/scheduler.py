@@ -1,6 +1,10 @@
 """Fixed-rate ticks from absolute deadlines: the period never drifts, a late tick is not
 followed by a short one, and missed ticks are counted instead of sent in a burst.
 
+``await ticker.wait()`` per tick, or ``ticker.call_every(callback)``: the callback runs
+straight from the loop's wake, without a task switch per tick (measured: that switch cost as
+much CPU as the wake itself, ~1 % of a core per 100 Hz ticker on a loaded machine).
+
 On Linux the deadlines are a kernel ``timerfd`` (CLOCK_MONOTONIC, absolute start, periodic)
 watched by the event loop: the loop wakes when the fd becomes readable, with the kernel's
 timer precision. asyncio's own timers round every wait up to a whole millisecond, which alone
@@ -18,6 +22,7 @@ import os
 import struct
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 log = logging.getLogger(__name__)
@@ -87,11 +92,26 @@ class Ticker(_TimerFdUser):
         self._anchor = 0.0     # deadline of tick number 0 of the current period setting
         self._count = 0        # ticks (including missed ones) since the anchor
         self._wake: asyncio.Future | None = None   # the asyncio wait in progress
+        self._callback: Callable[[Tick], None] | None = None     # call_every
+        self._timer: asyncio.TimerHandle | None = None           # call_every on asyncio timers
         self.missed_total = 0
 
     @property
     def kind(self) -> str:
         return "timerfd" if self._libc is not None else "asyncio"
+
+    def close(self) -> None:
+        self._callback = None
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        super().close()
+
+    @property
+    def anchor_s(self) -> float:
+        """A deadline of the current period setting (time.monotonic()): every deadline is
+        this plus a whole number of periods."""
+        return self._anchor
 
     def start(self, first_deadline: float | None = None) -> None:
         self._loop = asyncio.get_running_loop()
@@ -136,6 +156,59 @@ class Ticker(_TimerFdUser):
             self._arm()
         elif self._wake is not None and not self._wake.done():
             self._wake.set_result(None)
+        elif self._timer is not None:
+            self._timer.cancel()
+            self._schedule()
+
+    def call_every(self, callback: Callable[[Tick], None]) -> None:
+        """``callback(tick)`` at every deadline, called from the loop's wake itself (the
+        timerfd's reader, or an asyncio timer) instead of :meth:`wait`; after :meth:`start`.
+        """
+        assert self._loop is not None, "start() first"
+        self._callback = callback
+        if self._fd is not None:
+            self._loop.remove_reader(self._fd)
+            self._loop.add_reader(self._fd, self._on_timerfd)
+        else:
+            self._schedule()
+
+    def _on_timerfd(self) -> None:
+        assert self._fd is not None and self._callback is not None
+        try:
+            expirations = struct.unpack("=Q", os.read(self._fd, 8))[0]
+        except BlockingIOError:
+            return
+        self._callback(self._advance(expirations))
+
+    def _schedule(self) -> None:
+        assert self._loop is not None
+        deadline = self._anchor + self._count * self.period_s
+        self._timer = self._loop.call_at(self._loop.time() + (deadline - time.monotonic()),
+                                         self._on_timer)
+
+    def _on_timer(self) -> None:
+        assert self._callback is not None
+        self._timer = None
+        if self._anchor + self._count * self.period_s > time.monotonic():
+            self._schedule()                    # woken early (the loop's clock resolution)
+            return
+        try:
+            self._callback(self._advance(self._expired()))
+        finally:
+            if self._callback is not None and self._timer is None:
+                self._schedule()
+
+    def _expired(self) -> int:
+        """Deadlines passed since the last tick (asyncio timers: every one already passed
+        counts as expired; late ones are skipped)."""
+        expirations = int((time.monotonic() - self._anchor) / self.period_s) + 1 - self._count
+        return max(expirations, 1)
+
+    def _advance(self, expirations: int) -> Tick:
+        self._count += expirations
+        missed = expirations - 1
+        self.missed_total += missed
+        return Tick(self._anchor + (self._count - 1) * self.period_s, missed)
 
     async def wait(self) -> Tick:
         if self._loop is None:
@@ -165,14 +238,8 @@ class Ticker(_TimerFdUser):
                 finally:
                     handle.cancel()
                     self._wake = None
-            # every deadline already passed counts as expired (late: they are skipped)
-            expirations = int((time.monotonic() - self._anchor) / self.period_s) + 1 \
-                - self._count
-            expirations = max(expirations, 1)
-        self._count += expirations
-        missed = expirations - 1
-        self.missed_total += missed
-        return Tick(self._anchor + (self._count - 1) * self.period_s, missed)
+            expirations = self._expired()
+        return self._advance(expirations)
 
 
 def _resolve(future: asyncio.Future) -> None:

@@ -49,11 +49,18 @@ WALL_CLOCK_MATCH_S = 5.0
 # The largest uncertainty the diagnostic frame can carry (UNSIGNED24 counts): a bound beyond
 # it is published as "not referenced".
 UNCERTAINTY_MAX_MM = UINT24_MAX * UNCERTAINTY_STEP_MM
+# The flags as plain ints on the per-tick path: IntFlag arithmetic costs a Python call per
+# operator.
+_STALE_INPUT = int(Flags.STALE_INPUT)
+_NOT_REFERENCED = int(Flags.NOT_REFERENCED)
+_TABLE_CLAMPED = int(Flags.TABLE_CLAMPED)
+_PRESET_UNCONFIRMED = int(Flags.PRESET_UNCONFIRMED)
+_CONTROLLER_NOT_OPERATIONAL = int(Flags.CONTROLLER_NOT_OPERATIONAL)
 
 
 def estimator_flags(est: Estimator, clamped: bool = False) -> int:
     """The estimator's flags for its current state (as its step() would report them)."""
-    return est.state_flags() | (Flags.TABLE_CLAMPED if clamped else 0)
+    return int(est.state_flags()) | (_TABLE_CLAMPED if clamped else 0)
 
 
 @dataclass(eq=False)
@@ -244,14 +251,16 @@ class Unit:
     def published(self, now: float) -> Published:
         est = self.estimator
         stale, why = self.stale(now)
-        clamped = bool(self.last_step and self.last_step.flags & Flags.TABLE_CLAMPED)
-        flags = estimator_flags(est, clamped)
+        step = self.last_step
+        flags = int(est.state_flags())
+        if step is not None and int(step.flags) & _TABLE_CLAMPED:
+            flags |= _TABLE_CLAMPED
         if self.provisional:
-            flags &= ~Flags.NOT_REFERENCED
+            flags &= ~_NOT_REFERENCED
         if self.preset_pending:
-            flags |= Flags.PRESET_UNCONFIRMED
+            flags |= _PRESET_UNCONFIRMED
         if self.heartbeat is not None and not self.heartbeat.status(now)[0]:
-            flags |= Flags.CONTROLLER_NOT_OPERATIONAL
+            flags |= _CONTROLLER_NOT_OPERATIONAL
         u = est.uncertainty_mm
         speed = self.velocity_mm_s
         if stale:
@@ -262,13 +271,13 @@ class Unit:
                                  "held at %.2f mm", self.actuator, why, est.position_mm)
             held_s = max(now - self.stale_since_s, 0.0)
             u = max(u, min(u + self.max_speed_mm_s * held_s, self.stroke_mm))
-            flags |= Flags.STALE_INPUT
+            flags |= _STALE_INPUT
             speed = 0.0
         elif self.stale_since_s is not None:
             self.log.info(f"back-{self.actuator}", "%s: input back after %.2f s (%s)",
                           self.actuator, now - self.stale_since_s, self.stale_reason)
             self.stale_since_s = None
         if u >= UNCERTAINTY_MAX_MM:
-            flags |= Flags.NOT_REFERENCED
+            flags |= _NOT_REFERENCED
         counters = self.inputs.units[self.actuator]
         return Published(est.position_mm, speed, u, flags, counters.received, counters.rejected)

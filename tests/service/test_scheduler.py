@@ -96,3 +96,42 @@ def test_sleeper_wakes_at_or_after_the_deadline(use_timerfd: bool) -> None:
         return out
 
     assert all(late >= -1e-4 for late in asyncio.run(scenario()))
+
+
+@pytest.mark.parametrize("use_timerfd", KINDS)
+def test_call_every_ticks_on_the_grid_blocked_loop_and_period_change_included(
+        use_timerfd: bool) -> None:
+    async def scenario():
+        ticker = Ticker(0.005, use_timerfd=use_timerfd)
+        start = time.monotonic() + 0.005
+        ticker.start(first_deadline=start)
+        ticks: list[tuple[object, float]] = []
+        blocked = asyncio.Event()
+
+        def on_tick(tick) -> None:
+            ticks.append((tick, time.monotonic()))
+            if len(ticks) == 5:
+                time.sleep(0.03)                 # the loop blocked for 6 periods
+            if len(ticks) == 10:
+                ticker.set_period(0.002)
+            if len(ticks) == 16:
+                blocked.set()
+        ticker.call_every(on_tick)
+        try:
+            await asyncio.wait_for(blocked.wait(), 30.0)
+        finally:
+            ticker.close()
+        closed_at = len(ticks)
+        await asyncio.sleep(0.02)                # nothing after close
+        return start, ticks, closed_at
+
+    start, ticks, closed_at = asyncio.run(scenario())
+    assert len(ticks) == closed_at
+    count = 0
+    for tick, t in ticks[:10]:
+        count += tick.missed + 1
+        assert tick.deadline == pytest.approx(start + (count - 1) * 0.005, abs=1e-9)
+        assert t >= tick.deadline - 1e-4
+    assert ticks[5][0].missed >= 4                                    # skipped, no burst
+    for (a, _), (b, _) in zip(ticks[11:], ticks[12:]):                # the new period
+        assert b.deadline - a.deadline == pytest.approx((b.missed + 1) * 0.002, abs=1e-9)

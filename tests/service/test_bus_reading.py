@@ -1,0 +1,93 @@
+"""The fd reader's coalescing: while frames keep coming they are read by a timer on the
+service's grid, not per frame; once a read finds none the fd is watched again. Counted over
+the reads' own times (a late wake under load only makes fewer reads)."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import struct
+
+import can
+
+from ddh_vsensor.service.bus import BusLink
+
+FRAME = struct.Struct("=IB3x8s")
+
+
+class PairBus(can.BusABC):
+    """SocketCAN's frame layout over an AF_UNIX seqpacket socket: recv(0) never blocks,
+    fileno() is the socket."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        sock.setblocking(False)
+        super().__init__(channel="pair")
+
+    def _recv_internal(self, timeout):
+        try:
+            data = self.sock.recv(16)
+        except BlockingIOError:
+            return None, False
+        can_id, dlc, payload = FRAME.unpack(data)
+        return can.Message(arbitration_id=can_id, data=payload[:dlc],
+                           is_extended_id=False), True
+
+    def send(self, msg, timeout=None):
+        raise NotImplementedError
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+
+def test_reads_follow_the_grid_while_frames_come_then_the_fd_is_watched() -> None:
+    period_s, frames_sent = 0.01, 60
+
+    async def scenario():
+        loop = asyncio.get_running_loop()
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        reads: list[tuple[float, int]] = []
+        link = BusLink({"interface": "pair"}, None,
+                       lambda batch: reads.append((loop.time(), len(batch))),
+                       opener=lambda settings, filters: PairBus(mine), watch_fd=True,
+                       coalesce_s=period_s)
+        link.grid_anchor_s = loop.time() + 0.0037
+        schedule = link._schedule_poll                                  # noqa: SLF001
+        scheduled: list[tuple[float, float]] = []
+
+        def recording(bus, generation) -> None:
+            schedule(bus, generation)
+            scheduled.append((loop.time(), link._rearm.when()))          # noqa: SLF001
+        link._schedule_poll = recording                                 # noqa: SLF001
+        await link.start()
+        try:
+            for _ in range(frames_sent):                  # one frame per millisecond
+                theirs.send(FRAME.pack(0x181, 6, bytes(8)))
+                await asyncio.sleep(0.001)
+            for _ in range(200):                          # quiet: back to watching the fd
+                await asyncio.sleep(0.005)
+                if link._watching and link._rearm is None:             # noqa: SLF001
+                    break
+            watching = link._watching and link._rearm is None          # noqa: SLF001
+            before = len(reads)
+            theirs.send(FRAME.pack(0x181, 6, bytes(8)))
+            for _ in range(200):
+                await asyncio.sleep(0.005)
+                if len(reads) > before:
+                    break
+        finally:
+            await link.close()
+            theirs.close()
+        return link, reads, watching, before, scheduled
+
+    link, reads, watching, before, scheduled = asyncio.run(scenario())
+    assert sum(n for _, n in reads) == frames_sent + 1            # every frame, once
+    assert watching and len(reads) == before + 1                   # the fd wakes it again
+    # the burst: the first read woken by the fd, the rest by the timer, on the grid only
+    assert before <= len(scheduled) + 1 and len(scheduled) >= 2
+    whens = [when for _, when in scheduled]
+    assert all(b - a > 0.999 * period_s for a, b in zip(whens, whens[1:]))   # one per period
+    for now, when in scheduled:
+        assert now < when <= now + period_s + 1e-9
+        phase = (when - (link.grid_anchor_s or 0.0)) / period_s
+        assert abs(phase - round(phase)) < 1e-6, (now, when)
