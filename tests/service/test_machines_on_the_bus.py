@@ -34,7 +34,10 @@ MACHINES = sorted((REPO / "config").glob("*.yaml"))
 SECONDS = 10.0          # of the machine's work cycle: every unit moves in it
 # Estimated from a preset at the true position: within each machine's worst full-mode figure
 # on its work cycle and random strokes (README "Describe your own machine", measured in
-# tests/machines/test_machines.py: the loader 0.75 mm, the others' shortfalls), plus one step.
+# tests/machines/test_machines.py: the loader 0.75 mm, the others' shortfalls), plus one step,
+# plus one sample's travel: a preset is provisional, so the first reference is taken whole even
+# in motion, where its edge is known to a sample (100 Hz here; in which sample depends on how
+# the I/O module's frames on the default bus interleave with a unit's on another bus).
 MAX_ERROR_MM = {"loader": 0.75, "bench": 1.25, "excavator": 1.95}
 
 
@@ -155,7 +158,8 @@ def test_generated_dbc_and_eds_serve_a_master(machine: Config, tmp_path: Path) -
         on_bus = {m.arbitration_id & 0x7F for m in own}
         assert on_bus == {cfg.can.units[u].sensor_node_id for u in cfg.units_on_bus(name)}
     for unit in cfg.unit_names:
-        bound = MAX_ERROR_MM[Path(machine.source).stem] + step
+        bound = MAX_ERROR_MM[Path(machine.source).stem] + step \
+            + float(np.max(np.abs(np.diff(runs[unit].position_mm))))
         assert read[unit] == pytest.approx(truth[unit], abs=bound), unit
         last = [db.decode_message(m.arbitration_id, bytes(m.data))
                 for m in seen[cfg.can.units[unit].bus]
