@@ -10,7 +10,6 @@ from ..config import Config, load_config
 
 if TYPE_CHECKING:
     from ..estimator.extension import Extension
-    from ..measured import Run
     from ..tables.lookup import UnitTables
 
 
@@ -30,13 +29,6 @@ def config_from(args: argparse.Namespace) -> Config:
     if getattr(args, "actuator", None) is not None:
         cfg.require_unit(args.actuator)
     return cfg
-
-
-def load_run(path: str, actuator: str, cfg: Config) -> "Run":
-    """A measured run from a CSV of the interchange format or from any CAN log python-can
-    reads (decoded with the configuration's frame layout)."""
-    from ..reader import read_run
-    return read_run(path, cfg, actuator)
 
 
 def load_tables_for(args: argparse.Namespace, cfg: Config, actuator: str) -> "UnitTables":

@@ -11,7 +11,8 @@ from ..config import Config
 from ..estimator.accuracy import accuracy
 from ..estimator.estimator import Estimator
 from ..measured import Run, write_csv
-from .common import add_actuator_arg, add_config_arg, config_from, load_run, load_tables_for
+from ..reader import read_run
+from .common import add_actuator_arg, add_config_arg, config_from, load_tables_for
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,7 +61,7 @@ def estimate_run(args: argparse.Namespace, cfg: Config, run: Run, actuator: str)
 
 def _run(args: argparse.Namespace) -> int:
     cfg = config_from(args)
-    run = load_run(args.run, args.actuator, cfg)
+    run = read_run(args.run, cfg, args.actuator)
     est, res = estimate_run(args, cfg, run, args.actuator)
     score = accuracy(res.position_mm, run.position_mm)
     if args.out:
