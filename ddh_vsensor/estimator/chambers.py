@@ -15,15 +15,22 @@ state. No load model is needed: the measured torque closes the system.
 Each step is piecewise linear in the pressures; the valve regimes of the previous step are
 tried first and every row that comes out inconsistent is solved by enumerating all sixteen
 (as ``physics.steady`` does). The compliance is taken as the secant over the step (two
-passes), so the compression is exact for the pressures found. Rows (runs, air fractions) are
-integrated in lockstep.
+passes, where a row has air), so the compression is exact for the pressures found.
+
+The step is compiled C (``_air_chambers.c``, built with the package like the dynamic mode's
+step and sharing its valve arithmetic): the diagnosis integrates every run for every air
+fraction it tries. Where the install had no C compiler the numpy form below runs instead,
+rows in lockstep, equal to rounding.
 """
 
 from __future__ import annotations
 
+import ctypes
+import importlib.machinery
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -31,10 +38,45 @@ from numpy.typing import ArrayLike
 from ..physics.steady import steady_state_at_torque
 from ..physics.unit import DDHUnit
 from ..physics.air import log_density_and_compliance
+from .dynamic import parameters
 
 RPM_RAD_S = 2.0 * np.pi / 60.0
 _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valve regime
 SECANT_MIN_PA = 100.0                               # below: the tangent is the secant
+# the state vector of the compiled step (A_* of _air_chambers.c)
+A_PA, A_PB, A_V, A_X, A_N, A_TAU, A_RA, A_RB, A_SIZE = range(9)
+
+
+def _library() -> ctypes.CDLL | None:
+    """The compiled step from the package's own directory (never from a writable cache),
+    or None where the install could not build it."""
+    here = Path(__file__).parent
+    found = [here / f"_air_chambers{suffix}"
+             for suffix in importlib.machinery.EXTENSION_SUFFIXES]
+    lib = next((f for f in found if f.is_file()), None)
+    if lib is None:
+        return None
+    cdll = ctypes.CDLL(str(lib))
+    if cdll.air_sizes(1) != A_SIZE:
+        raise RuntimeError(f"{lib}: layout differs from chambers.py; reinstall the package")
+    ptr, dbl, i32 = ctypes.c_void_p, ctypes.c_double, ctypes.c_int
+    cdll.air_step.argtypes = [ptr, dbl, dbl, i32, ptr, dbl, dbl, dbl, dbl]
+    cdll.air_step.restype = None
+    cdll.air_track.argtypes = [ptr, dbl, dbl, i32, ptr, ctypes.c_long, ptr, ptr, ptr, ptr,
+                               ptr, ptr, ptr]
+    cdll.air_track.restype = None
+    return cdll
+
+
+_LIB: ctypes.CDLL | None | bool = False
+
+
+def library() -> ctypes.CDLL | None:
+    """The compiled step, loaded once (None: the numpy step runs)."""
+    global _LIB
+    if _LIB is False:
+        _LIB = _library()
+    return _LIB  # type: ignore[return-value]
 
 
 @dataclass(frozen=True)
@@ -105,13 +147,25 @@ def _pad(arrays: Sequence[np.ndarray], length: int, fill_last: bool = True) -> n
     return out
 
 
+def _column(k: int, kind: type = float) -> property:
+    """Column ``k`` of a model's state as an attribute (a copy; assigning writes it)."""
+    def get(self: "ChamberModel") -> np.ndarray:
+        return self.state[:, k].astype(kind)
+
+    def put(self: "ChamberModel", value: ArrayLike) -> None:
+        self.state[:, k] = value
+    return property(get, put)
+
+
 class ChamberModel:
     """The chamber model for a batch of rows, one sample at a time (the online face; the
-    offline :func:`track_chambers` drives it over whole runs)."""
+    offline :func:`track_chambers` drives it over whole runs). The state of row i is
+    ``state[i]`` (A_* layout), shared by the compiled and the numpy step."""
 
     def __init__(self, unit: DDHUnit, air_fraction: ArrayLike, speed_rpm: ArrayLike,
                  torque_nm: ArrayLike, oil_temp_c: ArrayLike, position_mm: ArrayLike,
-                 inertia: bool = True, max_gap_s: float = math.inf) -> None:
+                 inertia: bool = True, max_gap_s: float = math.inf,
+                 use_compiled: bool = True) -> None:
         """Start settled: the steady state at the first sample's speed and torque."""
         self.unit, self.c = unit, _Constants(unit)
         c = self.c
@@ -120,14 +174,25 @@ class ChamberModel:
         n, tau, temp = (np.broadcast_to(np.asarray(a, dtype=float), (size,)).copy()
                         for a in (speed_rpm, torque_nm, oil_temp_c))
         st = steady_state_at_torque(unit, n, tau, temp)
+        self.state = np.empty((size, A_SIZE))
         self.p_a, self.p_b = st.p_a_pa - c.reservoir, st.p_b_pa - c.reservoir
         self.x = np.broadcast_to(np.asarray(position_mm, dtype=float), (size,)) * 1e-3
-        self.v = st.velocity_m_s.copy()
+        self.v = st.velocity_m_s
         self.n, self.tau = n, tau
         self.regime_a = c.regime(self.p_a, c.relief_a)
         self.regime_b = c.regime(self.p_b, c.relief_b)
         self.has_air = bool(np.any(self.air > 0.0))
         self.inertia, self.max_gap_s = inertia, max_gap_s
+        self._lib = library() if use_compiled else None
+        self.params = parameters(unit, inertia=inertia, blend_s=0.0, max_gap_s=max_gap_s)
+
+    p_a, p_b, v, x = _column(A_PA), _column(A_PB), _column(A_V), _column(A_X)
+    n, tau = _column(A_N), _column(A_TAU)
+    regime_a, regime_b = _column(A_RA, np.intp), _column(A_RB, np.intp)
+
+    @property
+    def compiled(self) -> bool:
+        return self._lib is not None
 
     @property
     def position_mm(self) -> np.ndarray:
@@ -139,6 +204,12 @@ class ChamberModel:
         c, air, pa, pb, x = self.c, self.air, self.p_a, self.p_b, self.x
         h, nk, torque, mu_pa_s = (np.broadcast_to(np.asarray(a, dtype=float), x.shape)
                                   for a in (h, speed_rpm, torque_nm, mu_pa_s))
+        if self._lib is not None:
+            for i, row in enumerate(self.state):
+                self._lib.air_step(self.params.ctypes.data, c.reservoir, air[i],
+                                   int(self.inertia), row.ctypes.data, h[i], nk[i],
+                                   torque[i], mu_pa_s[i])
+            return
         raw_torque = torque
         live = h > 0.0
         hs = np.where(live, h, 1.0)
@@ -160,6 +231,7 @@ class ChamberModel:
                                                cb + g_b, torque, d, self.regime_a,
                                                self.regime_b)
         if self.has_air:    # again with the secant compliance over the step: exact compression
+            first = new_pa, new_pb, new_v, ra, rb
             l1_a, _ = log_density_and_compliance(new_pa, air, c.beta, c.reservoir)
             l1_b, _ = log_density_and_compliance(new_pb, air, c.beta, c.reservoir)
             dpa, dpb = new_pa - pa, new_pb - pb
@@ -167,8 +239,11 @@ class ChamberModel:
                                   (l1_a - l_a) / np.where(dpa == 0.0, 1.0, dpa), inv_a) / hs
             cb = vol_b * np.where(np.abs(dpb) > SECANT_MIN_PA,
                                   (l1_b - l_b) / np.where(dpb == 0.0, 1.0, dpb), inv_b) / hs
-            new_pa, new_pb, new_v, ra, rb = _solve(c, q_a + ca * pa, q_b + cb * pb, ca + g_a,
-                                                   cb + g_b, torque, d, ra, rb)
+            second = _solve(c, q_a + ca * pa, q_b + cb * pb, ca + g_a, cb + g_b, torque, d,
+                            ra, rb)
+            # rows without air keep the first pass: a row's track does not depend on its batch
+            new_pa, new_pb, new_v, ra, rb = (np.where(air > 0.0, b, a)
+                                             for a, b in zip(first, second))
         self.p_a = np.where(live, new_pa, pa)
         self.p_b = np.where(live, new_pb, pb)
         # trapezoidal, as the estimator integrates its table velocities
@@ -185,14 +260,18 @@ def track_chambers(unit: DDHUnit, rows: Sequence[ChamberRow], inertia: bool = Tr
     """Integrate every row; ``inertia`` subtracts the motor's J*d(omega)/dt from its torque.
     Over a gap longer than ``max_gap_s`` the position is not advanced (as the estimator)."""
     lengths = [len(r.time_s) for r in rows]
+    firsts = [np.array([r.time_s[0], r.speed_rpm[0], r.torque_nm[0], r.oil_temp_c[0]])
+              if len(r.time_s) else np.zeros(4) for r in rows]
+    start = np.array(firsts).T
+    model = ChamberModel(unit, [r.air_fraction for r in rows], start[1], start[2], start[3],
+                         [r.initial_position_mm for r in rows], inertia, max_gap_s)
+    if model.compiled:
+        return [_track_compiled(model, i, r) for i, r in enumerate(rows)]
     length, size = max(lengths), len(rows)
     t = _pad([r.time_s for r in rows], length)
     n = _pad([r.speed_rpm for r in rows], length)
     tau = _pad([r.torque_nm for r in rows], length)
-    temp = _pad([r.oil_temp_c for r in rows], length)
-    mu = unit.oil.dynamic_viscosity_pa_s(temp)
-    model = ChamberModel(unit, [r.air_fraction for r in rows], n[0], tau[0], temp[0],
-                         [r.initial_position_mm for r in rows], inertia, max_gap_s)
+    mu = unit.oil.dynamic_viscosity_pa_s(_pad([r.oil_temp_c for r in rows], length))
     out_x, out_pa, out_pb = (np.empty((length, size)) for _ in range(3))
     out_x[0], out_pa[0], out_pb[0] = model.x, model.p_a, model.p_b
     for k in range(1, length):
@@ -200,6 +279,20 @@ def track_chambers(unit: DDHUnit, rows: Sequence[ChamberRow], inertia: bool = Tr
         out_x[k], out_pa[k], out_pb[k] = model.x, model.p_a, model.p_b
     return [ChamberTrack(out_x[:m, i] * 1e3, out_pa[:m, i], out_pb[:m, i])
             for i, m in enumerate(lengths)]
+
+
+def _track_compiled(model: ChamberModel, i: int, row: ChamberRow) -> ChamberTrack:
+    """Row ``i`` of a model over its whole run, in one call of the compiled step."""
+    m = len(row.time_s)
+    state = model.state[i].copy()
+    inputs = [np.ascontiguousarray(a, dtype=float)
+              for a in (row.time_s, row.speed_rpm, row.torque_nm,
+                        model.unit.oil.dynamic_viscosity_pa_s(np.asarray(row.oil_temp_c)))]
+    out = [np.empty(m) for _ in range(3)]
+    model._lib.air_track(model.params.ctypes.data, model.c.reservoir, model.air[i],  # type: ignore[union-attr]
+                         int(model.inertia), state.ctypes.data, m,
+                         *(a.ctypes.data for a in inputs), *(o.ctypes.data for o in out))
+    return ChamberTrack(out[0] * 1e3, out[1], out[2])
 
 
 def _solve(c: _Constants, fa, fb, da, db, torque, d, ra, rb):
