@@ -24,8 +24,8 @@ from _results import publish  # noqa: E402
 
 from ddh_vsensor.config import load_config  # noqa: E402
 from ddh_vsensor.fleet.analysis import analyse_machine  # noqa: E402
-from ddh_vsensor.fleet.cluster import dask_client, run_tasks  # noqa: E402
-from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, ingest_one  # noqa: E402
+from ddh_vsensor.fleet.cluster import dask_client, run_batched, run_tasks  # noqa: E402
+from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, ingest_batch  # noqa: E402
 from ddh_vsensor.fleet.report import write_report  # noqa: E402
 from ddh_vsensor.fleet.store import Store  # noqa: E402
 from ddh_vsensor.fleet.trend import DAY_S, expected_error_mm, to_u, unit_trend  # noqa: E402
@@ -41,7 +41,7 @@ def ingest(logs: list[Path], store: Path, workers: int) -> dict:
     with dask_client(None, workers) as client:
         client.run(lambda: __import__("ddh_vsensor.fleet.ingest"))       # imports, not work
         started = time.perf_counter()
-        results = run_tasks(client, ingest_one, jobs)
+        results = run_batched(client, ingest_batch, jobs)
         wall = time.perf_counter() - started
     frames = sum(r["frames"] for r in results)
     hours = sum(r["duration_s"] for r in results) / 3600
