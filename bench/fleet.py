@@ -35,20 +35,34 @@ from ddh_vsensor.sim.fleet import START_DATE, log_name, plan_fleet, simulate_fle
 TOLERANCE_MM, HORIZON_DAYS = 3.0, 14.0
 
 
+def _worker_cpu_s() -> float:
+    import resource
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def ingest(logs: list[Path], store: Path, workers: int) -> dict:
+    """Wall-clock throughput, and the CPU the workers got meanwhile (on a shared machine
+    the cores they are given, not their number, set the wall time)."""
     shutil.rmtree(store, ignore_errors=True)
     Store(store, create=True)
     jobs = [IngestJob(str(p), str(store), None, DEFAULT_NAME_PATTERN) for p in logs]
     with dask_client(None, workers) as client:
         client.run(lambda: __import__("ddh_vsensor.fleet.ingest"))       # imports, not work
+        cpu0 = sum(client.run(_worker_cpu_s).values())
+        load0 = os.getloadavg()[0]
         started = time.perf_counter()
         results = run_batched(client, ingest_batch, jobs)
         wall = time.perf_counter() - started
+        cpu = sum(client.run(_worker_cpu_s).values()) - cpu0
     frames = sum(r["frames"] for r in results)
     hours = sum(r["duration_s"] for r in results) / 3600
     return {"workers": workers, "logs": len(logs), "wall_s": round(wall, 2),
             "frames": frames, "frames_per_s": round(frames / wall),
             "log_hours_per_s": round(hours / wall, 4),
+            "workers_cpu_s": round(cpu, 2), "cores_the_workers_got": round(cpu / wall, 2),
+            "frames_per_worker_cpu_s": round(frames / cpu),
+            "load_average_1min": [round(load0, 1), round(os.getloadavg()[0], 1)],
             "rejected": sum(r["status"] == "rejected" for r in results)}
 
 
@@ -147,6 +161,9 @@ def main() -> None:
     ap.add_argument("--work", default="/tmp/ddh_fleet_bench")
     ap.add_argument("--no-simulate", action="store_true",
                     help="use the days already simulated in --logs")
+    ap.add_argument("--ingest-only", type=int, default=0, metavar="ROUNDS",
+                    help="only measure ingestion: ROUNDS alternations of 1 and 2 workers "
+                         "(writes bench/results/fleet_ingest.json)")
     ap.add_argument("--rescore", action="store_true",
                     help="only recompute trends and alarms from the analysed store in --work "
                          "(keeps the other figures of bench/results/fleet.json)")
@@ -170,6 +187,15 @@ def main() -> None:
     truth = json.loads((logs_dir / "truth.json").read_text())
     logs = sorted(logs_dir.glob("*.blf"))
     days = len({p.name.split("_")[1] for p in logs})
+    if args.ingest_only:
+        runs = [ingest(logs, work / f"ingest{w}", w) for _ in range(args.ingest_only)
+                for w in (1, 2)]
+        publish("fleet_ingest", {"logs": f"{len(logs)} logs of {plan.log_s:g} s",
+                                 "cores": os.cpu_count(), "runs": runs,
+                                 "scaling 1 -> 2 workers (per round)": [
+                                     round(a["wall_s"] / b["wall_s"], 2)
+                                     for a, b in zip(runs[::2], runs[1::2])]})
+        return
     if args.rescore:
         old = json.loads((Path(__file__).parent / "results" / "fleet.json").read_text())
         figures = old["figures"]
