@@ -200,11 +200,13 @@ def main() -> None:
         old = json.loads((Path(__file__).parent / "results" / "fleet.json").read_text())
         figures = old["figures"]
         figures.update(alarms(cfg, Store(work / "store2"), truth, args.machines, days, work))
-        figures["alarms rescored (trend weighted by the per-log intervals)"] = True
+        figures["seed"] = args.seed
+        figures["alarms rescored with the current trend settings"] = True
         publish("fleet", figures)
         return
     load = os.getloadavg()
     figures: dict[str, object] = {
+        "seed": args.seed,
         "fleet": f"{args.machines} machines x {days} days ({len(logs)} logs of "
                  f"{plan.log_s:g} s)", "load average at start (1/5/15 min)":
         [round(x, 1) for x in load], "cores": os.cpu_count()}
