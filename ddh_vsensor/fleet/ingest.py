@@ -1,11 +1,13 @@
-"""Ingesting one CAN log into the store: machine, time, operating hours, the samples, the
-reference events and the holds with their features.
+"""Ingesting CAN logs into the store: per log the machine, time, operating hours, the
+samples, the reference events and the holds with their features.
 
-Runs as one task per log (on Dask workers, :mod:`.cluster`); a log that cannot be read, or
-whose name says no machine, is recorded as rejected with the reason and never stops the
-others. The machine and the operating hours come from the file name through a regular
-expression with the groups ``machine`` (required) and ``hours`` (optional); the time from
-the log's own timestamps (the BLF header), else a ``date`` group.
+Runs as one task per batch of logs (on Dask workers, :mod:`.cluster`): a log's features are
+its own, only the holds' modelled speeds are computed for the batch at once (vectorised,
+row by row: the same numbers) and the batch's files reach the disk with one sync. A log
+that cannot be read, or whose name says no machine, is recorded as rejected with the reason
+and never stops the others. The machine and the operating hours come from the file name
+through a regular expression with the groups ``machine`` (required) and ``hours``
+(optional); the time from the log's own timestamps (the BLF header), else a ``date`` group.
 """
 
 from __future__ import annotations
