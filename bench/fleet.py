@@ -16,6 +16,7 @@ import json
 import os
 import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -24,8 +25,8 @@ from _results import publish  # noqa: E402
 
 from ddh_vsensor.config import load_config  # noqa: E402
 from ddh_vsensor.fleet.analysis import analyse_machine  # noqa: E402
-from ddh_vsensor.fleet.cluster import dask_client, run_tasks  # noqa: E402
-from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, ingest_one  # noqa: E402
+from ddh_vsensor.fleet.cluster import dask_client, run_batched, run_tasks  # noqa: E402
+from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, ingest_batch  # noqa: E402
 from ddh_vsensor.fleet.report import write_report  # noqa: E402
 from ddh_vsensor.fleet.store import Store  # noqa: E402
 from ddh_vsensor.fleet.trend import DAY_S, expected_error_mm, to_u, unit_trend  # noqa: E402
@@ -34,49 +35,77 @@ from ddh_vsensor.sim.fleet import START_DATE, log_name, plan_fleet, simulate_fle
 TOLERANCE_MM, HORIZON_DAYS = 3.0, 14.0
 
 
+def _worker_cpu_s() -> float:
+    import resource
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def ingest(logs: list[Path], store: Path, workers: int) -> dict:
+    """Wall-clock throughput, and the CPU the workers got meanwhile (on a shared machine
+    the cores they are given, not their number, set the wall time)."""
     shutil.rmtree(store, ignore_errors=True)
     Store(store, create=True)
     jobs = [IngestJob(str(p), str(store), None, DEFAULT_NAME_PATTERN) for p in logs]
     with dask_client(None, workers) as client:
         client.run(lambda: __import__("ddh_vsensor.fleet.ingest"))       # imports, not work
+        cpu0 = sum(client.run(_worker_cpu_s).values())
+        load0 = os.getloadavg()[0]
         started = time.perf_counter()
-        results = run_tasks(client, ingest_one, jobs)
+        results = run_batched(client, ingest_batch, jobs)
         wall = time.perf_counter() - started
+        cpu = sum(client.run(_worker_cpu_s).values()) - cpu0
     frames = sum(r["frames"] for r in results)
     hours = sum(r["duration_s"] for r in results) / 3600
     return {"workers": workers, "logs": len(logs), "wall_s": round(wall, 2),
             "frames": frames, "frames_per_s": round(frames / wall),
             "log_hours_per_s": round(hours / wall, 4),
+            "workers_cpu_s": round(cpu, 2), "cores_the_workers_got": round(cpu / wall, 2),
+            "frames_per_worker_cpu_s": round(frames / cpu),
+            "load_average_1min": [round(load0, 1), round(os.getloadavg()[0], 1)],
             "rejected": sum(r["status"] == "rejected" for r in results)}
 
 
 def stages(logs: list[Path], cfg) -> dict:
-    """Where one process spends an ingestion: reading, decoding, features, writing."""
+    """Where one process spends an ingestion, in CPU seconds (the machine is shared: wall
+    time would count the other processes' share): python-can's reader for comparison, the
+    numpy reader, decoding, references and holds, and the whole batch ingestion (the
+    holding speeds and the Parquet files included)."""
     import can
 
     from ddh_vsensor.canbus.fastblf import frames_to_runs, read_frames
-    from ddh_vsensor.fleet.ingest import _features
+    from ddh_vsensor.fleet.ingest import _features, ingest_batch
     t = {"python-can BLFReader": 0.0, "fast reader": 0.0, "decode": 0.0,
-         "references and holds": 0.0}
+         "references and holds": 0.0, "whole ingestion (batch)": 0.0}
     frames = 0
+    clock = time.process_time
     for p in logs:
-        t0 = time.perf_counter()
+        t0 = clock()
         with can.BLFReader(p) as r:
             n = sum(1 for _ in r)
-        t1 = time.perf_counter()
+        t1 = clock()
         fr = read_frames(p)
-        t2 = time.perf_counter()
+        t2 = clock()
         runs = frames_to_runs(fr, cfg, str(p))
-        t3 = time.perf_counter()
+        t3 = clock()
         for a, run in runs.items():
             _features(cfg, "M", "x", a, run, 0.0)
-        t4 = time.perf_counter()
+        t4 = clock()
         frames += n
         for k, d in zip(t, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
             t[k] += d
-    return {"frames": frames, **{f"{k} (frames/s per core)": round(frames / v) for k, v in
-                                 t.items()}}
+    store = Path(tempfile.mkdtemp(prefix="ddh_stages_"))
+    try:
+        Store(store, create=True)
+        t0 = clock()
+        ingest_batch([IngestJob(str(p), str(store)) for p in logs])
+        t["whole ingestion (batch)"] = clock() - t0
+    finally:
+        shutil.rmtree(store, ignore_errors=True)
+    return {"frames": frames, "logs": len(logs),
+            **{f"{k} (frames per CPU second)": round(frames / v) for k, v in t.items()},
+            "whole ingestion (CPU ms per log)": round(1e3 * t["whole ingestion (batch)"]
+                                                      / len(logs), 1)}
 
 
 def score(trends, truth: dict, days: int) -> dict:
@@ -132,6 +161,9 @@ def main() -> None:
     ap.add_argument("--work", default="/tmp/ddh_fleet_bench")
     ap.add_argument("--no-simulate", action="store_true",
                     help="use the days already simulated in --logs")
+    ap.add_argument("--ingest-only", type=int, default=0, metavar="ROUNDS",
+                    help="only measure ingestion: ROUNDS alternations of 1 and 2 workers "
+                         "(writes bench/results/fleet_ingest.json)")
     ap.add_argument("--rescore", action="store_true",
                     help="only recompute trends and alarms from the analysed store in --work "
                          "(keeps the other figures of bench/results/fleet.json)")
@@ -155,19 +187,30 @@ def main() -> None:
     truth = json.loads((logs_dir / "truth.json").read_text())
     logs = sorted(logs_dir.glob("*.blf"))
     days = len({p.name.split("_")[1] for p in logs})
+    if args.ingest_only:
+        runs = [ingest(logs, work / f"ingest{w}", w) for _ in range(args.ingest_only)
+                for w in (1, 2)]
+        publish("fleet_ingest", {"logs": f"{len(logs)} logs of {plan.log_s:g} s",
+                                 "cores": os.cpu_count(), "runs": runs,
+                                 "scaling 1 -> 2 workers (per round)": [
+                                     round(a["wall_s"] / b["wall_s"], 2)
+                                     for a, b in zip(runs[::2], runs[1::2])]})
+        return
     if args.rescore:
         old = json.loads((Path(__file__).parent / "results" / "fleet.json").read_text())
         figures = old["figures"]
         figures.update(alarms(cfg, Store(work / "store2"), truth, args.machines, days, work))
-        figures["alarms rescored (trend weighted by the per-log intervals)"] = True
+        figures["seed"] = args.seed
+        figures["alarms rescored with the current trend settings"] = True
         publish("fleet", figures)
         return
     load = os.getloadavg()
     figures: dict[str, object] = {
+        "seed": args.seed,
         "fleet": f"{args.machines} machines x {days} days ({len(logs)} logs of "
                  f"{plan.log_s:g} s)", "load average at start (1/5/15 min)":
         [round(x, 1) for x in load], "cores": os.cpu_count()}
-    figures["stages, one process, 10 logs"] = stages(logs[:10], cfg)
+    figures["stages, one process, 16 logs (CPU time)"] = stages(logs[:16], cfg)
     runs = [ingest(logs, work / f"store{w}", w) for w in (1, 2)]
     figures["ingestion"] = runs
     figures["scaling 1 -> 2 workers"] = round(runs[0]["wall_s"] / runs[1]["wall_s"], 2)

@@ -58,11 +58,12 @@ def _via_python_can(path: str | Path) -> Frames:
                   np.array([m.dlc for m in msgs], np.uint8), data, start)
 
 
-def read_frames(path: str | Path) -> Frames:
-    """The frames of a BLF file; MeasuredDataError when it is not a readable BLF."""
+def read_frames(path: str | Path, raw: bytes | None = None) -> Frames:
+    """The frames of a BLF file (its bytes ``raw`` when the caller has read them already);
+    MeasuredDataError when it is not a readable BLF."""
     source = str(path)
     try:
-        raw = Path(path).read_bytes()
+        raw = Path(path).read_bytes() if raw is None else raw
     except OSError as exc:
         raise MeasuredDataError(source, f"cannot read: {exc.strerror or exc}") from None
     hs = blf.FILE_HEADER_STRUCT

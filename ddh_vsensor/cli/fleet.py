@@ -83,8 +83,8 @@ def _expand(items: list[str]) -> list[str]:
 
 def _ingest(args: argparse.Namespace) -> int:
     from ..config import load_config
-    from ..fleet.cluster import dask_client, run_tasks
-    from ..fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, compile_pattern, ingest_one
+    from ..fleet.cluster import dask_client, run_batched, run_tasks
+    from ..fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, compile_pattern, ingest_batch
     from ..fleet.store import Store
     pattern = args.name_pattern or DEFAULT_NAME_PATTERN
     compile_pattern(pattern)
@@ -98,7 +98,7 @@ def _ingest(args: argparse.Namespace) -> int:
     bar = ProgressBar("ingest")
     started = time.monotonic()
     with dask_client(args.scheduler, args.workers) as client:
-        results = run_tasks(client, ingest_one, jobs,
+        results = run_batched(client, ingest_batch, jobs,
                             lambda d, n, r: bar.update(d / n, Path(r["path"]).name))
     wall = time.monotonic() - started
     counts = {s: sum(r["status"] == s for r in results)
@@ -119,7 +119,7 @@ def _ingest(args: argparse.Namespace) -> int:
 def _report(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..fleet.analysis import analyse_machine
-    from ..fleet.cluster import dask_client, run_tasks
+    from ..fleet.cluster import dask_client, run_batched, run_tasks
     from ..fleet.report import write_report
     from ..fleet.store import Store
     from ..fleet.trend import unit_trend

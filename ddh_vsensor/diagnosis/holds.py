@@ -102,12 +102,15 @@ def model_holding_speeds_rpm(unit: DDHUnit, torque_nm: np.ndarray,
     return out
 
 
-def describe_holds(unit: DDHUnit, time_s: np.ndarray, speed_rpm: np.ndarray,
+def describe_holds(unit: DDHUnit | None, time_s: np.ndarray, speed_rpm: np.ndarray,
                    torque_nm: np.ndarray, oil_temp_c: np.ndarray,
                    ranges: list[tuple[int, int]]) -> list[Hold]:
-    """Each hold's features: measured and modelled holding speed, torque, temperature."""
+    """Each hold's features: measured and modelled holding speed, torque, temperature.
+    Without a ``unit`` the modelled speed is left NaN, for a caller that computes many
+    runs' at once (:func:`model_holding_speeds_rpm` is row by row: the same numbers)."""
     means = np.array([[float(np.mean(x[a:b + 1])) for x in (speed_rpm, torque_nm, oil_temp_c)]
                       for a, b in ranges]).reshape(-1, 3)
-    model = model_holding_speeds_rpm(unit, means[:, 1], means[:, 2])
+    model = np.full(len(ranges), np.nan) if unit is None else \
+        model_holding_speeds_rpm(unit, means[:, 1], means[:, 2])
     return [Hold(a, b, float(time_s[b] - time_s[a]), float(m[0]), float(m[1]), float(m[2]),
                  float(hs)) for (a, b), m, hs in zip(ranges, means, model)]

@@ -121,8 +121,10 @@ def edge_events(cfg: Config, actuator: str, run: Run,
     return out
 
 
-def reference_run(cfg: Config, actuator: str, run: Run) -> ReferenceRun:
-    """The run's usable edges and holds; MeasuredDataError when there are too few edges."""
+def reference_run(cfg: Config, actuator: str, run: Run, *,
+                  model_speeds: bool = True) -> ReferenceRun:
+    """The run's usable edges and holds; MeasuredDataError when there are too few edges.
+    ``model_speeds=False`` leaves the holds' modelled speeds NaN (the fit uses the creep)."""
     _check(run)
     velocity = nominal_velocity_mm_s(cfg, actuator, run)
     events = edge_events(cfg, actuator, run, velocity)
@@ -143,7 +145,8 @@ def reference_run(cfg: Config, actuator: str, run: Run) -> ReferenceRun:
                        torque_nm=run.torque_nm[cut].astype(float),
                        oil_temp_c=run.oil_temp_c[cut].astype(float), position_mm=position)
     ranges = find_holds(arun.time_s, arun.speed_rpm, velocity[cut], idx)
-    holds = describe_holds(DDHUnit.from_config(cfg, actuator), arun.time_s, arun.speed_rpm,
+    unit = DDHUnit.from_config(cfg, actuator) if model_speeds else None
+    holds = describe_holds(unit, arun.time_s, arun.speed_rpm,
                            arun.torque_nm, arun.oil_temp_c, ranges)
     return ReferenceRun(arun, idx, edge_mm, tuple(e[1] for e, k in zip(events, keep) if k),
                         np.array([e[2] for e, k in zip(events, keep) if k]), tuple(holds))

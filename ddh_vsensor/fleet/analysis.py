@@ -131,7 +131,8 @@ def analyse_machine(args: tuple[str, str, str | None]) -> dict:
     for log_id in logs:
         for actuator in cfg.can.units:
             try:
-                rr = reference_run(cfg, actuator, run_of(store, log_id, actuator, cfg))
+                rr = reference_run(cfg, actuator, run_of(store, log_id, actuator, cfg),
+                                   model_speeds=False)
             except MeasuredDataError:
                 continue
             for row in fit_log(cfg, rr, actuator, table_dir=store.root / "tables"):

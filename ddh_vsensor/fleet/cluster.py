@@ -58,3 +58,31 @@ def run_tasks(client: Any, fn: Callable[[Any], Any], items: Sequence[Any],
         if progress is not None:
             progress(done, len(futures), results[index[future.key]])
     return results
+
+
+MAX_BATCH = 16
+
+
+def batch_size(n_items: int, n_workers: int) -> int:
+    """Items per task: at least four tasks per worker (balance, progress), at most
+    :data:`MAX_BATCH` items each (a task's fixed costs shared by many items)."""
+    return max(1, min(MAX_BATCH, n_items // (4 * max(n_workers, 1))))
+
+
+def run_batched(client: Any, fn: Callable[[list[Any]], list[Any]], items: Sequence[Any],
+                progress: Progress | None = None) -> list[Any]:
+    """``fn`` (a list of items in, one result per item out) over ``items`` in batches;
+    results in input order; ``progress(done, total, result)`` per item as its batch ends."""
+    items = list(items)
+    size = batch_size(len(items), len(client.scheduler_info()["workers"]))
+    batches = [items[i:i + size] for i in range(0, len(items), size)]
+    done = 0
+
+    def counted(_d: int, _n: int, results: list[Any]) -> None:
+        nonlocal done
+        for r in results:
+            done += 1
+            if progress is not None:
+                progress(done, len(items), r)
+
+    return [r for batch in run_tasks(client, fn, batches, counted) for r in batch]

@@ -1,11 +1,13 @@
-"""Ingesting one CAN log into the store: machine, time, operating hours, the samples, the
-reference events and the holds with their features.
+"""Ingesting CAN logs into the store: per log the machine, time, operating hours, the
+samples, the reference events and the holds with their features.
 
-Runs as one task per log (on Dask workers, :mod:`.cluster`); a log that cannot be read, or
-whose name says no machine, is recorded as rejected with the reason and never stops the
-others. The machine and the operating hours come from the file name through a regular
-expression with the groups ``machine`` (required) and ``hours`` (optional); the time from
-the log's own timestamps (the BLF header), else a ``date`` group.
+Runs as one task per batch of logs (on Dask workers, :mod:`.cluster`): a log's features are
+its own, only the holds' modelled speeds are computed for the batch at once (vectorised,
+row by row: the same numbers) and the batch's files reach the disk with one sync. A log
+that cannot be read, or whose name says no machine, is recorded as rejected with the reason
+and never stops the others. The machine and the operating hours come from the file name
+through a regular expression with the groups ``machine`` (required) and ``hours``
+(optional); the time from the log's own timestamps (the BLF header), else a ``date`` group.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 import pyarrow as pa
 
 from ..config import Config, load_config
+from ..diagnosis.holds import model_holding_speeds_rpm
 from ..estimator.estimator import Estimator
 from ..measured import MeasuredDataError, Run
 from .store import Store, log_id_of
@@ -53,11 +56,12 @@ def compile_pattern(pattern: str) -> re.Pattern:
     return rx
 
 
-def read_log(path: str, cfg: Config) -> tuple[dict[str, Run], int, float | None]:
+def read_log(path: str, cfg: Config, raw: bytes | None = None
+             ) -> tuple[dict[str, Run], int, float | None]:
     """Runs per actuator, the number of frames and the log's wall-clock start (if any)."""
     if path.lower().endswith(".blf"):
         from ..canbus.fastblf import frames_to_runs, read_frames
-        frames = read_frames(path)
+        frames = read_frames(path, raw)
         runs = frames_to_runs(frames, cfg, path)
         t0 = float(frames.timestamp_s.min()) if len(frames) else None
         return runs, len(frames), t0
@@ -65,34 +69,6 @@ def read_log(path: str, cfg: Config) -> tuple[dict[str, Run], int, float | None]
     runs = {a: read_can_log(path, a, cfg) for a in cfg.can.units}
     n = sum(1 for _ in _frames(path))
     return runs, n, float(min(r.time_s[0] for r in runs.values()))
-
-
-def _features(cfg: Config, machine: str, log_id: str, actuator: str, run: Run,
-              t0: float) -> tuple[list[dict], list[dict]]:
-    """Reference events and holds of one actuator, with the nominal model's errors there."""
-    from ..diagnosis.references import _nominal_tables, reference_run
-    try:
-        rr = reference_run(cfg, actuator, run)
-    except MeasuredDataError:
-        return [], []                       # too few edges today: nothing to observe
-    est = Estimator(cfg, actuator, _nominal_tables(cfg, actuator), references=False,
-                    adaptation=False, initial_position_mm=rr.run.initial_position_mm)
-    x = est.run(rr.run.time_s, rr.run.speed_rpm, rr.run.torque_nm,
-                rr.run.oil_temp_c).position_mm
-    obs = rr.observe(x)
-    events = [{"machine": machine, "log_id": log_id, "actuator": actuator,
-               "time_s": float(rr.run.time_s[k] - t0), "switch": sw, "rising": bool(up),
-               "position_mm": float(p),
-               "nominal_increment_mm": float(obs[i - 1]) if i else None}
-              for i, (k, sw, up, p) in enumerate(zip(rr.edges, rr.switch, rr.rising,
-                                                     rr.edge_mm))]
-    holds = [{"machine": machine, "log_id": log_id, "actuator": actuator,
-              "time_s": float(rr.run.time_s[h.start] - t0), "duration_s": h.duration_s,
-              "speed_rpm": h.speed_rpm, "model_speed_rpm": h.model_speed_rpm,
-              "torque_nm": h.torque_nm, "oil_temp_c": h.oil_temp_c,
-              "nominal_creep_mm": float(obs[rr.n_increments + j])}
-             for j, h in enumerate(rr.holds)]
-    return events, holds
 
 
 _EVENT_SCHEMA = pa.schema([("machine", pa.string()), ("log_id", pa.string()),
@@ -107,8 +83,64 @@ _HOLD_SCHEMA = pa.schema([("machine", pa.string()), ("log_id", pa.string()),
                           ("oil_temp_c", pa.float64()), ("nominal_creep_mm", pa.float64())])
 
 
-def ingest_one(job: IngestJob) -> dict:
-    """Ingest one log; returns what happened (never raises for a bad log)."""
+def _column_table(columns: dict[str, object], n: int, schema: pa.Schema) -> pa.Table:
+    """A table from columns (arrays, or one value repeated ``n`` times)."""
+    return pa.table({f.name: pa.array(np.broadcast_to(np.asarray(columns[f.name]), (n,))
+                                      if f.type != pa.string() else
+                                      ([columns[f.name]] * n if isinstance(columns[f.name], str)
+                                       else list(columns[f.name])), f.type)
+                     for f in schema}, schema=schema)
+
+
+def _features(cfg: Config, machine: str, log_id: str, actuator: str, run: Run,
+              t0: float) -> tuple[pa.Table, dict[str, np.ndarray]]:
+    """Reference events of one actuator, with the nominal model's errors there, and its
+    holds' columns (the modelled holding speed NaN: :func:`ingest_batch` computes every
+    log's of a batch at once)."""
+    from ..diagnosis.references import _nominal_tables, reference_run
+    try:
+        rr = reference_run(cfg, actuator, run, model_speeds=False)
+    except MeasuredDataError:                 # too few edges today: nothing to observe
+        return _EVENT_SCHEMA.empty_table(), {f.name: np.zeros(0) for f in _HOLD_SCHEMA
+                                             if f.type == pa.float64()}
+    est = Estimator(cfg, actuator, _nominal_tables(cfg, actuator), references=False,
+                    adaptation=False, initial_position_mm=rr.run.initial_position_mm)
+    x = est.run(rr.run.time_s, rr.run.speed_rpm, rr.run.torque_nm,
+                rr.run.oil_temp_c).position_mm
+    obs = rr.observe(x)
+    n_edges = len(rr.edges)
+    events = _column_table({
+        "machine": machine, "log_id": log_id, "actuator": actuator,
+        "time_s": rr.run.time_s[rr.edges] - t0, "switch": rr.switch,
+        "rising": np.asarray(rr.rising, bool), "position_mm": rr.edge_mm,
+        "nominal_increment_mm": np.concatenate([[np.nan], obs[:rr.n_increments]])},
+        n_edges, _EVENT_SCHEMA)
+    # the first edge starts the estimate: it has no increment (null, not NaN)
+    events = events.set_column(7, "nominal_increment_mm", pa.array(
+        events["nominal_increment_mm"].to_numpy(), mask=np.arange(n_edges) == 0))
+    h = rr.holds
+    holds = {"time_s": np.array([rr.run.time_s[x.start] - t0 for x in h], float),
+             "duration_s": np.array([x.duration_s for x in h], float),
+             "speed_rpm": np.array([x.speed_rpm for x in h], float),
+             "model_speed_rpm": np.full(len(h), np.nan),
+             "torque_nm": np.array([x.torque_nm for x in h], float),
+             "oil_temp_c": np.array([x.oil_temp_c for x in h], float),
+             "nominal_creep_mm": np.asarray(obs[rr.n_increments:], float)}
+    return events, holds
+
+
+@dataclass
+class _Extracted:
+    """One log read and its features, before the batch's holding speeds and the store."""
+    result: dict
+    log_id: str
+    tables: dict[str, pa.Table]
+    holds: dict[str, dict[str, np.ndarray]]          # actuator -> columns
+    machine: str
+
+
+def _extract(job: IngestJob) -> dict | _Extracted:
+    """One log's tables, or what happened to it (present, rejected) as a result."""
     started = time.perf_counter()
     store = Store(job.store)
     name = Path(job.path).name
@@ -130,7 +162,7 @@ def ingest_one(job: IngestJob) -> dict:
         hours = float(m.group("hours")) if "hours" in m.re.groupindex and m.group("hours") \
             else float("nan")
         cfg = config_of(job.config)
-        runs, n_frames, t0 = read_log(job.path, cfg)
+        runs, n_frames, t0 = read_log(job.path, cfg, data)
         if t0 is None or t0 < _EPOCH_1990_S:
             if "date" not in m.re.groupindex or not m.group("date"):
                 raise MeasuredDataError(job.path, "no wall-clock time in the log and no "
@@ -140,38 +172,87 @@ def ingest_one(job: IngestJob) -> dict:
         else:
             start_time_s = t0
         t_ref = min(float(r.time_s[0]) for r in runs.values())
-        events, holds, samples = [], [], []
+        events, holds, samples = [], {}, []
         for actuator, run in runs.items():
-            e, h = _features(cfg, machine, log_id, actuator, run, t_ref)
-            events += e
-            holds += h
+            e, holds[actuator] = _features(cfg, machine, log_id, actuator, run, t_ref)
+            events.append(e)
             switches = list(cfg.unit(actuator).references_mm)
             hall = np.zeros(len(run.time_s), np.uint8)
             for i, sw in enumerate(switches):
                 if sw in run.refs:
                     hall |= run.refs[sw].astype(np.uint8) << i
             samples.append(pa.table({
-                "actuator": pa.array([actuator] * len(run.time_s), pa.string()),
+                "actuator": pa.DictionaryArray.from_arrays(
+                    np.zeros(len(run.time_s), np.int32), [actuator]).cast(pa.string()),
                 "time_s": run.time_s - t_ref, "speed_rpm": run.speed_rpm,
                 "torque_nm": run.torque_nm, "oil_temp_c": run.oil_temp_c, "hall": hall}))
         duration = max(float(r.time_s[-1] - r.time_s[0]) for r in runs.values())
+        n_events = sum(len(e) for e in events)
+        n_holds = sum(len(h["time_s"]) for h in holds.values())
         meta = pa.table({"log_id": [log_id], "machine": [machine], "file": [name],
                          "path": [str(Path(job.path).resolve())],
                          "start_time_s": [start_time_s], "duration_s": [duration],
                          "operating_hours": [hours], "frames": [n_frames],
-                         "events": [len(events)], "holds": [len(holds)]})
-        store.put_log(log_id, {"samples": pa.concat_tables(samples),
-                               "events": pa.Table.from_pylist(events, _EVENT_SCHEMA),
-                               "holds": pa.Table.from_pylist(holds, _HOLD_SCHEMA),
-                               "meta": meta})
-        return {**base, "status": "ingested", "machine": machine, "frames": n_frames,
-                "duration_s": duration, "seconds": time.perf_counter() - started}
+                         "events": [n_events], "holds": [n_holds]})
+        return _Extracted({**base, "status": "ingested", "machine": machine,
+                           "frames": n_frames, "duration_s": duration,
+                           "seconds": time.perf_counter() - started}, log_id,
+                          {"samples": pa.concat_tables(samples),
+                           "events": pa.concat_tables(events), "meta": meta},
+                          holds, machine)
     except Exception as exc:           # any problem with one log: reported, never fatal
         problem = str(exc) if isinstance(exc, MeasuredDataError) else \
             f"{Path(job.path).name}: {type(exc).__name__}: {exc}"
         store.reject(log_id, job.path, problem)
         return {**base, "status": "rejected", "problem": problem,
                 "seconds": time.perf_counter() - started}
+
+
+def _fill_model_speeds(cfg_of_job: list[Config], logs: list[_Extracted]) -> None:
+    """Every hold's modelled holding speed, one vectorised call per config and unit for
+    the whole batch (row by row: the numbers one log at a time would give)."""
+    from ..physics.unit import DDHUnit
+    groups: dict[tuple[int, str], list[dict[str, np.ndarray]]] = {}
+    cfgs: dict[int, Config] = {}
+    for cfg, log in zip(cfg_of_job, logs):
+        cfgs[id(cfg)] = cfg
+        for actuator, cols in log.holds.items():
+            groups.setdefault((id(cfg), actuator), []).append(cols)
+    for (key, actuator), parts in groups.items():
+        torque = np.concatenate([p["torque_nm"] for p in parts])
+        if not len(torque):
+            continue
+        speed = model_holding_speeds_rpm(DDHUnit.from_config(cfgs[key], actuator), torque,
+                                         np.concatenate([p["oil_temp_c"] for p in parts]))
+        for p, s in zip(parts, np.split(speed, np.cumsum([len(p["torque_nm"])
+                                                            for p in parts])[:-1])):
+            p["model_speed_rpm"] = s
+
+
+def ingest_batch(jobs: list[IngestJob]) -> list[dict]:
+    """Ingest several logs (one Dask task); returns what happened to each, in order (never
+    raises for a bad log). The logs' hold speeds are modelled in one call and their files
+    synced to disk at once, before each log's directory is renamed into the store."""
+    out: list[dict | _Extracted] = [_extract(job) for job in jobs]
+    done = [(job, x) for job, x in zip(jobs, out) if isinstance(x, _Extracted)]
+    _fill_model_speeds([config_of(job.config) for job, _ in done], [x for _, x in done])
+    by_store: dict[str, list[tuple[str, dict[str, pa.Table]]]] = {}
+    for job, x in done:
+        holds = pa.concat_tables([_column_table(
+            {"machine": x.machine, "log_id": x.log_id, "actuator": a, **cols},
+            len(cols["time_s"]), _HOLD_SCHEMA) for a, cols in x.holds.items()]) \
+            if x.holds else _HOLD_SCHEMA.empty_table()
+        by_store.setdefault(job.store, []).append((x.log_id, {
+            "samples": x.tables["samples"], "events": x.tables["events"], "holds": holds,
+            "meta": x.tables["meta"]}))
+    for store, logs in by_store.items():
+        Store(store).put_logs(logs)
+    return [x.result if isinstance(x, _Extracted) else x for x in out]
+
+
+def ingest_one(job: IngestJob) -> dict:
+    """Ingest one log; returns what happened (never raises for a bad log)."""
+    return ingest_batch([job])[0]
 
 
 def run_of(store: Store, log_id: str, actuator: str, cfg: Config) -> Run:

@@ -15,7 +15,9 @@ The expected position error of a parameter value is the largest change it makes 
 edge-to-edge increment on the unit's recent work (median over the last three logs; linear
 beyond the grid). An alarm is raised when the best cause's trend (slope significant at
 :data:`SLOPE_T`, the cause scoring at least :data:`TREND_SCORE`) takes that error past the
-tolerance within the horizon, or when a named cause has it there already. A trend is caught
+tolerance within the horizon (and no further ahead than the days the trend was fitted on:
+four days of logs say nothing of the fourteenth day after them), or when a named cause has
+it there already. A trend is caught
 while the error is still small against the nominal model's own ~1 mm at the references, so
 its cause cannot yet explain the :data:`MIN_SCORE` share that naming a cause asks for; the
 significant slope, the positive held-out score and the projected error together do.
@@ -32,10 +34,10 @@ from scipy.stats import f as f_dist
 from ..diagnosis.causes import ALL_CAUSES
 from ..diagnosis.selection import MIN_SCORE
 
-WINDOW = 7                      # logs the naming and the trend look back over
+WINDOW = 10                     # logs the naming and the trend look back over
 MIN_LOGS = 4                    # before that nothing is named
-SLOPE_T = 3.0                   # |slope| / its standard error for a trend to count
-TREND_SCORE = 0.1               # held-out score a trending cause needs for an alarm
+SLOPE_T = 4.0                   # |slope| / its standard error for a trend to count
+TREND_SCORE = 0.05              # held-out score a trending cause needs for an alarm
 PENALTY_PER_PARAMETER = 0.02
 LEVEL = 0.90
 DAY_S = 86400.0
@@ -213,7 +215,9 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
         named = scores[best] >= MIN_SCORE and ALL_CAUSES[best].resolved(from_u(best, u_now))
         out.named.append(best if named or trending else "none")
         now = expected_error_mm(window, u_now)
-        days = np.arange(0.0, horizon_days + 0.5, 0.5)
+        # a trend is carried no further ahead than the days it was fitted on
+        reach = min(horizon_days, float(t[-1] - t[0]))
+        days = np.arange(0.0, reach + 0.5, 0.5)
         path = [expected_error_mm(window, a + b * (t[-1] + d)) if trending else now
                 for d in days]
         out.error_now_mm.append(now)

@@ -106,3 +106,48 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path, capsys):
                  "--name-pattern", "(no group"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith("ddh-vsensor fleet: error:") for line in err)
+
+
+def test_a_batch_gives_what_each_log_alone_and_the_per_log_analysis_give(fleet_logs, cfg,
+                                                                           tmp_path):
+    """Batched ingestion (holding speeds modelled for the whole batch, one sync) stores
+    the same tables as one log per call, and each log's holds and reference increments
+    are those of its own reference run (the per-log path of ``analyze --truth
+    references``)."""
+    from ddh_vsensor.diagnosis.references import _nominal_tables, reference_run
+    from ddh_vsensor.estimator.estimator import Estimator
+    from ddh_vsensor.fleet.ingest import ingest_batch, read_log
+    from ddh_vsensor.measured import MeasuredDataError
+    logs = sorted(fleet_logs.glob("*.blf"))
+    one, batch = tmp_path / "one", tmp_path / "batch"
+    Store(one, create=True), Store(batch, create=True)
+    for log in logs:
+        assert ingest_one(IngestJob(str(log), str(one)))["status"] == "ingested"
+    assert [r["status"] for r in ingest_batch([IngestJob(str(p), str(batch))
+                                               for p in logs])] == ["ingested"] * len(logs)
+    assert files(batch) == files(one)
+    s = Store(batch)
+    checked = 0
+    for log in logs:
+        log_id = s.query(f"SELECT log_id FROM meta WHERE file = '{log.name}'")["log_id"][0]
+        runs, _, _ = read_log(str(log), cfg)
+        for actuator, run in runs.items():
+            try:
+                rr = reference_run(cfg, actuator, run)
+            except MeasuredDataError:
+                continue
+            holds = s.query(f"SELECT * FROM holds WHERE log_id = '{log_id}' AND actuator = "
+                            f"'{actuator}' ORDER BY time_s").to_pydict()
+            assert holds["model_speed_rpm"] == [h.model_speed_rpm for h in rr.holds]
+            assert holds["speed_rpm"] == [h.speed_rpm for h in rr.holds]
+            est = Estimator(cfg, actuator, _nominal_tables(cfg, actuator), references=False,
+                            adaptation=False, initial_position_mm=rr.run.initial_position_mm)
+            obs = rr.observe(est.run(rr.run.time_s, rr.run.speed_rpm, rr.run.torque_nm,
+                                     rr.run.oil_temp_c).position_mm)
+            events = s.query(f"SELECT nominal_increment_mm FROM events WHERE log_id = "
+                             f"'{log_id}' AND actuator = '{actuator}' ORDER BY time_s")
+            assert events["nominal_increment_mm"].to_pylist() == [None] + list(
+                obs[:rr.n_increments])
+            assert holds["nominal_creep_mm"] == list(obs[rr.n_increments:])
+            checked += len(rr.holds)
+    assert checked > 0

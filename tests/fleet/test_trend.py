@@ -60,3 +60,16 @@ def test_an_error_already_beyond_tolerance_alarms_without_a_trend():
     u = np.full(12, np.log(1.6))                         # 8 * 0.47 = 3.8 mm, flat
     tr = unit_trend("M3", "boom", rows(u, seed=4), tolerance_mm=3.0, horizon_days=14.0)
     assert tr.alarms[-1] is not None and tr.alarms[-1].cause == "pump_leakage"
+
+
+def test_a_trend_is_not_projected_further_ahead_than_the_days_it_was_fitted_on():
+    u = 0.02 * np.arange(30.0)                      # crosses 3 mm (8 mm per u) on day 18.75
+    tr = unit_trend("M4", "boom", rows(u, cause="time_offset",
+                                       others=("pump_leakage", "displacement"), noise=0.005),
+                    tolerance_mm=3.0, horizon_days=14.0)
+    first = tr.first_alarm
+    assert first is not None and first.cause == "time_offset"
+    day = (first.time_s - T0) / DAY_S
+    # day 5 would see the crossing within its 14-day horizon, but only 5 days of trend
+    assert day + min(day, 9.0) >= 18.75 - 0.5
+    assert 18.75 - day >= 7.0
