@@ -73,6 +73,8 @@ from ddh_vsensor.service.client import clients, sdo_network  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
 INPUT_HZ = 1000.0
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)    # Linux; not exported by Python
+TIMESPEC = struct.Struct("@qq")
 OTHER_IDS = [0x200 + i for i in range(1, 40)] + [0x300 + i for i in range(1, 40)]
 
 
@@ -93,6 +95,7 @@ class Feeder(threading.Thread):
         self.stop_event = threading.Event()
         self.sent = {a: 0 for a in self.units}
         self.sevcon_times: dict[str, list[float]] = {a: [] for a in self.units}
+        self.send_s: list[float] = []      # each Sevcon frame's send call (its stamp's spread)
         self.total = 0
         self.errors = 0
         self.skipped_slots = 0          # slots the feeder was too late for (not sent)
@@ -127,9 +130,13 @@ class Feeder(threading.Thread):
             t = k * slot
             for i, a in enumerate(self.units):
                 speed = 3000.0 * np.sin(2 * np.pi * t / (6.0 + i))
+                msg = c.encode_sevcon(a, 10.0 + 5 * np.sin(t), round(speed))
+                before = time.time()
+                self._send(msg, self.bus_of[a])
+                # the frame is on the bus once its send returned (a stamp taken before the
+                # encoding would count a frame as sent before it was)
                 self.sevcon_times[a].append(time.time())
-                self._send(c.encode_sevcon(a, 10.0 + 5 * np.sin(t), round(speed)),
-                           self.bus_of[a])
+                self.send_s.append(self.sevcon_times[a][-1] - before)
                 self.sent[a] += 1
             if k % per_10ms == 0:
                 refs = {a: {"mid": int(np.sin(2 * np.pi * t / (6.0 + i)) > 0.9)}
@@ -208,7 +215,9 @@ def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
     the sensor's tick); so two more figures: ``input_age_at_publish`` (publish - the newest
     Sevcon frame *sent* before it: the part no service can remove) and ``inputs_behind``
     (Sevcon frames sent before the publish but not in the published value: 0 when the
-    service included everything it could)."""
+    service included everything it could), and ``latency_beyond_input_age`` (latency -
+    input age, per position: how much older the published value's newest input is than the
+    newest input on the bus; what the service adds to the input's own age)."""
     codec = FrameCodec(cfg)
     out: dict[str, list[float]] = {"latency": [], "jitter": [], "age": [], "behind": []}
     for a in cfg.can.units:
@@ -249,6 +258,8 @@ def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
             "latency_max_ms": round(float(lat.max()) * 1e3, 3),
             "input_age_at_publish_p50_ms": round(float(np.percentile(age, 50)) * 1e3, 3),
             "input_age_at_publish_p99_ms": round(float(np.percentile(age, 99)) * 1e3, 3),
+            "latency_beyond_input_age_p99_ms": round(
+                float(np.percentile(lat - age, 99)) * 1e3, 3),
             "inputs_behind_p50": float(np.percentile(behind, 50)),
             "inputs_behind_p99": float(np.percentile(behind, 99)),
             "inputs_behind_share_pct": round(100 * float(np.mean(behind > 0)), 1),
@@ -476,15 +487,28 @@ def _machine_process(cfg, socks: dict[str, socket.socket], other_hz: float, inpu
     received: list[tuple[float, int, bytes]] = []
     done = threading.Event()
 
+    # publish times: the kernel's stamp of each output frame's arrival (SO_TIMESTAMPNS), not
+    # this thread's clock after its wake, which waits for the feeder thread's GIL and CPU
+    stamp_delays: list[float] = []
+    for sock in socks.values():
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+
     def receive() -> None:
         while not done.is_set():
             for sock in select.select(list(socks.values()), [], [], 0.1)[0]:
                 try:
-                    data = sock.recv(16)
+                    data, ancillary, _, _ = sock.recvmsg(16, 64)
                 except BlockingIOError:
                     continue
+                woke = time.time()
+                stamp = woke
+                for level, kind, value in ancillary:
+                    if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                        sec, nsec = TIMESPEC.unpack(value)
+                        stamp = sec + nsec * 1e-9
+                stamp_delays.append(woke - stamp)
                 can_id, dlc, payload = SocketPairBus.FRAME.unpack(data)
-                received.append((time.time(), can_id, payload[:dlc]))
+                received.append((stamp, can_id, payload[:dlc]))
 
     receiver = threading.Thread(target=receive, daemon=True)
     receiver.start()
@@ -499,7 +523,8 @@ def _machine_process(cfg, socks: dict[str, socket.socket], other_hz: float, inpu
     receiver.join(5)
     conn.send({"sevcon_times": feeder.sevcon_times, "received": received,
                "sent": feeder.sent, "total": feeder.total, "errors": feeder.errors,
-               "span": feeder.ended_s - feeder.started_s, "skipped": feeder.skipped_slots})
+               "span": feeder.ended_s - feeder.started_s, "skipped": feeder.skipped_slots,
+               "stamp_delays": stamp_delays, "send_s": feeder.send_s})
     conn.close()
 
 
@@ -589,6 +614,13 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float,
         "sevcon_frames_in_window": in_window,
         "missed_ticks": int(missed),
         "feeder_skipped_slots": result["skipped"],
+        # how late a user-space clock read after the receiver's wake would have stamped the
+        # outputs, and how long a Sevcon frame's send took (the feeder's stamp is after it)
+        "publish_stamp_wake_delay_p50_ms": round(
+            float(np.percentile(result["stamp_delays"], 50)) * 1e3, 3),
+        "publish_stamp_wake_delay_p99_ms": round(
+            float(np.percentile(result["stamp_delays"], 99)) * 1e3, 3),
+        "sevcon_send_call_p99_ms": round(float(np.percentile(result["send_s"], 99)) * 1e3, 3),
         "ticks": service.ticker.kind,
     })
     return figures
