@@ -304,11 +304,20 @@ class BusLink:
         else:
             self._watch(bus, generation)
 
-    def drain(self) -> None:
+    def drain(self, rounds: int = 1) -> int:
         """Hand over every frame waiting in the socket now (fd reading only; a reader
-        thread hands frames over as they come anyway)."""
-        if self._fd is not None and self.bus is not None:
-            self._drain(self.bus, self._generation)
+        thread hands frames over as they come anyway); frames handed over. ``rounds`` > 1:
+        read again while a read found frames, at most that often: the frames that came while
+        the previous ones were handled are in too."""
+        total = 0
+        for _ in range(rounds):
+            if self._fd is None or self.bus is None:
+                break
+            n = self._drain(self.bus, self._generation)
+            if n <= 0:
+                break
+            total += n
+        return total
 
     def _drain(self, bus: can.BusABC, generation: int) -> int:
         """Frames handed over (-1: the bus failed)."""

@@ -147,3 +147,32 @@ def test_an_interface_with_its_own_recv_is_read_through_it() -> None:
 
     assert _drained(nonblocking_receiver(OwnRecv(_frames(0x181, 0x182), True))) == [
         (0x181, b"own"), (0x182, b"own")]
+
+
+def test_a_drain_with_rounds_takes_the_frames_that_came_while_it_handled() -> None:
+    async def scenario(rounds: int) -> tuple[int, list[int]]:
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        batches: list[int] = []
+
+        def handle(batch) -> None:      # a controller's next frame comes during the handling
+            batches.append(len(batch))
+            if len(batches) == 1:
+                theirs.send(FRAME.pack(0x182, 6, bytes(8)))
+
+        link = BusLink({"interface": "pair"}, None, handle,
+                       opener=lambda settings, filters: PairBus(mine), watch_fd=True,
+                       coalesce_s=10.0)
+        await link.start()
+        link._loop.remove_reader(link._fd)                  # noqa: SLF001 - reads by drain only
+        link._watching = False                              # noqa: SLF001
+        try:
+            theirs.send(FRAME.pack(0x181, 6, bytes(8)))
+            theirs.send(FRAME.pack(0x181, 6, bytes(8)))
+            got = link.drain(rounds)
+        finally:
+            await link.close()
+            theirs.close()
+        return got, batches
+
+    assert asyncio.run(scenario(1)) == (2, [2])
+    assert asyncio.run(scenario(3)) == (3, [2, 1])
