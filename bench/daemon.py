@@ -8,7 +8,10 @@ Saturated: the same plus other nodes' traffic, >= 8000 frames/s in all.
 Figures (all from bus timestamps, as a listener on the bus sees them):
 - latency: publish time of a position frame minus the bus time of the newest Sevcon frame
   the published value includes (its diag frame's input counter names it). With 1 kHz input
-  this is at most ~1 ms plus the pipeline's own delay;
+  this is at most ~1 ms plus the pipeline's own delay. Socket mode: a Sevcon frame's bus
+  time is taken when its send returned, a position frame's by the kernel as it arrives at
+  the recorder (SO_TIMESTAMPNS); ``latency_beyond_input_age`` is the part the service adds
+  to the newest input's own age (0 when it included every frame sent before the publish);
 - processing: a Sevcon frame's bus time to the end of its estimator step (inside the service);
 - jitter: |period - 10 ms| between consecutive position frames of a cylinder;
 - CPU share: the service's threads' CPU time over wall time (in-process: the event loop thread
