@@ -704,7 +704,7 @@ class _ClockBus(SocketPairBus):
 # (label, file the function is in, function): cumulative time of each, in the profile
 STAGES = (
     ("receive_and_handle", "service/bus.py", "_drain"),
-    ("python_can_recv", "can/bus.py", "recv"),
+    ("python_can_recv", "service/bus.py", "receive"),      # the interface's _recv_internal
     ("route", "", "_route"),
     ("sevcon_frame", "", "_on_sevcon"),
     ("input_checks_and_decode", "service/inputs.py", "sevcon"),
