@@ -8,7 +8,10 @@ Saturated: the same plus other nodes' traffic, >= 8000 frames/s in all.
 Figures (all from bus timestamps, as a listener on the bus sees them):
 - latency: publish time of a position frame minus the bus time of the newest Sevcon frame
   the published value includes (its diag frame's input counter names it). With 1 kHz input
-  this is at most ~1 ms plus the pipeline's own delay;
+  this is at most ~1 ms plus the pipeline's own delay. Socket mode: a Sevcon frame's bus
+  time is taken when its send returned, a position frame's by the kernel as it arrives at
+  the recorder (SO_TIMESTAMPNS); ``latency_beyond_input_age`` is the part the service adds
+  to the newest input's own age (0 when it included every frame sent before the publish);
 - processing: a Sevcon frame's bus time to the end of its estimator step (inside the service);
 - jitter: |period - 10 ms| between consecutive position frames of a cylinder;
 - CPU share: the service's threads' CPU time over wall time (in-process: the event loop thread
@@ -43,10 +46,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import collections
 import cProfile
 import dataclasses
 import pstats
+import resource
 import multiprocessing
 import os
 import select
@@ -73,6 +78,8 @@ from ddh_vsensor.service.client import clients, sdo_network  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
 INPUT_HZ = 1000.0
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)    # Linux; not exported by Python
+TIMESPEC = struct.Struct("@qq")
 OTHER_IDS = [0x200 + i for i in range(1, 40)] + [0x300 + i for i in range(1, 40)]
 
 
@@ -93,10 +100,12 @@ class Feeder(threading.Thread):
         self.stop_event = threading.Event()
         self.sent = {a: 0 for a in self.units}
         self.sevcon_times: dict[str, list[float]] = {a: [] for a in self.units}
+        self.send_s: list[float] = []      # each Sevcon frame's send call (its stamp's spread)
         self.total = 0
         self.errors = 0
         self.skipped_slots = 0          # slots the feeder was too late for (not sent)
         self.started_s = self.ended_s = 0.0
+        self.start_at_s: float | None = None   # first slot (monotonic); None: 10 ms from now
 
     def _send(self, msg: can.Message, bus: can.BusABC | None = None) -> None:
         try:
@@ -112,7 +121,7 @@ class Feeder(threading.Thread):
         slot, k = 1.0 / self.input_hz, 0
         per_10ms = max(1, round(0.01 * self.input_hz))
         other_acc, other_i = 0.0, 0
-        start = time.monotonic() + 0.01
+        start = self.start_at_s or time.monotonic() + 0.01
         self.started_s = start
         while not self.stop_event.is_set():
             due = start + k * slot
@@ -127,9 +136,13 @@ class Feeder(threading.Thread):
             t = k * slot
             for i, a in enumerate(self.units):
                 speed = 3000.0 * np.sin(2 * np.pi * t / (6.0 + i))
+                msg = c.encode_sevcon(a, 10.0 + 5 * np.sin(t), round(speed))
+                before = time.time()
+                self._send(msg, self.bus_of[a])
+                # the frame is on the bus once its send returned (a stamp taken before the
+                # encoding would count a frame as sent before it was)
                 self.sevcon_times[a].append(time.time())
-                self._send(c.encode_sevcon(a, 10.0 + 5 * np.sin(t), round(speed)),
-                           self.bus_of[a])
+                self.send_s.append(self.sevcon_times[a][-1] - before)
                 self.sent[a] += 1
             if k % per_10ms == 0:
                 refs = {a: {"mid": int(np.sin(2 * np.pi * t / (6.0 + i)) > 0.9)}
@@ -198,7 +211,7 @@ def _commission(bus: can.BusABC, cfg) -> None:
 
 
 def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
-            until: float) -> dict[str, float]:
+            until: float, pool: dict[str, list[float]] | None = None) -> dict[str, float]:
     """Latency (publish - newest included input) and jitter from the recorded bus: every
     frame from the service's start, figures from frames sent between ``since`` and
     ``until`` (wall time: the measurement window, inputs flowing).
@@ -208,7 +221,9 @@ def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
     the sensor's tick); so two more figures: ``input_age_at_publish`` (publish - the newest
     Sevcon frame *sent* before it: the part no service can remove) and ``inputs_behind``
     (Sevcon frames sent before the publish but not in the published value: 0 when the
-    service included everything it could)."""
+    service included everything it could), and ``latency_beyond_input_age`` (latency -
+    input age, per position: how much older the published value's newest input is than the
+    newest input on the bus; what the service adds to the input's own age)."""
     codec = FrameCodec(cfg)
     out: dict[str, list[float]] = {"latency": [], "jitter": [], "age": [], "behind": []}
     for a in cfg.can.units:
@@ -244,11 +259,16 @@ def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
             out["behind"].append(max(before - included, 0))
     lat, jit = np.array(out["latency"]), np.array(out["jitter"])
     age, behind = np.array(out["age"]), np.array(out["behind"])
+    if pool is not None:                 # pooled over several runs by the caller
+        for key in ("latency", "age", "behind"):
+            pool.setdefault(key, []).extend(out[key])
     return {"latency_p50_ms": round(float(np.percentile(lat, 50)) * 1e3, 3),
             "latency_p99_ms": round(float(np.percentile(lat, 99)) * 1e3, 3),
             "latency_max_ms": round(float(lat.max()) * 1e3, 3),
             "input_age_at_publish_p50_ms": round(float(np.percentile(age, 50)) * 1e3, 3),
             "input_age_at_publish_p99_ms": round(float(np.percentile(age, 99)) * 1e3, 3),
+            "latency_beyond_input_age_p99_ms": round(
+                float(np.percentile(lat - age, 99)) * 1e3, 3),
             "inputs_behind_p50": float(np.percentile(behind, 50)),
             "inputs_behind_p99": float(np.percentile(behind, 99)),
             "inputs_behind_share_pct": round(100 * float(np.mean(behind > 0)), 1),
@@ -257,12 +277,50 @@ def analyse(cfg, frames: list[can.Message], period_s: float, since: float,
             "published_positions": int(len(jit) + len(cfg.can.units))}
 
 
+def phase_sweep(cfg, tables, seconds: float, input_hz: float, phases: int) -> dict[str, object]:
+    """The socket mode's nominal run once per phase of the controllers' slots after the
+    service's tick (0, 1/N, ... of an input period): the newest input's age at publish is
+    set by that phase, constant through a run (both sides keep absolute deadlines on one
+    clock), so one run measures one phase; the pooled figures are over all of them."""
+    global PHASE_S
+    raw: dict[str, list[float]] = {}
+    rows, cpu = [], []
+    lost = 0
+    for k in range(phases):
+        PHASE_S = k / phases / input_hz
+        r = asyncio.run(run_socket(cfg, tables, seconds, 0.0, input_hz, raw))
+        rows.append({"phase_ms": round(PHASE_S * 1e3, 3), "latency_p99_ms": r["latency_p99_ms"],
+                     "input_age_at_publish_p99_ms": r["input_age_at_publish_p99_ms"],
+                     "inputs_behind_share_pct": r["inputs_behind_share_pct"],
+                     "cpu_share_pct": r["cpu_share_pct"], "load_avg_1min": round(
+                         os.getloadavg()[0], 2)})
+        print(" ".join(f"{k_}={v}" for k_, v in rows[-1].items()), flush=True)
+        cpu.append(r["cpu_share_pct"])
+        lost += r["sevcon_frames_lost"]
+    PHASE_S = None
+    lat, age = np.array(raw["latency"]), np.array(raw["age"])
+    behind = np.array(raw["behind"])
+    return {"phases": rows,
+            "pooled_latency_p50_ms": round(float(np.percentile(lat, 50)) * 1e3, 3),
+            "pooled_latency_p99_ms": round(float(np.percentile(lat, 99)) * 1e3, 3),
+            "pooled_latency_max_ms": round(float(lat.max()) * 1e3, 3),
+            "pooled_input_age_at_publish_p99_ms": round(float(np.percentile(age, 99)) * 1e3,
+                                                        3),
+            "pooled_latency_beyond_input_age_p99_ms": round(
+                float(np.percentile(lat - age, 99)) * 1e3, 3),
+            "pooled_inputs_behind_share_pct": round(100 * float(np.mean(behind > 0)), 1),
+            "phases_meeting_p99_2ms": sum(r["latency_p99_ms"] <= 2.0 for r in rows),
+            "cpu_share_pct_mean": round(float(np.mean(cpu)), 1),
+            "sevcon_frames_lost": int(lost)}
+
+
 def _realtime(pid: int = 0) -> None:
     """SCHED_FIFO 50 for the service (what CPUSchedulingPolicy=fifo would give it)."""
     os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(50))
 
 
 REALTIME = False
+PHASE_S: float | None = None             # socket mode: the feeder's slots this long after a tick
 COALESCE_S: float | None = None          # socket mode's fd reader pause (None: the service's)
 # TPDO2 (diagnostics: the input counter that pairs an output with its inputs) event timer in
 # socket and profile modes; None: with every TPDO1, so that every position is paired
@@ -466,7 +524,7 @@ class SocketPairBus(can.BusABC):
 
 
 def _machine_process(cfg, socks: dict[str, socket.socket], other_hz: float, input_hz: float,
-                     go, stop, conn, realtime: bool) -> None:
+                     go, stop, conn, realtime: bool, start_at) -> None:
     """Child process (forked: the parent's config): the machine's traffic out on each bus,
     the sensors' frames in, all time-stamped (SCHED_FIFO 40 with --rt, so that its stamps are
     the service's timing, not this process's waiting for a CPU)."""
@@ -476,20 +534,34 @@ def _machine_process(cfg, socks: dict[str, socket.socket], other_hz: float, inpu
     received: list[tuple[float, int, bytes]] = []
     done = threading.Event()
 
+    # publish times: the kernel's stamp of each output frame's arrival (SO_TIMESTAMPNS), not
+    # this thread's clock after its wake, which waits for the feeder thread's GIL and CPU
+    stamp_delays: list[float] = []
+    for sock in socks.values():
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+
     def receive() -> None:
         while not done.is_set():
             for sock in select.select(list(socks.values()), [], [], 0.1)[0]:
                 try:
-                    data = sock.recv(16)
+                    data, ancillary, _, _ = sock.recvmsg(16, 64)
                 except BlockingIOError:
                     continue
+                woke = time.time()
+                stamp = woke
+                for level, kind, value in ancillary:
+                    if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                        sec, nsec = TIMESPEC.unpack(value)
+                        stamp = sec + nsec * 1e-9
+                stamp_delays.append(woke - stamp)
                 can_id, dlc, payload = SocketPairBus.FRAME.unpack(data)
-                received.append((time.time(), can_id, payload[:dlc]))
+                received.append((stamp, can_id, payload[:dlc]))
 
     receiver = threading.Thread(target=receive, daemon=True)
     receiver.start()
     go.wait()
     feeder = Feeder(buses, cfg, other_hz, input_hz)
+    feeder.start_at_s = start_at.value or None
     feeder.start()
     stop.wait()
     feeder.stop_event.set()
@@ -499,12 +571,14 @@ def _machine_process(cfg, socks: dict[str, socket.socket], other_hz: float, inpu
     receiver.join(5)
     conn.send({"sevcon_times": feeder.sevcon_times, "received": received,
                "sent": feeder.sent, "total": feeder.total, "errors": feeder.errors,
-               "span": feeder.ended_s - feeder.started_s, "skipped": feeder.skipped_slots})
+               "span": feeder.ended_s - feeder.started_s, "skipped": feeder.skipped_slots,
+               "stamp_delays": stamp_delays, "send_s": feeder.send_s})
     conn.close()
 
 
 async def run_socket(cfg, tables, seconds: float, other_hz: float,
-                     input_hz: float = INPUT_HZ) -> dict[str, float]:
+                     input_hz: float = INPUT_HZ,
+                     raw: dict[str, list[float]] | None = None) -> dict[str, float]:
     ctx = multiprocessing.get_context("fork")      # before the service starts any thread
     bus_names = [DEFAULT_BUS, *(b for b in cfg.buses if cfg.units_on_bus(b))]
     pairs = {name: socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -513,10 +587,11 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float,
         for s_ in pair:
             s_.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 212992)
     go, stop = ctx.Event(), ctx.Event()
+    start_at = ctx.Value("d", 0.0)
     parent_conn, child_conn = ctx.Pipe()
     child = ctx.Process(target=_machine_process,
                         args=(cfg, {n: p[1] for n, p in pairs.items()}, other_hz, input_hz,
-                              go, stop, child_conn, REALTIME))
+                              go, stop, child_conn, REALTIME, start_at))
     child.start()
     for _, theirs in pairs.values():
         theirs.close()
@@ -537,6 +612,11 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float,
     for unit in service.units.values():           # diag timer (SDO, in process)
         unit.node.node.sdo[0x1801][5].raw = DIAG_MS or unit.node.node.sdo[0x1800][5].raw
     links = list(getattr(service, "links", {DEFAULT_BUS: service.link}).values())
+    if PHASE_S is not None:      # the controllers' slots at a set phase after the service's ticks
+        period = service.ticker.period_s
+        anchor = service.ticker.anchor_s
+        start_at.value = anchor + (math.floor((time.monotonic() - anchor) / period) + 3) \
+            * period + PHASE_S
     go.set()
     await asyncio.sleep(1.0)
     since = time.time()
@@ -567,7 +647,7 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float,
               for a, times in result["sevcon_times"].items() for t in times]
     frames += [can.Message(timestamp=t, arbitration_id=i, data=d, is_extended_id=False)
                for t, i, d in result["received"]]
-    figures = analyse(cfg, frames, service.ticker.period_s, since, until)
+    figures = analyse(cfg, frames, service.ticker.period_s, since, until, raw)
     in_window = int(sum(received1[a] - received0[a] for a in cfg.can.units))
     wall = t1 - t0
     figures.update({
@@ -589,6 +669,13 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float,
         "sevcon_frames_in_window": in_window,
         "missed_ticks": int(missed),
         "feeder_skipped_slots": result["skipped"],
+        # how late a user-space clock read after the receiver's wake would have stamped the
+        # outputs, and how long a Sevcon frame's send took (the feeder's stamp is after it)
+        "publish_stamp_wake_delay_p50_ms": round(
+            float(np.percentile(result["stamp_delays"], 50)) * 1e3, 3),
+        "publish_stamp_wake_delay_p99_ms": round(
+            float(np.percentile(result["stamp_delays"], 99)) * 1e3, 3),
+        "sevcon_send_call_p99_ms": round(float(np.percentile(result["send_s"], 99)) * 1e3, 3),
         "ticks": service.ticker.kind,
     })
     return figures
@@ -617,7 +704,7 @@ class _ClockBus(SocketPairBus):
 # (label, file the function is in, function): cumulative time of each, in the profile
 STAGES = (
     ("receive_and_handle", "service/bus.py", "_drain"),
-    ("python_can_recv", "can/bus.py", "recv"),
+    ("python_can_recv", "service/bus.py", "receive"),      # the interface's _recv_internal
     ("route", "", "_route"),
     ("sevcon_frame", "", "_on_sevcon"),
     ("input_checks_and_decode", "service/inputs.py", "sevcon"),
@@ -651,7 +738,7 @@ def profile(cfg, tables, ms: int, input_hz: float) -> dict[str, object]:
     extra = {"buses": {name: {"interface": "socketpair", "channel": name}
                        for name in bus_names[1:]}} if len(bus_names) > 1 else {}
     service = Service(cfg, tables, {"interface": "socketpair", "channel": DEFAULT_BUS},
-                      ServiceOptions(fd_reader=True),
+                      ServiceOptions(fd_reader=True, coalesce_s=COALESCE_S),
                       opener=lambda settings, filters: buses[settings["channel"]], **extra)
     loop = asyncio.new_event_loop()
     loop.run_until_complete(service.start())      # opens the links; the loop never runs again
@@ -689,15 +776,18 @@ def profile(cfg, tables, ms: int, input_hz: float) -> dict[str, object]:
     house_every = max(1, round(cfg.faults.housekeeping_tick_ms / 1000.0 / slot_s))
     socks = {name: theirs for name, (_, theirs) in pairs.items()}
 
-    def run(first: int) -> None:
+    def run(first: int, paced: bool = False) -> None:
         # frame times ahead of the wall clock: a slow run is never mistaken for late frames
         t0 = time.time() + 10.0 * slots * slot_s + 1.0
+        start_s = time.monotonic()
         for k, records in enumerate(traffic):
             now = t0 + (first + k) * slot_s
             for name, rec in records:
                 stamps[name].append(now)
                 socks[name].send(rec)
             if k % wake_every == wake_every - 1:
+                if paced:        # asleep until the wake is due, as the daemon is between wakes
+                    time.sleep(max(start_s + (k + 1) * slot_s - time.monotonic(), 0.0))
                 for link in links:
                     link.drain()
             if k % tick_every == tick_every - 1:
@@ -718,9 +808,18 @@ def profile(cfg, tables, ms: int, input_hz: float) -> dict[str, object]:
     run(slots)
     cpu = time.thread_time() - cpu0
     frames = sum(service.inputs.units[a].received for a in units) - n0
+    # the same work at the daemon's pace: asleep between the wakes (caches go cold)
+    n0 = sum(service.inputs.units[a].received for a in units)
+    cpu0, ru0 = time.thread_time(), resource.getrusage(resource.RUSAGE_THREAD)
+    run(2 * slots, paced=True)
+    cpu_paced = time.thread_time() - cpu0
+    ru1 = resource.getrusage(resource.RUSAGE_THREAD)
+    paced_system = (ru1.ru_stime - ru0.ru_stime) / max(
+        ru1.ru_stime - ru0.ru_stime + ru1.ru_utime - ru0.ru_utime, 1e-9)
+    frames_paced = sum(service.inputs.units[a].received for a in units) - n0
     prof = cProfile.Profile()
     prof.enable()
-    run(2 * slots)
+    run(3 * slots)
     prof.disable()
     loop.run_until_complete(service.shutdown())
     loop.close()
@@ -734,11 +833,15 @@ def profile(cfg, tables, ms: int, input_hz: float) -> dict[str, object]:
                                                 or "append" in k[2]))
     total = everything - harness
     cpu *= total / everything
+    cpu_paced *= total / everything
     us_frame = 1e6 * cpu / max(frames, 1)
     out: dict[str, object] = {
         "profile_units": len(units), "profile_input_hz_per_unit": input_hz,
         "profile_sevcon_frames": frames,
         "profile_cpu_us_per_sevcon_frame": round(us_frame, 2),
+        "profile_paced_cpu_us_per_sevcon_frame": round(1e6 * cpu_paced / max(frames_paced, 1),
+                                                       2),
+        "profile_paced_system_share_pct": round(100 * paced_system, 1),
         "profile_cpu_share_at_this_load_pct": round(
             100 * cpu / (slots * slot_s), 1),
         "profile_published_frames": service.frames_published,
@@ -811,6 +914,10 @@ def main() -> None:
                         help="socket and profile modes: TPDO2 event timer (default: with every "
                              "TPDO1, every position paired with its inputs; 100 is the EDS "
                              "default, what a machine runs: latency from every tenth position)")
+    parser.add_argument("--phases", type=int, default=None, metavar="N",
+                        help="with --units: N runs, the controllers' slots at N phases spread "
+                             "over one input period after the service's tick (unsynchronised "
+                             "controllers take any phase): latency per phase and pooled")
     parser.add_argument("--profile", type=int, metavar="MS", default=None,
                         help="only profile MS milliseconds of traffic through the service's "
                              "path (no event loop): results in daemon_profile.json")
@@ -821,6 +928,8 @@ def main() -> None:
     if DIAG_MS is not None and not 1 <= DIAG_MS <= 1000:
         parser.error("--diag-ms: 1 to 1000")
     COALESCE_S = None if args.coalesce_ms is None else args.coalesce_ms / 1000.0
+    if args.phases is not None and (args.units is None or not 1 <= args.phases <= 50):
+        parser.error("--phases: 1 to 50, with --units")
     if args.units is not None and not 1 <= args.units <= 16:
         parser.error("--units: a machine has 1 to 16 units")
     large = args.units is not None and args.units > 2
@@ -847,8 +956,11 @@ def main() -> None:
         figures.update({"units": len(cfg.unit_names), "input_hz_per_unit": input_hz,
                         "buses": buses,
                         "goal_latency_p99_ms": 2.0, "goal_lost": 0})
-        result = asyncio.run(run_socket(cfg, tables, args.seconds, 0.0, input_hz))
-        figures.update({f"socket_nominal_{k}": v for k, v in result.items()})
+        if args.phases:
+            figures.update(phase_sweep(cfg, tables, args.seconds, input_hz, args.phases))
+        else:
+            result = asyncio.run(run_socket(cfg, tables, args.seconds, 0.0, input_hz))
+            figures.update({f"socket_nominal_{k}": v for k, v in result.items()})
         figures["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
         figures["scheduling"] = "SCHED_FIFO 50" if args.rt else "SCHED_OTHER (default)"
         if args.coalesce_ms is not None:
@@ -857,6 +969,8 @@ def main() -> None:
         if args.diag_ms is not None:
             figures["diag_timer_ms"] = args.diag_ms
             suffix += f"_diag{args.diag_ms}ms"
+        if args.phases:
+            suffix += f"_phases{args.phases}"
         publish(f"daemon_units{len(cfg.unit_names)}" + ("_rt" if args.rt else "") + suffix,
                 figures)
         return

@@ -81,6 +81,26 @@ def open_bus(settings: dict[str, Any], filters: list[dict[str, Any]] | None = No
         raise UserError(f"CAN bus settings {settings}: {exc}") from None
 
 
+def nonblocking_receiver(bus: can.BusABC) -> Callable[[], can.Message | None]:
+    """``bus.recv(0.0)``, without python-can's per-call wrapper where the interface keeps
+    python-can's own ``recv``: the interface's ``_recv_internal(0.0)`` (the call every
+    python-can interface implements) and python-can's filter check for frames the kernel
+    did not filter. The wrapper's clock reads and debug log call were a fifth of the read
+    cost per frame (1.7 of 7.8 us here); a frame the filters drop no longer ends the drain."""
+    if type(bus).recv is not can.BusABC.recv:
+        return lambda: bus.recv(0.0)
+    internal, matches = bus._recv_internal, bus._matches_filters   # noqa: SLF001
+
+    def receive() -> can.Message | None:
+        while True:
+            msg, filtered = internal(timeout=0.0)
+            if msg is None:
+                return None
+            if filtered or matches(msg):
+                return msg
+    return receive
+
+
 class BusLink:
     """The service's bus: ``await start()``, ``send(msg)``, ``await close()``.
 
@@ -125,6 +145,7 @@ class BusLink:
         self._generation = 0
         self._thread: threading.Thread | None = None
         self._fd: int | None = None
+        self._receive: Callable[[], can.Message | None] = lambda: None
         self._stopping = False
         self._reopen_task: asyncio.Task | None = None
         self._last_tx_error_log = -1e9
@@ -163,6 +184,7 @@ class BusLink:
                 fd = -1
         if fd >= 0:
             self._fd = fd
+            self._receive = nonblocking_receiver(bus)
             self._watch(bus, generation)
         else:
             self._thread = threading.Thread(target=self._reader, args=(bus, generation),
@@ -282,18 +304,28 @@ class BusLink:
         else:
             self._watch(bus, generation)
 
-    def drain(self) -> None:
+    def drain(self, rounds: int = 1) -> int:
         """Hand over every frame waiting in the socket now (fd reading only; a reader
-        thread hands frames over as they come anyway)."""
-        if self._fd is not None and self.bus is not None:
-            self._drain(self.bus, self._generation)
+        thread hands frames over as they come anyway); frames handed over. ``rounds`` > 1:
+        read again while a read found frames, at most that often: the frames that came while
+        the previous ones were handled are in too."""
+        total = 0
+        for _ in range(rounds):
+            if self._fd is None or self.bus is None:
+                break
+            n = self._drain(self.bus, self._generation)
+            if n <= 0:
+                break
+            total += n
+        return total
 
     def _drain(self, bus: can.BusABC, generation: int) -> int:
         """Frames handed over (-1: the bus failed)."""
         batch: list[can.Message] = []
+        receive = self._receive
         try:
             while len(batch) < BATCH_MAX:
-                msg = bus.recv(0.0)
+                msg = receive()
                 if msg is None:
                     break
                 batch.append(msg)

@@ -62,6 +62,9 @@ log = logging.getLogger(__name__)
 
 BACKLOG_UNHEALTHY_S = 1.0        # a frame waiting this long: integration is not keeping up
 STATUS_INTERVAL_S = 2.0
+# reads before publishing, at most: a read that found frames is followed by another, since
+# handling the first batch takes long enough (0.2-0.5 ms) for a controller's next frame to come
+DRAIN_ROUNDS = 3
 BUS_PATH_LOGGERS = ("canopen", "ddh_vsensor.service.node", "ddh_vsensor.service.pdo",
                     "ddh_vsensor.service.emcy", "can")
 
@@ -353,7 +356,9 @@ class Service:
     def _on_tick(self, deadline: float, missed: int) -> None:
         """The publishing tick: TPDOs of the OPERATIONAL nodes."""
         for link in self.links.values():
-            link.drain()             # every frame received so far is in what goes out now
+            # every frame received so far is in what goes out now, also those that came
+            # while the reads before were being handled
+            link.drain(DRAIN_ROUNDS)
         now = time.monotonic()
         self.ticks += 1
         self._tick_index += 1 + missed
@@ -361,7 +366,7 @@ class Service:
         for i, unit in enumerate(self.units.values()):
             assert unit.node is not None
             if i:                    # what arrived while the units before were published
-                self.links[self.cfg.can.units[unit.actuator].bus].drain()
+                self.links[self.cfg.can.units[unit.actuator].bus].drain(DRAIN_ROUNDS)
             p = self.published(unit, now)
             self.frames_published += unit.node.publish(p, self._tick_index)
             unit.node.report_faults(p)

@@ -10,7 +10,7 @@ import struct
 
 import can
 
-from ddh_vsensor.service.bus import BusLink
+from ddh_vsensor.service.bus import BusLink, nonblocking_receiver
 
 FRAME = struct.Struct("=IB3x8s")
 
@@ -91,3 +91,88 @@ def test_reads_follow_the_grid_while_frames_come_then_the_fd_is_watched() -> Non
         assert now < when <= now + period_s + 1e-9
         phase = (when - (link.grid_anchor_s or 0.0)) / period_s
         assert abs(phase - round(phase)) < 1e-6, (now, when)
+
+
+class QueueBus(can.BusABC):
+    """Frames from a list; ``kernel_filtered`` says whether they come already filtered."""
+
+    def __init__(self, frames: list[can.Message], kernel_filtered: bool, **kwargs) -> None:
+        self.frames, self.kernel_filtered = list(frames), kernel_filtered
+        super().__init__(channel="queue", **kwargs)
+
+    def _recv_internal(self, timeout):
+        if not self.frames:
+            return None, False
+        return self.frames.pop(0), self.kernel_filtered
+
+    def send(self, msg, timeout=None):
+        raise NotImplementedError
+
+
+def _frames(*ids: int) -> list[can.Message]:
+    return [can.Message(arbitration_id=i, data=bytes([k]), is_extended_id=False)
+            for k, i in enumerate(ids)]
+
+
+def _drained(receive) -> list[tuple[int, bytes]]:
+    out = []
+    while (msg := receive()) is not None:
+        out.append((msg.arbitration_id, bytes(msg.data)))
+    return out
+
+
+def test_the_fast_read_gives_what_python_can_recv_gives() -> None:
+    ids = (0x181, 0x500, 0x182, 0x500, 0x181)
+    filters = [{"can_id": 0x180, "can_mask": 0x7F0, "extended": False}]
+    for kernel_filtered, kwargs in ((True, {}), (False, {}), (False, {"can_filters": filters})):
+        by_recv = []
+        bus = QueueBus(_frames(*ids), kernel_filtered, **kwargs)
+        while bus.frames:               # python-can's recv(0) stops at a filtered-out frame
+            msg = bus.recv(0.0)
+            if msg is not None:
+                by_recv.append((msg.arbitration_id, bytes(msg.data)))
+        fast = _drained(nonblocking_receiver(QueueBus(_frames(*ids), kernel_filtered,
+                                                      **kwargs)))
+        assert fast == by_recv
+        assert len(fast) == (3 if kwargs else 5)
+
+
+def test_an_interface_with_its_own_recv_is_read_through_it() -> None:
+    class OwnRecv(QueueBus):
+        def recv(self, timeout=None):
+            msg = super().recv(timeout)
+            if msg is not None:
+                msg.data = bytearray(b"own")
+            return msg
+
+    assert _drained(nonblocking_receiver(OwnRecv(_frames(0x181, 0x182), True))) == [
+        (0x181, b"own"), (0x182, b"own")]
+
+
+def test_a_drain_with_rounds_takes_the_frames_that_came_while_it_handled() -> None:
+    async def scenario(rounds: int) -> tuple[int, list[int]]:
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        batches: list[int] = []
+
+        def handle(batch) -> None:      # a controller's next frame comes during the handling
+            batches.append(len(batch))
+            if len(batches) == 1:
+                theirs.send(FRAME.pack(0x182, 6, bytes(8)))
+
+        link = BusLink({"interface": "pair"}, None, handle,
+                       opener=lambda settings, filters: PairBus(mine), watch_fd=True,
+                       coalesce_s=10.0)
+        await link.start()
+        link._loop.remove_reader(link._fd)                  # noqa: SLF001 - reads by drain only
+        link._watching = False                              # noqa: SLF001
+        try:
+            theirs.send(FRAME.pack(0x181, 6, bytes(8)))
+            theirs.send(FRAME.pack(0x181, 6, bytes(8)))
+            got = link.drain(rounds)
+        finally:
+            await link.close()
+            theirs.close()
+        return got, batches
+
+    assert asyncio.run(scenario(1)) == (2, [2])
+    assert asyncio.run(scenario(3)) == (3, [2, 1])
