@@ -134,6 +134,7 @@ class Service:
         self._exit_code = 0
         self._tasks: list[asyncio.Task] = []
         self._save_task: asyncio.Future | None = None
+        self._save_again = False
         self._next_save_s = math.inf
         self._next_watchdog_s = 0.0
         self._next_status_s = 0.0
@@ -326,13 +327,23 @@ class Service:
             self.save_states()
 
     def _save_in_background(self) -> None:
+        """Save now, off the loop; asked while a save is still writing (a slow disk), save
+        again when it is done, with the estimates of then: no request is dropped."""
         if self._save_task is not None and not self._save_task.done():
+            self._save_again = True
             return
+        self._save_again = False
         snapshots = self.states.snapshots(self.units, self.published)
         self.saves += 1
         if snapshots:
             self._save_task = asyncio.get_running_loop().run_in_executor(
                 None, write_states, snapshots)
+            self._save_task.add_done_callback(self._saved)
+
+    def _saved(self, _: asyncio.Future) -> None:
+        # a stop writes its own, clean, save after the last background one
+        if self._save_again and self.started:
+            self._save_in_background()
 
     # --- the buses ---------------------------------------------------------------------------
 

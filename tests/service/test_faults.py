@@ -361,3 +361,37 @@ def test_preset_modes_and_their_abort_codes(cfg, unit_tables, mode) -> None:
         assert boom.position_mm == pytest.approx(103.0)
         accepted = sum(v == "accepted" for v in out.values())
         assert f"boom {accepted}/{len(out) - accepted}" in status
+
+
+def test_a_signal_during_a_slow_save_is_saved_after_it(cfg, unit_tables, tmp_path,
+                                                       monkeypatch) -> None:
+    """SIGHUP/USR1/USR2 save the estimates. A request that arrives while the last save is
+    still writing (a slow disk) must not be dropped: one more save follows, with the estimates
+    of after the request, and a stop still ends with a clean save."""
+    from ddh_vsensor.service import service as service_module
+    written: list[bool] = []
+    release = threading.Event()
+
+    def slow_write(snapshots):
+        release.wait(10.0)
+        written.append(any(s.clean for _, s in snapshots))
+
+    monkeypatch.setattr(service_module, "write_states", slow_write)
+    channel = channel_name()
+
+    async def scenario():
+        options = ServiceOptions(state_dir=tmp_path)
+        async with running_service(cfg, unit_tables, channel, options) as service:
+            service.on_signal("SIGHUP")          # starts a save that cannot finish yet
+            service.on_signal("SIGUSR1")         # arrives while it writes
+            await settle(0.1)
+            assert written == []
+            release.set()
+            for _ in range(200):
+                if len(written) >= 2:
+                    break
+                await settle(0.02)
+            assert written == [False, False]
+        assert written[-1] is True               # the stop's own clean save comes last
+
+    asyncio.run(scenario())
