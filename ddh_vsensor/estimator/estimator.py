@@ -131,7 +131,7 @@ class Estimator:
                                      blend_s=ecfg.dynamic_blend_s, max_gap_s=self.max_gap_s)
                         if self.mode == "dynamic" else None)
         self.u_base = self.u_ref
-        self.referenced = True          # False only after a restore, until a reference
+        self._referenced = True         # False after a restore or a provisional preset
         self.travel_mm = 0.0
         self.hold_s = 0.0
         self.s_ref = (0.0, 0.0)         # raw travel sums at the last reference's edge
@@ -158,6 +158,23 @@ class Estimator:
         return cls(cfg, unit, tables, **options)
 
     # --- shared pieces -------------------------------------------------------------------
+
+    @property
+    def referenced(self) -> bool:
+        """Whether the position is known (since a reference or preset); False after a restore,
+        a provisional preset or motion not integrated, until the next reference."""
+        return self._referenced
+
+    @referenced.setter
+    def referenced(self, value: bool) -> None:
+        # The chamber model stops its rod at the stroke ends it believes it is at. Where the
+        # position is not known that belief is made up (a wrong preset, a gap): the model
+        # would read a moving rod as held on an end stop, and the travel through the next
+        # reference's debounce time would be lost. Its rod is unknown until the next
+        # reference or preset sets it.
+        self._referenced = bool(value)
+        if not value and self.dynamic is not None:
+            self.dynamic.set_position(None)
 
     @property
     def uncertainty_mm(self) -> float:
@@ -275,7 +292,7 @@ class Estimator:
                     if self.dynamic is not None:
                         self.dynamic.set_position(self.position_mm)
                 x = self.position_mm
-        flags = 0 if self.referenced else _NOT_REFERENCED
+        flags = 0 if self._referenced else _NOT_REFERENCED
         if gain.enabled and (gain._up != 1.0 or gain._down != 1.0):
             flags |= _ADAPTING
         if x <= lower or x >= upper:
@@ -427,12 +444,9 @@ class Estimator:
                               gain_down=float(self.gain.gain[1]))
 
     def restore(self, state: EstimatorState) -> None:
-        """Carry on from a saved state: trusted for position, flagged until a reference."""
+        """Carry on from a saved state: trusted for position, flagged until a reference (the
+        chamber model's rod, see :attr:`referenced`, unknown until then)."""
         self.position_mm = self._clip(state.position_mm)
-        if self.dynamic is not None:
-            # Not referenced: the rod may be anywhere the bound allows, so the chamber model
-            # assumes no end stop until the next reference tells where it is.
-            self.dynamic.set_position(None)
         self.u_base = state.uncertainty_mm
         self.travel_mm = self.hold_s = 0.0
         self.gain.gain = np.clip([state.gain_up, state.gain_down], 1 - self.gain.bound,
