@@ -201,7 +201,13 @@ class Estimator:
             # the debounce time: take that travel unclipped, or the clipping is published.
             g_up, g_down = self.gain.gain
             x_now = snap.x + g_up * (s_now[0] - snap.s_up) + g_down * (s_now[1] - snap.s_down)
-        p = sw.edge_position_mm(rising, snap.v, snap.x)
+        # Which way the rod crossed: one sample's velocity can point the wrong way where the
+        # torque chatters (in `dynamic` the velocity rings for a few samples around a slow
+        # motion, e.g. after an input gap), the travel from the edge to its acceptance cannot;
+        # its mean over the debounce time stands for the velocity (the sample's own without one).
+        after = (s_now[0] - snap.s_up) + (s_now[1] - snap.s_down)
+        v_cross = after / self.debounce_s if after != 0.0 and self.debounce_s > 0.0 else snap.v
+        p = sw.edge_position_mm(rising, v_cross, snap.x)
         # The switch changed state somewhere within the edge sample's travel dx, at any moment
         # alike: the estimate at the crossing is, on average, x - dx/2 (at speed, dx is
         # millimetres: taking x itself would bias every edge met in motion by half of it).
