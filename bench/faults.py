@@ -18,13 +18,14 @@ resets, unknown 11-bit IDs, short Sevcon frames); RSS sampled every second, the 
 fitted over the second half; the housekeeping tick's largest gap and the share of its ticks
 at which the watchdog would be pinged (``Service.integrating``).
 
-``python bench/faults.py [--faults 1000] [--soak-s 60]``; writes bench/results/faults.json.
+``python bench/faults.py [--faults 1000] [--seed 9] [--soak-s 60] [--mode dynamic]``; writes bench/results/faults.json.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import logging
 import random
@@ -385,15 +386,21 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=9)
     ap.add_argument("--soak-s", type=float, default=60.0)
     ap.add_argument("--flood-hz", type=float, default=8000.0)
+    ap.add_argument("--mode", choices=("full", "paper", "dynamic"),
+                    help="the estimator mode (default: the configuration's)")
     args = ap.parse_args()
     cfg = load_config()
+    if args.mode is not None:
+        cfg = dataclasses.replace(cfg, estimator=dataclasses.replace(cfg.estimator,
+                                                                     mode=args.mode))
     print("simulating the paper cycle ...", flush=True)
     result = simulate_with_truth(cfg, [RunSpec(speed=4)])[0]
     runs = {a: run for a, (run, _) in result.items()}
     paper = {"frames": list(machine_frames(cfg, runs, heartbeat_period_s=0.1)),
              "truth": {a: (truth.time_s, truth.x_m * 1e3) for a, (_, truth) in result.items()}}
     tables = {a: build_unit_tables(cfg, a) for a in cfg.can.units}
-    figures = campaign(cfg, tables, paper, args.faults, args.seed)
+    figures = {"mode": cfg.estimator.mode}
+    figures.update(campaign(cfg, tables, paper, args.faults, args.seed))
     if args.soak_s > 0:
         print(f"soak: {args.soak_s:g} s at {args.flood_hz:g} hostile frames/s ...", flush=True)
         figures.update(soak(cfg, tables, paper, args.soak_s, args.flood_hz))

@@ -14,7 +14,12 @@ enum {
     P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
 };
-enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_SIZE };
+enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_SIZE };
+
+/* The drive samples its speed on an even cadence; the stamps' differences jitter around it.
+ * The rotor's acceleration is the speed difference over that cadence (a filtered step), not
+ * over each jittered step, unless the step is clearly another (a frame lost). */
+#define HF_GAIN 0.05
 
 int chambers_sizes(int which) { return which == 0 ? P_SIZE : S_SIZE; }
 
@@ -86,7 +91,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     if (S[S_STARTED] == 0.0 || !(h > 0.0) || h > P[P_MAX_GAP_S]) {
         if (S[S_STARTED] == 0.0 || h > 0.0) {
             settle(P, S, n, tau, mu);
-            S[S_N] = n; S[S_TAU] = tau; S[S_STARTED] = 1.0;
+            S[S_N] = n; S[S_TAU] = tau; S[S_STARTED] = 1.0; S[S_HF] = 0.0;
         }
         return S[S_V];
     }
@@ -97,7 +102,10 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     double xv = !known ? 0.5 * stroke : x < 0.0 ? 0.0 : x > stroke ? stroke : x;
     /* The speed's backward difference is the rotor's mean acceleration over the step: it
      * pairs with the step's mean motor torque. */
-    double torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / h;
+    double hf = S[S_HF];
+    double hn = hf > 0.0 && fabs(h - hf) < 0.75 * hf ? hf : h;
+    S[S_HF] = hf > 0.0 ? hf + HF_GAIN * (h - hf) : h;
+    double torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / hn;
     double ga = P[P_LEAK_A] / mu, gb = P[P_LEAK_B] / mu;
     double ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h);
     double cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h);

@@ -23,7 +23,10 @@ value was chosen and why.
 
 The step is compiled C (``_chambers.c``, built with the package as an optional extension and
 loaded with ctypes): the online face calls it per sample, the offline face runs the same
-function over a whole log, so both share one arithmetic. Where the install had no C compiler
+function over a whole log, so both share one arithmetic. The rotor's acceleration is the speed
+difference over the drive's filtered cadence, not over each stamp difference: the drive
+samples evenly, its frames' stamps jitter, and a jittered h read as inertia torque turns into
+pressure a one-way valve does not give back (README: jittered receive stamps). Where the install had no C compiler
 the same step runs in Python (:func:`_py_step`), slower but equal.
 """
 
@@ -49,7 +52,8 @@ _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valv
 (P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
  P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S) = range(16)
 P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 16, 20, 24, 28, 32, 44, 56
-S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_SIZE = range(12)
+S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_SIZE = range(13)
+HF_GAIN = 0.05                                       # HF_GAIN of _chambers.c
 
 
 def _library() -> ctypes.CDLL | None:
@@ -237,12 +241,15 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             S[S_PA], S[S_PB], S[S_V] = pa, pb, v
             S[S_RA] = S[S_SA] = ra
             S[S_RB] = S[S_SB] = rb
-            S[S_N], S[S_TAU], S[S_STARTED] = n, tau, 1.0
+            S[S_N], S[S_TAU], S[S_STARTED], S[S_HF] = n, tau, 1.0, 0.0
         return float(S[S_V])
     pa, pb, x, stroke = float(S[S_PA]), float(S[S_PB]), float(S[S_X]), P[P_STROKE]
     known = x == x                                      # NaN: position unknown
     xv = min(max(x, 0.0), stroke) if known else 0.5 * stroke
-    torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / h
+    hf = float(S[S_HF])
+    hn = hf if hf > 0.0 and abs(h - hf) < 0.75 * hf else h
+    S[S_HF] = hf + HF_GAIN * (h - hf) if hf > 0.0 else h
+    torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / hn
     ga, gb = P[P_LEAK_A] / mu, P[P_LEAK_B] / mu
     ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h)
     cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h)

@@ -131,7 +131,7 @@ class Estimator:
                                      blend_s=ecfg.dynamic_blend_s, max_gap_s=self.max_gap_s)
                         if self.mode == "dynamic" else None)
         self.u_base = self.u_ref
-        self.referenced = True          # False only after a restore, until a reference
+        self._referenced = True         # False after a restore or a provisional preset
         self.travel_mm = 0.0
         self.hold_s = 0.0
         self.s_ref = (0.0, 0.0)         # raw travel sums at the last reference's edge
@@ -160,6 +160,23 @@ class Estimator:
     # --- shared pieces -------------------------------------------------------------------
 
     @property
+    def referenced(self) -> bool:
+        """Whether the position is known (since a reference or preset); False after a restore,
+        a provisional preset or motion not integrated, until the next reference."""
+        return self._referenced
+
+    @referenced.setter
+    def referenced(self, value: bool) -> None:
+        # The chamber model stops its rod at the stroke ends it believes it is at. Where the
+        # position is not known that belief is made up (a wrong preset, a gap): the model
+        # would read a moving rod as held on an end stop, and the travel through the next
+        # reference's debounce time would be lost. Its rod is unknown until the next
+        # reference or preset sets it.
+        self._referenced = bool(value)
+        if not value and self.dynamic is not None:
+            self.dynamic.set_position(None)
+
+    @property
     def uncertainty_mm(self) -> float:
         return self.u_base + self.per_travel * self.travel_mm + self.hold_rate * self.hold_s
 
@@ -184,7 +201,13 @@ class Estimator:
             # the debounce time: take that travel unclipped, or the clipping is published.
             g_up, g_down = self.gain.gain
             x_now = snap.x + g_up * (s_now[0] - snap.s_up) + g_down * (s_now[1] - snap.s_down)
-        p = sw.edge_position_mm(rising, snap.v, snap.x)
+        # Which way the rod crossed: one sample's velocity can point the wrong way where the
+        # torque chatters (in `dynamic` the velocity rings for a few samples around a slow
+        # motion, e.g. after an input gap), the travel from the edge to its acceptance cannot;
+        # its mean over the debounce time stands for the velocity (the sample's own without one).
+        after = (s_now[0] - snap.s_up) + (s_now[1] - snap.s_down)
+        v_cross = after / self.debounce_s if after != 0.0 and self.debounce_s > 0.0 else snap.v
+        p = sw.edge_position_mm(rising, v_cross, snap.x)
         # The switch changed state somewhere within the edge sample's travel dx, at any moment
         # alike: the estimate at the crossing is, on average, x - dx/2 (at speed, dx is
         # millimetres: taking x itself would bias every edge met in motion by half of it).
@@ -275,7 +298,7 @@ class Estimator:
                     if self.dynamic is not None:
                         self.dynamic.set_position(self.position_mm)
                 x = self.position_mm
-        flags = 0 if self.referenced else _NOT_REFERENCED
+        flags = 0 if self._referenced else _NOT_REFERENCED
         if gain.enabled and (gain._up != 1.0 or gain._down != 1.0):
             flags |= _ADAPTING
         if x <= lower or x >= upper:
@@ -427,12 +450,9 @@ class Estimator:
                               gain_down=float(self.gain.gain[1]))
 
     def restore(self, state: EstimatorState) -> None:
-        """Carry on from a saved state: trusted for position, flagged until a reference."""
+        """Carry on from a saved state: trusted for position, flagged until a reference (the
+        chamber model's rod, see :attr:`referenced`, unknown until then)."""
         self.position_mm = self._clip(state.position_mm)
-        if self.dynamic is not None:
-            # Not referenced: the rod may be anywhere the bound allows, so the chamber model
-            # assumes no end stop until the next reference tells where it is.
-            self.dynamic.set_position(None)
         self.u_base = state.uncertainty_mm
         self.travel_mm = self.hold_s = 0.0
         self.gain.gain = np.clip([state.gain_up, state.gain_down], 1 - self.gain.bound,

@@ -80,3 +80,22 @@ def test_a_wrong_pump_parameter_cannot_run_the_pressures_away(cfg, boom, unit_ta
     cycle_ends = apart[::1000]                             # every 10 s period, same phase
     assert np.max(np.abs(np.diff(cycle_ends[10:]))) < 0.05  # no growth once settled
     assert np.max(np.abs(apart)) < 10.0
+
+
+def test_an_unreferenced_estimate_assumes_no_end_stop(cfg, unit_tables):
+    """After a provisional preset near the top (the rod really anywhere): the chamber model
+    must not stop a moving rod at a stroke end it only believes in. Referenced, the same
+    inputs are held at the stop; unreferenced they keep reading travel."""
+    t = np.arange(0.0, 3.0, 0.01)
+    n = np.minimum(t * 4000.0, 3000.0)
+    torque, temp = np.full_like(t, 20.0), np.full_like(t, 27.0)
+    velocities = {}
+    for referenced in (True, False):
+        est = Estimator(cfg, "bucket", unit_tables["bucket"], mode="dynamic", references=False)
+        est.preset(845.0, 0.5)
+        est.referenced = referenced
+        velocities[referenced] = np.array([est.step(tk, nk, qk, ck).velocity_mm_s
+                                           for tk, nk, qk, ck in zip(t, n, torque, temp)])
+    late = t > 1.5
+    assert np.all(velocities[True][late] == 0.0)
+    assert np.min(velocities[False][late]) > 50.0

@@ -176,3 +176,14 @@ def test_step_carries_the_reference_taken_in_it(cfg, boom, unit_tables, make_run
     gains = {g for _, g in taken.values()}
     assert 1.0 in gains and cfg.estimator.resync_gain_moving in gains
     assert all(s.reference_gain == 0.0 for s in steps if s.reference is None)
+
+
+def test_the_direction_of_crossing_is_the_travel_after_the_edge(cfg, unit_tables):
+    """An edge sample whose own velocity points the wrong way (torque chatter): the switch's
+    edge position follows the travel from the edge to its acceptance."""
+    from ddh_vsensor.estimator.estimator import _Snapshot
+    est = Estimator(cfg, "boom", unit_tables["boom"], mode="full")
+    mid = next(sw for sw in est.switches if sw.name == "mid")
+    snap = _Snapshot(index=10, x=158.0, dx=0.01, v=+18.0, s_up=5.0, s_down=-3.0)
+    x, event = est._reference(mid, True, snap, 157.86, (5.0, -3.14), 12)   # 0.14 mm down
+    assert event.switch_position_mm == pytest.approx(mid.switching_position_mm(True, False))
