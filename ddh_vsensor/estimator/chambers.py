@@ -26,11 +26,9 @@ rows in lockstep, equal to rounding.
 from __future__ import annotations
 
 import ctypes
-import importlib.machinery
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -38,6 +36,7 @@ from numpy.typing import ArrayLike
 from ..physics.steady import steady_state_at_torque
 from ..physics.unit import DDHUnit
 from ..physics.air import log_density_and_compliance
+from .compiled import package_library
 from .dynamic import parameters
 
 RPM_RAD_S = 2.0 * np.pi / 60.0
@@ -48,17 +47,12 @@ A_PA, A_PB, A_V, A_X, A_N, A_TAU, A_RA, A_RB, A_SIZE = range(9)
 
 
 def _library() -> ctypes.CDLL | None:
-    """The compiled step from the package's own directory (never from a writable cache),
-    or None where the install could not build it."""
-    here = Path(__file__).parent
-    found = [here / f"_air_chambers{suffix}"
-             for suffix in importlib.machinery.EXTENSION_SUFFIXES]
-    lib = next((f for f in found if f.is_file()), None)
-    if lib is None:
+    """The compiled step, or None where the install could not build it."""
+    cdll = package_library("_air_chambers")
+    if cdll is None:
         return None
-    cdll = ctypes.CDLL(str(lib))
     if cdll.air_sizes(1) != A_SIZE:
-        raise RuntimeError(f"{lib}: layout differs from chambers.py; reinstall the package")
+        raise RuntimeError(f"{cdll._name}: layout differs from chambers.py; reinstall the package")
     ptr, dbl, i32 = ctypes.c_void_p, ctypes.c_double, ctypes.c_int
     cdll.air_step.argtypes = [ptr, dbl, dbl, i32, ptr, dbl, dbl, dbl, dbl]
     cdll.air_step.restype = None

@@ -33,16 +33,15 @@ the same step runs in Python (:func:`_py_step`), slower but equal.
 from __future__ import annotations
 
 import ctypes
-import importlib.machinery
 import logging
 import math
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from ..physics.oil import Oil
 from ..physics.unit import DDHUnit
+from .compiled import package_library
 
 log = logging.getLogger(__name__)
 
@@ -58,18 +57,14 @@ HF_GAIN = 0.05                                       # HF_GAIN of _chambers.c
 
 def _library() -> ctypes.CDLL | None:
     """The compiled step, built with the package (an optional extension of pyproject.toml);
-    None where it could not be built. Only the package's own directory is searched: a
-    library loaded from a writable cache or /tmp could be planted by another user."""
-    here = Path(__file__).parent
-    found = [here / f"_chambers{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES]
-    lib = next((f for f in found if f.is_file()), None)
-    if lib is None:
+    None where it could not be built."""
+    cdll = package_library("_chambers")
+    if cdll is None:
         log.warning("dynamic mode: the compiled chamber step was not built with this install "
                     "(no C compiler?); using the Python step (~50 us per sample, equal results)")
         return None
-    cdll = ctypes.CDLL(str(lib))
     if cdll.chambers_sizes(0) != P_SIZE or cdll.chambers_sizes(1) != S_SIZE:
-        raise RuntimeError(f"{lib}: layout differs from dynamic.py; reinstall the package")
+        raise RuntimeError(f"{cdll._name}: layout differs from dynamic.py; reinstall the package")
     ptr, dbl = ctypes.c_void_p, ctypes.c_double
     cdll.chambers_step.argtypes = [ptr, ptr, dbl, dbl, dbl, dbl]
     cdll.chambers_step.restype = dbl

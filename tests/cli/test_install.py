@@ -76,10 +76,11 @@ def test_the_wheel_carries_its_data_as_real_files(venv: Path, tmp_path: Path) ->
         path = package / "data" / name
         assert path.is_file() and not path.is_symlink(), path
         assert path.read_bytes() == (REPO / "ddh_vsensor" / "data" / name).read_bytes(), name
-    # the dynamic mode's compiled step is built into the wheel where a compiler exists
+    # the chamber models' compiled steps are built into the wheel where a compiler exists
     if shutil.which("cc") or shutil.which("gcc"):
-        assert _run([venv / "bin" / "python", "-c", "from ddh_vsensor.estimator.dynamic "
-                     "import library; assert library() is not None"], tmp_path)
+        for module in ("dynamic", "chambers"):
+            assert _run([venv / "bin" / "python", "-c", f"from ddh_vsensor.estimator.{module} "
+                         "import library; assert library() is not None"], tmp_path)
     # the module entry point and the script both answer
     for cmd in ([venv / "bin" / "python", "-m", "ddh_vsensor", "--version"],
                 [venv / "bin" / "ddh-vsensor", "--version"]):
