@@ -26,6 +26,7 @@ rows in lockstep, equal to rounding.
 from __future__ import annotations
 
 import ctypes
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -46,8 +47,10 @@ SECANT_MIN_PA = 100.0                               # below: the tangent is the 
 A_PA, A_PB, A_V, A_X, A_N, A_TAU, A_RA, A_RB, A_SIZE = range(9)
 
 
-def _library() -> ctypes.CDLL | None:
-    """The compiled step, or None where the install could not build it."""
+@functools.cache
+def library() -> ctypes.CDLL | None:
+    """The compiled step, loaded once; None where the install could not build it (the numpy
+    step runs)."""
     cdll = package_library("_air_chambers")
     if cdll is None:
         return None
@@ -60,17 +63,6 @@ def _library() -> ctypes.CDLL | None:
                                ptr, ptr, ptr]
     cdll.air_track.restype = None
     return cdll
-
-
-_LIB: ctypes.CDLL | None | bool = False
-
-
-def library() -> ctypes.CDLL | None:
-    """The compiled step, loaded once (None: the numpy step runs)."""
-    global _LIB
-    if _LIB is False:
-        _LIB = _library()
-    return _LIB  # type: ignore[return-value]
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ def run(cfg):
 @pytest.fixture
 def numpy_step(monkeypatch):
     """The numpy form, as an install without a C compiler runs it."""
-    monkeypatch.setattr(ch, "_LIB", None)
+    monkeypatch.setattr(ch, "library", lambda: None)
 
 
 def _rows(run, name):
