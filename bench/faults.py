@@ -74,12 +74,8 @@ def _truth(paper: dict, actuator: str, t: np.ndarray | float) -> np.ndarray:
 
 
 def _new_service(cfg: Config, tables: dict, clock: Clock, state_dir: Path) -> Service:
-    service = Service(cfg, tables, {"interface": "virtual", "channel": "unused"},
-                      ServiceOptions(state_dir=state_dir))
-    for unit in service.units.values():
-        if unit.heartbeat is not None:
-            unit.heartbeat.clock = clock
-    return service
+    return Service(cfg, tables, {"interface": "virtual", "channel": "unused"},
+                   ServiceOptions(state_dir=state_dir), clock=clock)
 
 
 class Episode:

@@ -159,11 +159,11 @@ class Ingest:
         elif kind == "io":
             self.inputs.io(msg, now)
         elif kind == "canopen":
-            if msg.is_remote_frame or not self._canopen_allowed(msg, bus):
+            if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus):
                 return
             target.notify(msg.arbitration_id, msg.data, msg.timestamp)
         elif kind == "nmt":
-            if msg.is_remote_frame or not self._canopen_allowed(msg, bus):
+            if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus):
                 return
             network = self.networks[bus]
             network.notify(0, msg.data, msg.timestamp)
@@ -174,16 +174,16 @@ class Ingest:
         else:
             self.inputs.clash(msg)
 
-    def _canopen_allowed(self, msg: can.Message, bus: str) -> bool:
-        """A rate limiter per bus and canopen COB-ID: the excess of a flood is dropped,
-        counted."""
+    def _canopen_allowed(self, msg: can.Message, now: float, bus: str) -> bool:
+        """A rate limiter per bus and canopen COB-ID, on arrival time: the excess of a flood
+        is dropped, counted."""
         can_id = msg.arbitration_id
         limiter = self._canopen_limiters.get((bus, can_id))
         if limiter is None:
             kind = "nmt" if can_id == 0 else "sdo" if 0x600 <= can_id < 0x680 else "heartbeat"
             limiter = RateLimiter(CANOPEN_RATE_HZ[kind], CANOPEN_BURST[kind])
             self._canopen_limiters[(bus, can_id)] = limiter
-        if limiter.take(time.monotonic()):
+        if limiter.take(now):
             return True
         self.canopen_dropped += 1
         self._log.warning(f"canopen-{msg.arbitration_id}", "canopen frames on 0x%03X arrive "

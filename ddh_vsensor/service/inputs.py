@@ -126,6 +126,8 @@ class RateLimiter:
         elif now_s > last:
             self.tokens = min(self.burst, self.tokens + (now_s - last) * self.rate_hz)
             self.last_s = now_s
+        elif now_s < last:              # the clock went back: refill from here, not from
+            self.last_s = now_s         # when it catches up with the old reading
         if self.tokens >= 1.0:
             self.tokens -= 1.0
             return True
@@ -164,6 +166,7 @@ class Inputs:
         self._limiters = {i: RateLimiter(flood_rate_hz, flood_burst)
                          for i in (*self.sevcon_ids, self.oil_id, self.io_id)}
         self._last_t: dict[int, float] = {}
+        self.clock_steps_back = 0                 # frames (any input ID) older than the last
         # per unit: what its Sevcon frames are checked against and decoded with
         self._sevcon = {a: (ids[message_name("sevcon", a)], self._lengths[ids[message_name(
             "sevcon", a)]], self._limiters[ids[message_name("sevcon", a)]],
@@ -207,6 +210,7 @@ class Inputs:
     def _check_time(self, msg: can.Message, what: str) -> None:
         last = self._last_t.get(msg.arbitration_id)
         if last is not None and msg.timestamp < last:
+            self.clock_steps_back += 1
             self.log.warning(f"time-{msg.arbitration_id}", "%s frame time went back by %.6f s "
                              "(clock step?)", what, last - msg.timestamp)
         self._last_t[msg.arbitration_id] = msg.timestamp
@@ -264,6 +268,7 @@ class Inputs:
                              value, lo, hi)
             self.counts["oil_rejected"] += 1
             return False
+        self._check_time(msg, "oil temperature")
         self.oil_temp_c, self.oil_rx_s = value, now_s
         self.counts["oil"] += 1
         return True
@@ -272,6 +277,7 @@ class Inputs:
         if not (self._shape_ok(msg, "I/O module") and self._not_flooded(msg, "I/O module")):
             self.counts["io_rejected"] += 1
             return False
+        self._check_time(msg, "I/O module")
         data = bytes(msg.data)
         if data != self.io_data:
             self.io_data = data

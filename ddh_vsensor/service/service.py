@@ -89,10 +89,14 @@ class Service:
                  options: ServiceOptions | None = None,
                  notifier: SystemdNotifier | None = None,
                  opener: Callable[..., can.BusABC] | None = None,
-                 buses: dict[str, dict[str, Any]] | None = None) -> None:
+                 buses: dict[str, dict[str, Any]] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         """``bus``: the settings of the default bus (the config's ``bus:`` with command-line
-        overrides); ``buses``: settings of the other buses by name (default: the config's)."""
+        overrides); ``buses``: settings of the other buses by name (default: the config's);
+        ``clock``: monotonic time for what is not passed a time (presets, SDO reads, the
+        heartbeat consumers): a campaign driving a service never started passes its own."""
         self.cfg, self.options = cfg, options or ServiceOptions()
+        self.clock = clock
         self.faults = cfg.faults
         self.notifier = notifier or SystemdNotifier()
         self.codec = FrameCodec(cfg)
@@ -164,9 +168,9 @@ class Service:
         hb = None if hb_node is None else HeartbeatConsumer(
             network, hb_node, actuator,
             self.options.heartbeat_timeout_s or faults.heartbeat_timeout_s,
-            log_interval_s=faults.log_interval_s)
+            log_interval_s=faults.log_interval_s, clock=self.clock)
         unit = Unit(actuator, est, hb, cfg, self.inputs, self._log,
-                    lambda: self.ticker.period_s, self.options.stale_periods)
+                    lambda: self.ticker.period_s, self.options.stale_periods, clock=self.clock)
         unit.node = SensorNode(network, cfg, actuator,
                                live=lambda: self.published(unit),
                                on_preset=lambda mm: unit.preset(mm, self.published(unit)))
@@ -213,11 +217,11 @@ class Service:
             self.latency_s.append(time.time() - msg.timestamp)
 
     def stale(self, unit: Unit, now: float | None = None) -> tuple[bool, str]:
-        return unit.stale(time.monotonic() if now is None else now)
+        return unit.stale(self.clock() if now is None else now)
 
     def published(self, unit: Unit, now: float | None = None) -> Published:
         """What ``unit``'s node publishes at ``now`` (monotonic; default: now)."""
-        return unit.published(time.monotonic() if now is None else now)
+        return unit.published(self.clock() if now is None else now)
 
     # --- run / stop ----------------------------------------------------------------------------
 

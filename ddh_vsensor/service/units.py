@@ -8,8 +8,8 @@ missing, held before the first oil temperature, dropped from the backlog; longer
 ``estimator.max_gap_s``) widens the uncertainty by the worst travel possible in it,
 ``Config.max_speed_mm_s`` x its length; when that reaches the stroke the unit is "not
 referenced" until the next Hall reference. A unit is stale while no Sevcon frame was
-integrated for 3 periods (the slower of the event timer and the measured Sevcon period),
-while the newest integrated frame is older than that by its own timestamp (when frame
+integrated for 3 periods (the slower of the event timer, up to 10 ms, and the measured Sevcon
+period), while the newest integrated frame is older than that by its own timestamp (when frame
 timestamps are this host's wall clock: frames delivered late), or no oil temperature was ever
 received: position held, published speed 0, published uncertainty growing at the worst-case
 speed (capped at the stroke), Flags.STALE_INPUT set. The stale flag clears with the first
@@ -42,10 +42,14 @@ from .objects import (ABORT_DEVICE_STATE, ABORT_READ_ONLY, ABORT_VALUE_RANGE, UI
 log = logging.getLogger(__name__)
 
 STALE_PERIODS = 3.0
+# A slow event timer does not make old input fresh: inputs are read every few ms whatever
+# the tick, so the tick's period counts towards staleness only up to the default timer's
+STALE_TICK_CAP_S = 0.01
 # Frame timestamps within this of the wall clock are this host's clock (socketcan stamps on
 # reception; a remote hub passes the sender's time on): then the newest integrated frame's
 # own age says how old the published position is, delivery delays included.
 WALL_CLOCK_MATCH_S = 5.0
+WALL_STEP_MIN_S = 0.005       # wall clock slews (NTP) below this: no step
 # The largest uncertainty the diagnostic frame can carry (UNSIGNED24 counts): a bound beyond
 # it is published as "not referenced".
 UNCERTAINTY_MAX_MM = UINT24_MAX * UNCERTAINTY_STEP_MM
@@ -79,6 +83,8 @@ class Unit:
     last_step: Step | None = None
     last_frame_t: float | None = None        # timestamp of the last integrated Sevcon frame
     last_rx_s: float | None = None           # monotonic time it was integrated
+    last_wall_offset_s: float = 0.0          # wall less monotonic clock then
+    last_steps_back: int = 0                 # Inputs.clock_steps_back then
     input_period_s: float | None = None      # measured Sevcon period (smoothed)
     integrated: int = 0
     held: int = 0                            # frames not integrated: no oil temperature yet
@@ -97,6 +103,7 @@ class Unit:
     provisional: bool = False
     presets_accepted: int = 0
     presets_refused: int = 0
+    clock: Callable[[], float] = time.monotonic  # the service's monotonic time (a test's own)
 
     def __post_init__(self) -> None:
         self.max_speed_mm_s = self.cfg.max_speed_mm_s(self.actuator)
@@ -146,15 +153,19 @@ class Unit:
             return False
         est = self.estimator
         since = self.last_frame_t if self.last_frame_t is not None else self.first_held_t
+        wall_s = time.time()
+        wall_offset_s = wall_s - time.monotonic()
         if since is not None:
             dt = sample.t_s - since
-            if 0.0 < dt <= est.max_gap_s and self.last_frame_t is not None:
+            untracked_s = self.untracked_s(dt, now, sample.t_s, wall_s, wall_offset_s)
+            if 0.0 < dt <= est.max_gap_s and untracked_s <= est.max_gap_s \
+                    and self.last_frame_t is not None:
                 self.input_period_s = dt if self.input_period_s is None else \
                     0.9 * self.input_period_s + 0.1 * dt
-            elif dt > est.max_gap_s or self.last_frame_t is None:
+            elif untracked_s > est.max_gap_s or self.last_frame_t is None:
                 # not integrated by the estimator: only the worst case is known
-                self.widen(self.max_speed_mm_s * max(dt, 0.0),
-                           f"{dt:.3f} s without integrated Sevcon frames")
+                self.widen(self.max_speed_mm_s * max(untracked_s, 0.0),
+                           f"{untracked_s:.3f} s without integrated Sevcon frames")
             elif dt <= 0.0 and self.last_rx_s is not None:
                 # the frame's clock went back: the estimator skips this interval; its length
                 # is the arrival gap, at least one input period
@@ -166,6 +177,8 @@ class Unit:
                         self.inputs.refs(self.actuator))
         self.last_step = step
         self.last_frame_t, self.last_rx_s = sample.t_s, now
+        self.last_wall_offset_s = wall_offset_s
+        self.last_steps_back = self.inputs.clock_steps_back
         self.integrated += 1
         if step.reference is not None and not was_referenced:
             # Taken in full from an unreferenced estimate: the edge lies somewhere within its
@@ -188,6 +201,24 @@ class Unit:
                           f"{step.reference_gain:.0%} taken", step.position_mm,
                           step.uncertainty_mm)
         return True
+
+    def untracked_s(self, dt: float, now: float, t_s: float, wall_s: float,
+                    wall_offset_s: float) -> float:
+        """How long the machine may have moved since the last integrated frame, by the
+        clocks that can be trusted. Frames stamped by this host's wall clock: their interval,
+        less any step of the wall clock against the monotonic one since (an NTP step during a
+        gap hides travel). Frames stamped by another clock (an interface's own, a campaign's):
+        their interval, unless that clock was seen going back (on any input) since; then the
+        longer of it and the arrival interval, which a step never shortens (and a backlog read
+        late lengthens: counted as travel, the safe side)."""
+        if self.last_rx_s is None or dt <= 0.0:
+            return dt
+        if abs(wall_s - t_s) < WALL_CLOCK_MATCH_S:
+            stepped_s = wall_offset_s - self.last_wall_offset_s
+            return dt - stepped_s if abs(stepped_s) > WALL_STEP_MIN_S else dt
+        if self.inputs.clock_steps_back != self.last_steps_back:
+            return max(dt, now - self.last_rx_s)
+        return dt
 
     def preset(self, position_mm: float, published: Published) -> None:
         """An SDO write of the preset (0x6010): accepted only as configured
@@ -220,7 +251,7 @@ class Unit:
         est.preset(position_mm, self.cfg.estimator.uncertainty_reference_mm)
         est.referenced = False                       # provisional: see Unit.provisional
         if self.stale_since_s is not None:
-            self.stale_since_s = time.monotonic()    # worst-case travel counts from here
+            self.stale_since_s = self.clock()       # worst-case travel counts from here
         self.preset_pending = self.provisional = True
         self.presets_accepted += 1
         self.log.info(f"preset-{self.actuator}", "%s: preset accepted: %.3f mm -> %.3f mm "
@@ -236,7 +267,7 @@ class Unit:
     def stale(self, now: float) -> tuple[bool, str]:
         if self.inputs.oil_temp_c is None:
             return True, "no oil temperature yet"
-        period = max(self.tick_period_s(), self.input_period_s or 0.0)
+        period = max(min(self.tick_period_s(), STALE_TICK_CAP_S), self.input_period_s or 0.0)
         if self.last_rx_s is None:
             return True, "no Sevcon frame yet"
         limit_s = self.stale_periods * period

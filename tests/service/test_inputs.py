@@ -39,3 +39,10 @@ def test_hall_states_follow_the_configured_bits(cfg) -> None:
     assert inputs.io(msg, 0.0)
     assert inputs.refs("boom") == {"bottom": False, "mid": True, "top": False}
     assert inputs.refs("bucket") == {"bottom": False, "mid": False, "top": True}
+
+
+def test_rate_limiter_refills_after_its_clock_steps_back() -> None:
+    """A frame clock stepped back 2 s must not starve the limiter until it catches up."""
+    limiter = RateLimiter(rate_hz=100.0, burst=2)
+    assert all(limiter.take(100.0 + k * 0.01) for k in range(100))
+    assert sum(limiter.take(98.0 + k * 0.01) for k in range(1, 101)) >= 99

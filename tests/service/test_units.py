@@ -1,0 +1,90 @@
+"""What a unit counts as travel it did not integrate, when the clocks disagree: a frame clock
+that stepped back during a gap (seen on another input) must not shorten the gap; a backlog read
+late is no gap; a wall clock step (frames stamped by this host) is taken out of the interval."""
+
+from __future__ import annotations
+
+import pytest
+
+from ddh_vsensor.canbus.dbc import FrameCodec
+from ddh_vsensor.service import Service, ServiceOptions
+
+from .conftest import channel_name
+
+PERIOD_S = 0.01
+RPM = 1500.0
+
+
+class Driven:
+    """A service never started, driven frame by frame on its own monotonic clock."""
+
+    def __init__(self, cfg, unit_tables) -> None:
+        self.now = 1000.0
+        self.service = Service(cfg, unit_tables, {"interface": "virtual",
+                                                  "channel": channel_name()},
+                               ServiceOptions(), clock=lambda: self.now)
+        self.codec = FrameCodec(cfg)
+
+    def send(self, msg, now: float) -> None:
+        self.now = now
+        self.service.ingest.handle([msg], now)
+
+    def run(self, units: tuple[str, ...], stamp0: float, now0: float, n: int) -> None:
+        """``n`` frames of each of ``units`` every PERIOD_S; frame stamps from ``stamp0``
+        (a clock that is not this host's), arrival from ``now0``."""
+        for k in range(n):
+            for unit in units:
+                rpm = RPM if unit == "boom" else 0.0
+                self.send(self.codec.encode_sevcon(unit, 4.0, rpm, stamp0 + k * PERIOD_S),
+                          now0 + k * PERIOD_S)
+
+
+@pytest.fixture
+def driven(cfg, unit_tables) -> Driven:
+    d = Driven(cfg, unit_tables)
+    d.send(d.codec.encode_oil_temp(30.0, 50.0), d.now)
+    d.run(("boom", "bucket"), 50.0, 1000.0, 50)          # 0.5 s of both, in step
+    return d
+
+
+def test_a_clock_step_back_during_a_gap_does_not_shorten_it(driven, cfg) -> None:
+    boom = driven.service.units["boom"]
+    widened = boom.gap_widening_mm
+    # 0.6 s without boom frames; the bucket's go on, and their clock steps back 0.5 s
+    driven.run(("bucket",), 50.5, 1000.5, 10)
+    driven.run(("bucket",), 50.1, 1000.6, 50)
+    driven.run(("boom", "bucket"), 50.6, 1001.1, 5)      # boom back: frame gap 0.1 s, truly 0.6
+    arrival_gap_s = 1001.1 - (1000.0 + 49 * PERIOD_S)
+    assert boom.gap_widening_mm - widened == pytest.approx(
+        cfg.max_speed_mm_s("boom") * arrival_gap_s, rel=1e-6)
+
+
+def test_without_a_step_the_frame_clock_is_trusted(driven, cfg) -> None:
+    """The same arrival gap, frames continuous by their own clock: a backlog read late."""
+    boom = driven.service.units["boom"]
+    gaps = boom.gaps
+    driven.run(("boom", "bucket"), 50.5, 1001.1, 5)
+    assert boom.gaps == gaps
+
+
+def test_a_wall_clock_step_is_taken_out_of_the_frame_interval(driven) -> None:
+    """Frames stamped by this host: the wall clock stepped back 1.5 s during a 2 s gap, so
+    their interval says 0.5 s; the step against the monotonic clock gives the 2 s back. Read
+    late with no step: the frame interval stands."""
+    boom = driven.service.units["boom"]
+    wall_s = 1.8e9
+    boom.last_rx_s, boom.last_wall_offset_s = 1000.0, wall_s - 1000.0
+    assert boom.untracked_s(0.5, 1002.0, wall_s - 1.5 + 2.0, wall_s - 1.5 + 2.0,
+                            wall_s - 1000.0 - 1.5) == pytest.approx(2.0)
+    assert boom.untracked_s(0.01, 1000.5, wall_s + 0.01, wall_s + 0.5,
+                            wall_s - 1000.0) == pytest.approx(0.01)
+
+
+def test_a_slow_event_timer_does_not_make_old_input_fresh(driven) -> None:
+    """At a 1 s event timer, 0.1 s without Sevcon frames (10 of their periods) is stale: the
+    published value would otherwise stand for motion it never saw, unflagged, for 3 s."""
+    boom = driven.service.units["boom"]
+    boom.tick_period_s = lambda: 1.0
+    last = boom.last_rx_s
+    assert not driven.service.stale(boom, last + 0.02)[0]
+    assert driven.service.stale(boom, last + 0.1)[0]
