@@ -18,11 +18,17 @@ def _heartbeats(master, mark: int, node_id: int) -> list[int]:
 
 
 def _state_after(master, node_id: int, state: int, count: int = 3) -> int:
-    """Mark, then wait for ``count`` heartbeats saying ``state``; the mark."""
+    """Wait for ``count`` heartbeats saying ``state``; the mark just after the first of them.
+
+    The node acts on an NMT command at its next tick, so frames between the command and
+    that first heartbeat may still belong to the old state; none after it may."""
     mark = master.frames.mark()
     wait_for(lambda: _heartbeats(master, mark, node_id).count(state) >= count,
              f"{count} heartbeats in state {state}")
-    return mark
+    frames = master.frames.since(mark)
+    first = next(i for i, m in enumerate(frames)
+                 if m.arbitration_id == 0x700 + node_id and m.data[0] == state)
+    return mark + first + 1
 
 
 def test_auto_start_off_boots_pre_operational_until_the_master_starts_it(
