@@ -169,7 +169,7 @@ def main() -> None:
                          "(keeps the other figures of bench/results/fleet.json)")
     args = ap.parse_args()
     cfg = load_config(None)
-    plan = plan_fleet(cfg.unit_names, args.machines, args.days, args.seed, args.log_s)
+    plan = plan_fleet(cfg, args.machines, args.days, args.seed, args.log_s)
     logs_dir, work = Path(args.logs), Path(args.work)
     present = {p.name for p in logs_dir.glob("*.blf")} if logs_dir.is_dir() else set()
     hours = {m.name: 1000.0 * (int(m.name[1:]) % 3) for m in plan.machines}

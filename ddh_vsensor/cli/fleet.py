@@ -163,7 +163,7 @@ def _simulate(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..sim.fleet import LOG_S, plan_fleet, simulate_fleet
     cfg = load_config(args.config)
-    plan = plan_fleet(cfg.unit_names, args.machines, args.days, args.seed, args.log_s or LOG_S)
+    plan = plan_fleet(cfg, args.machines, args.days, args.seed, args.log_s or LOG_S)
     bar = ProgressBar("simulate fleet")
     written = simulate_fleet(cfg, plan, args.out, progress=bar.update)
     bar.close(f"{len(written)} logs")

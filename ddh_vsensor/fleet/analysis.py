@@ -92,7 +92,10 @@ class FleetBench(Workbench):
 def fit_log(cfg: Config, rr: ReferenceRun, actuator: str,
             causes: Sequence[str] = tuple(GRIDS), table_dir: Path | None = None) -> list[dict]:
     """One log's rows: per cause its grid, squared error and largest increment change."""
-    bench = FleetBench(cfg, actuator, [rr.run], cfg.estimator.mode, table_dir)
+    # the causes extend the tables' modes: a `dynamic` default is analysed as `full` (as
+    # `analyze` does; dynamic's chamber model would not see the scaled pumps' tables)
+    mode = cfg.estimator.mode if cfg.estimator.mode != "dynamic" else "full"
+    bench = FleetBench(cfg, actuator, [rr.run], mode, table_dir)
     nominal = rr.observe(bench.base[0])
     n_inc = rr.n_increments
     rows = []

@@ -3,8 +3,17 @@
 Every machine has its own small, constant deviations (pump leakage x0.85..1.15, displacement
 within +-0.3 %: inside what the diagnosis resolves). Some machines wear: one unit's pump
 leakage rises linearly from a day on, or the drive's logged signals drift in time against the
-I/O module's (a time offset growing from a day on: the sensor chain drifting). Rates are
-drawn so that the error would cross a few millimetres two to three weeks after the onset.
+I/O module's (a time offset growing from a day on: the sensor chain drifting).
+
+Wear rates: drawn is the time from the onset until the expected position error first
+exceeds :data:`CROSS_MM` (2..3 weeks, uniform, whole days); the rate is then solved for from
+the worn unit's own sensitivity on the machine's own days (the error per unit of the
+parameter on each day's work, payload and oil; :func:`expected_error_mm` takes the median
+over a day and the two before, as the analysis does) and, for leakage, from the unit's own
+base factor. The day-to-day scatter of the work moves the first crossing a few days either
+way of the drawn one. A fixed rate per effect would not do: a time offset's error grows with
+the unit's speeds, a leakage's with its load, oil and pumps, so the faster unit would cross
+within a week of the onset and no warning could come a week ahead of it.
 
 Each day's log: ``LOG_S`` of point-to-point work of every unit between holds, passing the
 Hall switches (the ends and the middle), a payload of the day, oil from a morning
@@ -17,7 +26,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -26,16 +35,24 @@ import numpy as np
 from ..atomic import output_dir
 from ..config import Config
 from ..errors import UserError
+from ..physics.steady import holding_speed, steady_state, steady_state_at_torque
+from ..physics.unit import DDHUnit
 from .cycles import Profile, Trajectory, work_unit
 from .effects import UnitEffects
 from .run import RunSpec, simulate_campaign
-from .sensors import SensorSettings
+from .sensors import SensorSettings, hall_switch
 
 LOG_S = 60.0
 STEP_S = 2.0e-3                 # plant step: within 0.1 mm of 1 ms on these cycles, 1.4x faster
 START_DATE = dt.datetime(2026, 1, 5, 7, 0, tzinfo=dt.timezone.utc)
 HOURS_PER_DAY = 7.5             # operating hours a working day adds
 WEAR_SHARE = 0.3                # share of machines that wear
+CROSS_MM = 3.0                  # expected error a wear reaches 2..3 weeks after its onset
+CROSS_WEEKS = (2.0, 3.0)
+PAYLOADS_KG = (0.0, 300.0, 600.0, 1040.0)
+MORNING_OIL_C = (22.0, 34.0)
+OIL_WARMING_C_PER_S = 0.1
+SAMPLE_S = 0.01                 # sampling of a day's setpoints for its Hall edges
 Progress = Callable[[float], None]
 
 
@@ -77,16 +94,19 @@ class FleetPlan:
     log_s: float = LOG_S
 
 
-def plan_fleet(units: Sequence[str], machines: int, days: int, seed: int = 0,
-               log_s: float = LOG_S,
-               wear_share: float = WEAR_SHARE) -> FleetPlan:
-    """Draw every machine's deviations and (for some) its wear."""
+def plan_fleet(cfg: Config, machines: int, days: int, seed: int = 0,
+               log_s: float = LOG_S, wear_share: float = WEAR_SHARE,
+               cross_mm: float = CROSS_MM) -> FleetPlan:
+    """Draw every machine's deviations and (for some) its wear: the unit, the effect, the
+    onset day and the weeks until the expected error crosses ``cross_mm``; the rate follows
+    from the unit's sensitivity on the machine's own days (see the module's docstring)."""
     if not 1 <= machines <= 1000:
         raise UserError(f"--machines {machines}: 1..1000")
     if not 2 <= days <= 3650:
         raise UserError(f"--days {days}: 2..3650")
     if not 20.0 <= log_s <= 3600.0:
         raise UserError(f"log length {log_s:g} s: 20..3600 s")
+    units = cfg.unit_names
     rng = np.random.default_rng([seed, 7])
     n_wear = int(round(wear_share * machines))
     wearing = set(rng.choice(machines, size=n_wear, replace=False).tolist()) if n_wear else set()
@@ -95,16 +115,87 @@ def plan_fleet(units: Sequence[str], machines: int, days: int, seed: int = 0,
         base = {a: {"pump_leakage": float(rng.uniform(0.85, 1.15)),
                     "displacement": float(1.0 + rng.uniform(-0.003, 0.003))}
                 for a in units}
-        wear = None
+        drawn = None
         if m in wearing:
             actuator = units[int(rng.integers(len(units)))]
             effect = "pump_leakage" if rng.random() < 0.6 else "time_offset"
             start = int(rng.integers(1, max(2, days // 5)))
-            weeks = float(rng.uniform(2.0, 3.0))          # onset to a few mm of error
-            rate = (1.0 if effect == "pump_leakage" else 0.05) / (7.0 * weeks)
-            wear = Wear(actuator, effect, start, rate)
-        plans.append(MachinePlan(f"M{m:02d}", base, wear, seed=int(rng.integers(2 ** 31))))
+            weeks = float(rng.uniform(*CROSS_WEEKS))
+            drawn = (actuator, effect, start, round(7.0 * weeks))
+        plan = MachinePlan(f"M{m:02d}", base, None, seed=int(rng.integers(2 ** 31)))
+        if drawn is not None:
+            plan = replace(plan, wear=_wear_crossing(cfg, seed, plan, *drawn, log_s, cross_mm))
+        plans.append(plan)
     return FleetPlan(plans, days, seed, log_s)
+
+
+def _wear_crossing(cfg: Config, seed: int, plan: MachinePlan, actuator: str, effect: str,
+                   start: int, after_days: int, log_s: float, cross_mm: float) -> Wear:
+    """The wear that takes the error from the unit's base value to ``cross_mm``
+    ``after_days`` after the onset at the unit's median sensitivity over those days (the
+    error is linear in the parameter's distance from neutral; the day-to-day scatter of
+    the work moves the first crossing by a few days either way)."""
+    sens = float(np.median([_day_sensitivity_mm(cfg, actuator, effect, seed, plan.seed, d,
+                                                log_s)
+                            for d in range(start, start + after_days + 1)]))
+    neutral = getattr(UnitEffects(), effect)
+    crossing = neutral + cross_mm / sens
+    base = plan.base[actuator].get(effect, neutral)
+    return Wear(actuator, effect, start, (crossing - base) / after_days)
+
+
+def expected_error_mm(cfg: Config, plan: FleetPlan, machine: MachinePlan, day: int
+                      ) -> float:
+    """The expected position error (mm) of a machine's wearing unit on a day (0 without
+    wear): per day of the day and the two before (the recent work the analysis judges on),
+    the day's sensitivity times the parameter's distance from neutral; their median."""
+    w = machine.wear
+    if w is None:
+        return 0.0
+    neutral = getattr(UnitEffects(), w.effect)
+    return float(np.median([
+        _day_sensitivity_mm(cfg, w.actuator, w.effect, plan.seed, machine.seed, d, plan.log_s)
+        * abs(getattr(machine.effects(d)[w.actuator], w.effect) - neutral)
+        for d in range(max(0, day - 2), day + 1)]))
+
+
+def _day_sensitivity_mm(cfg: Config, unit: str, effect: str, fleet_seed: int,
+                        machine_seed: int, day: int, log_s: float) -> float:
+    """Expected position error per unit of the wear's parameter (per second of time offset,
+    per 1.0 of leakage factor) on one day of a machine's work (the day's profile, payload
+    and oil of :func:`day_spec`): the largest change the wear makes to an edge-to-edge
+    increment of the estimate (0 with fewer than two Hall edges: nothing to change).
+
+    A time offset shifts the logged speed against the Hall edges: an increment changes by
+    the offset times the difference of the speeds at its two edges. Extra leakage lets the
+    load sink while the drive's speed and torque say it stands: an increment changes by that
+    creep (the nominal model's speed at the worn unit's holding speed and torque) times the
+    time between its edges. Both from the configuration and the steady-state model."""
+    if effect not in ("time_offset", "pump_leakage"):
+        raise ValueError(f"no wear sensitivity for {effect!r}")
+    ucfg = cfg.unit(unit)
+    rng = np.random.default_rng([fleet_seed, machine_seed, day])
+    morning_c, profile, payload_kg = _day_conditions(cfg, rng, log_s)
+    t = np.arange(0.0, profile.duration_s, SAMPLE_S)
+    x_mm, v_mm_s = profile.trajectories[unit].evaluate(t)
+    changed = np.zeros(len(t), bool)
+    for pos in ucfg.references_mm.values():
+        state = hall_switch(x_mm, pos, ucfg.reference_window_mm, ucfg.reference_hysteresis_mm)
+        changed[1:] |= np.diff(state.astype(int)) != 0
+    edges = np.flatnonzero(changed)
+    if len(edges) < 2:
+        return 0.0
+    if effect == "time_offset":
+        return float(np.max(np.abs(np.diff(v_mm_s[edges]))))
+    nominal = DDHUnit.from_config(cfg, unit)
+    worn = nominal.with_pumps(leakage=2.0)
+    oil_c = morning_c + OIL_WARMING_C_PER_S * profile.duration_s / 2
+    force = nominal.load_force_n(payload_kg)
+    n = holding_speed(worn, force, oil_c).speed_rpm
+    torque = steady_state(worn, n, force, oil_c).torque_nm
+    creep_mm_s = 1e3 * abs(float(steady_state_at_torque(nominal, n, torque,
+                                                         oil_c).velocity_m_s))
+    return creep_mm_s * float(np.max(np.diff(t[edges])))
 
 
 def work_profile(cfg: Config, rng: np.random.Generator, duration_s: float) -> Profile:
@@ -130,14 +221,22 @@ def work_profile(cfg: Config, rng: np.random.Generator, duration_s: float) -> Pr
         for a, (t, x) in knots.items()}, end)
 
 
+def _day_conditions(cfg: Config, rng: np.random.Generator, log_s: float
+                    ) -> tuple[float, Profile, float]:
+    """A day's morning oil (degC), work and payload (kg)."""
+    morning_c = float(rng.uniform(*MORNING_OIL_C))
+    profile = work_profile(cfg, rng, log_s)
+    return morning_c, profile, float(rng.choice(PAYLOADS_KG))
+
+
 def day_spec(cfg: Config, plan: FleetPlan, machine: MachinePlan, day: int) -> RunSpec:
     rng = np.random.default_rng([plan.seed, machine.seed, day])
-    morning_c = float(rng.uniform(22.0, 34.0))
-    return RunSpec(cycle=work_profile(cfg, rng, plan.log_s),
-                   payload_kg=float(rng.choice([0.0, 300.0, 600.0, 1040.0])),
+    morning_c, profile, payload_kg = _day_conditions(cfg, rng, plan.log_s)
+    return RunSpec(cycle=profile, payload_kg=payload_kg,
                    oil_temp_c=morning_c, effects=machine.effects(day),
                    seed=int(rng.integers(2 ** 31)),
-                   sensors=replace(SensorSettings(), oil_temp_drift_c_per_s=0.1),
+                   sensors=replace(SensorSettings(),
+                                   oil_temp_drift_c_per_s=OIL_WARMING_C_PER_S),
                    step_s=STEP_S)
 
 

@@ -10,14 +10,14 @@ import pytest
 
 from ddh_vsensor.cli.main import main
 
-MACHINES, DAYS, LOG_S = 3, 3, 30
+MACHINES, DAYS, LOG_S, SEED = 3, 3, 30, 11
 
 
 @pytest.fixture(scope="session")
 def fleet_logs(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("fleet") / "logs"
     assert main(["simulate", "fleet", "--machines", str(MACHINES), "--days", str(DAYS),
-                 "--log-s", str(LOG_S), "--seed", "11", "--out", str(out)]) == 0
+                 "--log-s", str(LOG_S), "--seed", str(SEED), "--out", str(out)]) == 0
     return out
 
 
