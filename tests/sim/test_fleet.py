@@ -1,6 +1,6 @@
 """The simulated fleet's plan: wear rates from each unit's own sensitivity, so that every
 wearing unit's expected error crosses the tolerance two to three weeks after its onset
-(``tests/fleet/test_ingest.py`` checks the sensitivity against the analysis's replay)."""
+(``tests/fleet/test_analysis.py`` checks the sensitivity against the analysis's replay)."""
 
 from __future__ import annotations
 
