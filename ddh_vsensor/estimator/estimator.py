@@ -9,6 +9,7 @@ whatever was travelled since the edge) and teaches the gains.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +31,7 @@ from .references import Debouncer, Switch, accepted_edges, switches_from_config
 from .state import EstimatorState
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
+LATE_EDGE_MAX_S = 0.1       # an I/O frame read later than this: its edge is taken where seen
 # The flags as plain ints for the per-sample path (IntFlag arithmetic costs a microsecond)
 _NOT_REFERENCED, _ADAPTING, _AT_SOFT_LIMIT, _STALE_INPUT, _TABLE_CLAMPED = (
     int(f) for f in (Flags.NOT_REFERENCED, Flags.ADAPTING, Flags.AT_SOFT_LIMIT,
@@ -233,11 +235,32 @@ class Estimator:
         return self._clip(x_now - k * error), ReferenceEvent(
             index, snap.index, sw.name, rising, p, error, adapted, k)
 
+    def _edge_snapshot(self, index: int, x: float, dx: float, v: float, t_s: float,
+                       dt: float, since_s: float | None) -> _Snapshot:
+        """The estimate at an edge seen in this sample (``t_s``, ``dt`` after the one before).
+        A state that holds since before the previous sample changed whole samples ago: their
+        travel (at this sample's velocity, up to :data:`LATE_EDGE_MAX_S`; later than that, the
+        edge is taken here) is taken out, as if the edge had been seen in the first sample
+        after it."""
+        on = self._on
+        lag_s = 0.0
+        if since_s is not None and dt > 0.0:
+            lag_s = math.floor((t_s - since_s) / dt) * dt
+        if not 0.0 < lag_s <= LATE_EDGE_MAX_S:
+            return _Snapshot(index, x, dx, v, on.s_up, on.s_down)
+        back = v * lag_s                                   # raw travel since the edge
+        gain = self.gain._up if back > 0.0 else self.gain._down
+        return _Snapshot(index, x - gain * back, dx, v, on.s_up - max(back, 0.0),
+                         on.s_down - min(back, 0.0))
+
     # --- online face -----------------------------------------------------------------------
 
     def step(self, t_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float,
-             refs: Mapping[str, bool] | None = None) -> Step:
-        """One sample in, position out. ``refs`` holds the Hall switch states by name.
+             refs: Mapping[str, bool] | None = None, refs_since_s: float | None = None) -> Step:
+        """One sample in, position out. ``refs`` holds the Hall switch states by name, and
+        ``refs_since_s`` (when known) the time since which they hold: before the previous
+        sample (the I/O frame read late, e.g. from another bus), an edge in them is taken
+        back to that time (:meth:`_edge_snapshot`).
 
         Runs per Sevcon frame: plain floats and locals throughout; :meth:`_clip`,
         :meth:`.DirectionalGain.scale`, :meth:`state_flags` and :attr:`uncertainty_mm` are
@@ -287,7 +310,8 @@ class Estimator:
                 edge = deb.update(t_s, bool(raw), index)
                 if deb.candidate_since_s is not None and not waiting or (
                         edge is not None and edge[0] == index):
-                    on.snapshots[i] = _Snapshot(index, x, x - before, v, on.s_up, on.s_down)
+                    on.snapshots[i] = self._edge_snapshot(index, x, x - before, v, t_s, dt,
+                                                          refs_since_s)
                 if edge is not None:
                     accepted = accepted or []
                     accepted.append((sw, edge[1], on.snapshots[i]))

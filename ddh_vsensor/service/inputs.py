@@ -12,6 +12,7 @@ emulated nodes) to the same rate.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import time
@@ -36,6 +37,10 @@ OIL_TEMP_RANGE_C = (-40.0, 150.0)
 # The fastest legitimate input is a 1 ms TPDO (1000 frames/s).
 FLOOD_RATE_HZ = 2500.0
 FLOOD_BURST = 50
+# Hall states by time: the I/O module's last state changes kept, and how far apart the I/O
+# and Sevcon frame clocks may be for a lookup by time to mean anything.
+IO_CHANGES_KEPT = 32
+IO_CLOCK_MATCH_S = 1.0
 
 
 class LogLimiter(logging.Filter):
@@ -177,7 +182,12 @@ class Inputs:
         self.oil_temp_c: float | None = None
         self.oil_rx_s: float | None = None        # monotonic receipt time of the last oil frame
         self.io_data: bytes | None = None
-        self._refs_cache: dict[str, dict[str, bool]] = {}
+        self.io_t_s: float | None = None          # timestamp of the latest I/O frame
+        # the I/O module's state changes (frame time, data), oldest first
+        self._io_changes_t: list[float] = []
+        self._io_changes: list[bytes] = []
+        self.refs_since_s: float | None = None    # see refs()
+        self._refs_cache: dict[tuple[str, bytes], dict[str, bool]] = {}
 
     # --- checks shared by all inputs ---------------------------------------------------
 
@@ -278,22 +288,41 @@ class Inputs:
             self.counts["io_rejected"] += 1
             return False
         self._check_time(msg, "I/O module")
-        data = bytes(msg.data)
-        if data != self.io_data:
-            self.io_data = data
-            self._refs_cache.clear()
+        data, t_s = bytes(msg.data), msg.timestamp
+        if self.io_t_s is not None and t_s < self.io_t_s:
+            self._io_changes_t.clear()            # its clock went back: earlier times are void
+            self._io_changes.clear()
+        if data != self.io_data or not self._io_changes:
+            self._io_changes_t.append(t_s)
+            self._io_changes.append(data)
+            if len(self._io_changes) > IO_CHANGES_KEPT:
+                del self._io_changes_t[0], self._io_changes[0]
+        self.io_data, self.io_t_s = data, t_s
         self.counts["io"] += 1
         return True
 
-    def refs(self, actuator: str) -> dict[str, bool] | None:
-        """Hall switch states of a unit from the latest I/O frame (None before the first)."""
-        if self.io_data is None:
+    def refs(self, actuator: str, t_s: float | None = None) -> dict[str, bool] | None:
+        """Hall switch states of a unit (None before the first I/O frame): at frame time
+        ``t_s`` when given, else the latest. The I/O module may sit on another bus than the
+        unit's controller, and two buses are read one after the other: an I/O frame can be
+        handled before Sevcon frames older than it, and a Hall edge applied to them would be
+        taken early by that much travel. So a Sevcon sample gets the state of the last I/O
+        frame not younger than itself (frame clocks alike, within ``IO_CLOCK_MATCH_S``).
+        :attr:`refs_since_s` is then the frame time since which the returned states hold."""
+        data = self.io_data
+        if data is None:
             return None
-        cached = self._refs_cache.get(actuator)
+        self.refs_since_s = self._io_changes_t[-1]
+        if t_s is not None and t_s < self.io_t_s and self.io_t_s - t_s < IO_CLOCK_MATCH_S:
+            k = max(bisect.bisect_right(self._io_changes_t, t_s) - 1, 0)
+            data, self.refs_since_s = self._io_changes[k], self._io_changes_t[k]
+        cached = self._refs_cache.get((actuator, data))
         if cached is None:
+            if len(self._refs_cache) > 4 * IO_CHANGES_KEPT:
+                self._refs_cache.clear()
             cached = {name: bool(state)
-                      for name, state in self.codec.hall_states(actuator, self.io_data).items()}
-            self._refs_cache[actuator] = cached
+                      for name, state in self.codec.hall_states(actuator, data).items()}
+            self._refs_cache[(actuator, data)] = cached
         return cached
 
     def unknown(self, msg: can.Message) -> None:

@@ -173,8 +173,9 @@ class Unit:
                 self.widen(self.max_speed_mm_s * gap_s, "Sevcon frame time went back")
         self.first_held_t = None
         was_referenced = est.referenced
-        step = est.step(sample.t_s, sample.speed_rpm, sample.torque_nm, oil,
-                        self.inputs.refs(self.actuator))
+        refs = self.inputs.refs(self.actuator, sample.t_s)
+        step = est.step(sample.t_s, sample.speed_rpm, sample.torque_nm, oil, refs,
+                        self.inputs.refs_since_s if refs is not None else None)
         self.last_step = step
         self.last_frame_t, self.last_rx_s = sample.t_s, now
         self.last_wall_offset_s = wall_offset_s

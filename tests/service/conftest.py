@@ -22,6 +22,7 @@ from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.steady import holding_speed, steady_state
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.service import Service, ServiceOptions
+from ddh_vsensor.service.inputs import Inputs
 from ddh_vsensor.service.replay import machine_frames
 from ddh_vsensor.sim.sensors import hall_switch
 
@@ -130,31 +131,13 @@ class Offline:
 def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[can.Message],
                      preset_mm: float | None = None,
                      state: EstimatorState | None = None) -> Offline:
-    """The offline estimator on the frames as the service received them (arrival order):
-    each Sevcon frame with the latest oil temperature and Hall byte before it."""
+    """The estimator stepped over the frames as the service received them (arrival order):
+    each Sevcon frame with the latest oil temperature and the Hall states at its time (the
+    service's :class:`Inputs` lookup: an I/O frame may come from another bus)."""
     codec = FrameCodec(cfg)
+    inputs = Inputs(cfg, codec)
     sevcon_id = codec.ids[message_name("sevcon", actuator)]
     oil_id, io_id = codec.ids[OIL_TEMP], codec.ids[IO_MODULE]
-    oil = io = None
-    t, n, tq, temp = [], [], [], []
-    refs: dict[str, list[int]] = {name: [] for name in cfg.unit(actuator).references_mm}
-    held = 0
-    for msg in frames:
-        if msg.arbitration_id == oil_id:
-            oil = codec.decode(msg)[1]["OilTemp"]
-        elif msg.arbitration_id == io_id:
-            io = codec.hall_states(actuator, msg.data)
-        elif msg.arbitration_id == sevcon_id:
-            if oil is None:
-                held += 1
-                continue
-            s = codec.decode(msg)[1]
-            t.append(msg.timestamp)
-            n.append(s["VelocityActual"])
-            tq.append(s["TorqueActual"])
-            temp.append(oil)
-            for name in refs:
-                refs[name].append(io[name] if io else 0)
     est = Estimator(cfg, actuator, tables[actuator])
     if state is not None:
         est.restore(state)
@@ -164,8 +147,24 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
     if preset_mm is not None:
         est.preset(preset_mm, cfg.estimator.uncertainty_reference_mm)
         est.referenced = False      # the service's presets are provisional: never learned from
-    result = est.run(t, n, tq, temp, refs if io is not None else None)
-    return Offline(result.position_mm, held)
+    oil = None
+    positions: list[float] = []
+    held = 0
+    for msg in frames:
+        if msg.arbitration_id == oil_id:
+            oil = codec.decode(msg)[1]["OilTemp"]
+        elif msg.arbitration_id == io_id:
+            inputs.io(msg, 0.0)
+        elif msg.arbitration_id == sevcon_id:
+            if oil is None:
+                held += 1
+                continue
+            s = codec.decode(msg)[1]
+            refs = inputs.refs(actuator, msg.timestamp)
+            positions.append(est.step(msg.timestamp, s["VelocityActual"], s["TorqueActual"],
+                                      oil, refs, inputs.refs_since_s if refs else None
+                                      ).position_mm)
+    return Offline(np.asarray(positions), held)
 
 
 def on_buses(cfg: Config, placement: dict[str, str],

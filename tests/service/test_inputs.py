@@ -46,3 +46,21 @@ def test_rate_limiter_refills_after_its_clock_steps_back() -> None:
     limiter = RateLimiter(rate_hz=100.0, burst=2)
     assert all(limiter.take(100.0 + k * 0.01) for k in range(100))
     assert sum(limiter.take(98.0 + k * 0.01) for k in range(1, 101)) >= 99
+
+
+def test_hall_states_at_a_frame_time_are_those_of_the_io_frame_before_it(cfg) -> None:
+    """A sample gets the state of the last I/O frame not younger than itself; before the
+    first kept change, the oldest; with the clocks far apart (another epoch), the latest."""
+    codec = FrameCodec(cfg)
+    inputs = Inputs(cfg, codec)
+    for t, mid in ((1.0, 1), (1.1, 1), (1.5, 0), (1.6, 0)):
+        assert inputs.io(codec.encode_inputs({"boom": {"mid": mid}}, t), 0.0)
+    assert inputs.refs("boom", 1.2)["mid"] is True
+    assert inputs.refs("boom", 1.5)["mid"] is False
+    assert inputs.refs("boom", 0.9)["mid"] is True
+    assert inputs.refs("boom", 2.0)["mid"] is False
+    assert inputs.refs("boom", 1.6 - 5.0)["mid"] is False
+    assert inputs.refs("boom")["mid"] is False
+    # the I/O clock went back: what was kept before it no longer answers
+    assert inputs.io(codec.encode_inputs({"boom": {"mid": 1}}, 0.5), 0.0)
+    assert inputs.refs("boom", 0.4)["mid"] is True

@@ -1,6 +1,7 @@
 """What a unit counts as travel it did not integrate, when the clocks disagree: a frame clock
 that stepped back during a gap (seen on another input) must not shorten the gap; a backlog read
-late is no gap; a wall clock step (frames stamped by this host) is taken out of the interval."""
+late is no gap; a wall clock step (frames stamped by this host) is taken out of the interval.
+And which Hall states a sample meets when the I/O module's frames are read ahead of it."""
 
 from __future__ import annotations
 
@@ -88,3 +89,40 @@ def test_a_slow_event_timer_does_not_make_old_input_fresh(driven) -> None:
     last = boom.last_rx_s
     assert not driven.service.stale(boom, last + 0.02)[0]
     assert driven.service.stale(boom, last + 0.1)[0]
+
+
+def _over_the_mid_switch(cfg, unit_tables, io_ahead_s: float) -> float:
+    """The boom driven over its mid switch (the Hall edge 0.3 s into the motion), the I/O
+    frames handled ``io_ahead_s`` before the Sevcon frames of their time (the I/O module on
+    another bus, read first); the position after the edge."""
+    d = Driven(cfg, unit_tables)
+    d.send(d.codec.encode_oil_temp(30.0, 50.0), d.now)
+    frames = []
+    for k in range(100):
+        t = 50.0 + k * PERIOD_S
+        frames.append((t, d.codec.encode_sevcon("boom", 4.0, RPM if k >= 10 else 0.0, t)))
+        io = d.codec.encode_inputs({"boom": {"mid": int(k >= 40)}}, t + 0.5 * PERIOD_S)
+        frames.append((t + 0.5 * PERIOD_S - io_ahead_s, io))
+    for arrival, msg in sorted(frames, key=lambda f: f[0]):
+        d.send(msg, 1000.0 + arrival - 50.0)
+    boom = d.service.units["boom"]
+    assert boom.references == 1
+    return boom.estimator.position_mm
+
+
+def test_io_frames_read_ahead_do_not_move_the_hall_edge(cfg, unit_tables) -> None:
+    """Read 50 ms ahead (five Sevcon samples), the edge still falls on the sample of its
+    time: the same position as with every frame in time order. Without the lookup by time
+    the edge is taken five samples early: the boom's travel over 50 ms (1.3 mm here) off."""
+    in_order = _over_the_mid_switch(cfg, unit_tables, 0.0)
+    ahead = _over_the_mid_switch(cfg, unit_tables, 0.05)
+    assert ahead == pytest.approx(in_order, abs=1e-9)
+
+
+def test_io_frames_read_late_take_the_hall_edge_back_to_its_time(cfg, unit_tables) -> None:
+    """Read 50 ms late, the edge is seen five samples after its time; taken back by their
+    travel, at constant speed the position is that of frames in time order (to 0.01 mm; a
+    late edge taken where seen is 1.3 mm off here)."""
+    in_order = _over_the_mid_switch(cfg, unit_tables, 0.0)
+    late = _over_the_mid_switch(cfg, unit_tables, -0.05)
+    assert late == pytest.approx(in_order, abs=0.01)
