@@ -133,7 +133,9 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
                      state: EstimatorState | None = None) -> Offline:
     """The estimator stepped over the frames as the service received them (arrival order):
     each Sevcon frame with the latest oil temperature and the Hall states at its time (the
-    service's :class:`Inputs` lookup: an I/O frame may come from another bus)."""
+    service's :class:`Inputs` lookup: an I/O frame may come from another bus), and after an
+    interval longer than the estimator integrates, not referenced (as the service: a feeder
+    stalled under load shows as such a gap in bus-stamped frames)."""
     codec = FrameCodec(cfg)
     inputs = Inputs(cfg, codec)
     sevcon_id = codec.ids[message_name("sevcon", actuator)]
@@ -148,6 +150,7 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
         est.preset(preset_mm, cfg.estimator.uncertainty_reference_mm)
         est.referenced = False      # the service's presets are provisional: never learned from
     oil = None
+    last_t = 0.0
     positions: list[float] = []
     held = 0
     for msg in frames:
@@ -159,6 +162,9 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
             if oil is None:
                 held += 1
                 continue
+            if positions and msg.timestamp - last_t > est.max_gap_s:
+                est.referenced = False      # the service's gap rule (a feeder stalled)
+            last_t = msg.timestamp
             s = codec.decode(msg)[1]
             refs = inputs.refs(actuator, msg.timestamp)
             positions.append(est.step(msg.timestamp, s["VelocityActual"], s["TorqueActual"],
