@@ -46,10 +46,10 @@ def _run(args: argparse.Namespace) -> int:
     from ..diagnosis.report import prepare_report_dir, write_report
     from ..diagnosis.runs import load_analysis_run
     from ..diagnosis.selection import separation
+    from ..diagnosis.workbench import analysis_mode
 
     cfg = config_from(args)
-    # the diagnosis extends the tables' modes; a `dynamic` default is diagnosed as `full`
-    mode = args.mode or (cfg.estimator.mode if cfg.estimator.mode != "dynamic" else "full")
+    mode = args.mode or analysis_mode(cfg.estimator.mode)
     if args.truth != "position":
         from .analyze_references import lacks_position, read_any, run_references
         raw = [read_any(path, args.actuator, cfg) for path in args.runs]

@@ -44,6 +44,12 @@ def _table_config(cfg: Config, runs: Sequence[AnalysisRun]) -> Config:
     return dataclasses.replace(cfg, tables=dataclasses.replace(cfg.tables, temperatures_c=temps))
 
 
+def analysis_mode(configured: str) -> str:
+    """The mode a configured estimator mode is diagnosed in: the causes extend the tables'
+    modes, and `dynamic`'s chamber model would not see the scaled pumps' tables, so `full`."""
+    return "full" if configured == "dynamic" else configured
+
+
 class Workbench:
     """Runs of one actuator and the estimator to replay them with."""
 

@@ -27,7 +27,7 @@ import pyarrow.parquet as pq
 from ..config import Config
 from ..diagnosis.causes import ALL_CAUSES
 from ..diagnosis.references import ReferenceRun, reference_run
-from ..diagnosis.workbench import Workbench
+from ..diagnosis.workbench import Workbench, analysis_mode
 from ..measured import MeasuredDataError
 from ..physics.unit import DDHUnit
 from ..tables.build import build_unit_tables
@@ -92,10 +92,7 @@ class FleetBench(Workbench):
 def fit_log(cfg: Config, rr: ReferenceRun, actuator: str,
             causes: Sequence[str] = tuple(GRIDS), table_dir: Path | None = None) -> list[dict]:
     """One log's rows: per cause its grid, squared error and largest increment change."""
-    # the causes extend the tables' modes: a `dynamic` default is analysed as `full` (as
-    # `analyze` does; dynamic's chamber model would not see the scaled pumps' tables)
-    mode = cfg.estimator.mode if cfg.estimator.mode != "dynamic" else "full"
-    bench = FleetBench(cfg, actuator, [rr.run], mode, table_dir)
+    bench = FleetBench(cfg, actuator, [rr.run], analysis_mode(cfg.estimator.mode), table_dir)
     nominal = rr.observe(bench.base[0])
     n_inc = rr.n_increments
     rows = []

@@ -181,13 +181,12 @@ class Inputs:
         self.unknown_ids: Counter[int] = Counter()
         self.oil_temp_c: float | None = None
         self.oil_rx_s: float | None = None        # monotonic receipt time of the last oil frame
-        self.io_data: bytes | None = None
         self.io_t_s: float | None = None          # timestamp of the latest I/O frame
-        # the I/O module's state changes (frame time, data), oldest first
+        # the I/O module's state changes (frame time, data), oldest first; the last is now
         self._io_changes_t: list[float] = []
         self._io_changes: list[bytes] = []
         self.refs_since_s: float | None = None    # see refs()
-        self._refs_cache: dict[tuple[str, bytes], dict[str, bool]] = {}
+        self._refs_cache: dict[str, tuple[bytes, dict[str, bool]]] = {}
 
     # --- checks shared by all inputs ---------------------------------------------------
 
@@ -292,12 +291,12 @@ class Inputs:
         if self.io_t_s is not None and t_s < self.io_t_s:
             self._io_changes_t.clear()            # its clock went back: earlier times are void
             self._io_changes.clear()
-        if data != self.io_data or not self._io_changes:
+        if not self._io_changes or data != self._io_changes[-1]:
             self._io_changes_t.append(t_s)
             self._io_changes.append(data)
             if len(self._io_changes) > IO_CHANGES_KEPT:
                 del self._io_changes_t[0], self._io_changes[0]
-        self.io_data, self.io_t_s = data, t_s
+        self.io_t_s = t_s
         self.counts["io"] += 1
         return True
 
@@ -309,21 +308,18 @@ class Inputs:
         taken early by that much travel. So a Sevcon sample gets the state of the last I/O
         frame not younger than itself (frame clocks alike, within ``IO_CLOCK_MATCH_S``).
         :attr:`refs_since_s` is then the frame time since which the returned states hold."""
-        data = self.io_data
-        if data is None:
+        if not self._io_changes:
             return None
-        self.refs_since_s = self._io_changes_t[-1]
+        k = -1
         if t_s is not None and t_s < self.io_t_s and self.io_t_s - t_s < IO_CLOCK_MATCH_S:
             k = max(bisect.bisect_right(self._io_changes_t, t_s) - 1, 0)
-            data, self.refs_since_s = self._io_changes[k], self._io_changes_t[k]
-        cached = self._refs_cache.get((actuator, data))
-        if cached is None:
-            if len(self._refs_cache) > 4 * IO_CHANGES_KEPT:
-                self._refs_cache.clear()
-            cached = {name: bool(state)
-                      for name, state in self.codec.hall_states(actuator, data).items()}
-            self._refs_cache[(actuator, data)] = cached
-        return cached
+        data, self.refs_since_s = self._io_changes[k], self._io_changes_t[k]
+        cached = self._refs_cache.get(actuator)
+        if cached is None or cached[0] != data:
+            cached = data, {name: bool(state)
+                            for name, state in self.codec.hall_states(actuator, data).items()}
+            self._refs_cache[actuator] = cached
+        return cached[1]
 
     def unknown(self, msg: can.Message) -> None:
         self.counts["unknown"] += 1

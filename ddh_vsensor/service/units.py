@@ -175,7 +175,7 @@ class Unit:
         was_referenced = est.referenced
         refs = self.inputs.refs(self.actuator, sample.t_s)
         step = est.step(sample.t_s, sample.speed_rpm, sample.torque_nm, oil, refs,
-                        self.inputs.refs_since_s if refs is not None else None)
+                        self.inputs.refs_since_s)
         self.last_step = step
         self.last_frame_t, self.last_rx_s = sample.t_s, now
         self.last_wall_offset_s = wall_offset_s

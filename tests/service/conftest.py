@@ -168,8 +168,7 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
             s = codec.decode(msg)[1]
             refs = inputs.refs(actuator, msg.timestamp)
             positions.append(est.step(msg.timestamp, s["VelocityActual"], s["TorqueActual"],
-                                      oil, refs, inputs.refs_since_s if refs else None
-                                      ).position_mm)
+                                      oil, refs, inputs.refs_since_s).position_mm)
     return Offline(np.asarray(positions), held)
 
 
