@@ -905,8 +905,7 @@ def main() -> None:
     parser.add_argument("--coalesce-ms", type=float, default=None,
                         help="socket mode: the fd reader's reading period while frames come "
                              "(default: the service's, 5 ms); the tick drains the socket "
-                             "before publishing "
-                             "whatever this is")
+                             "before publishing whatever this is")
     parser.add_argument("--housekeeping-ms", type=float, default=None,
                         help="the service's housekeeping tick (faults.housekeeping_tick_ms; "
                              "default: the configuration's, 10 ms): each tick is a wake")
