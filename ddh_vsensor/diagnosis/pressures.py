@@ -61,10 +61,19 @@ class TorqueEvidence:
     def consistent(self, params: Mapping[str, float],
                    intervals: Mapping[str, tuple[float, float]] = {}) -> bool:
         """Whether a candidate set's torque gain x displacement and torque offset agree,
-        within the pressures' tolerance plus the candidate's own 90 % intervals."""
-        ev = self.at(params)
-        if ev is not self:
-            return ev.consistent(params, intervals)
+        within the pressures' tolerance plus the candidate's own 90 % intervals (against the
+        line at the set's own time offset)."""
+        return self.at(params)._agrees(params, intervals)
+
+    def measured(self, parameter: str, params: Mapping[str, float]
+                 ) -> tuple[float, tuple[float, float]] | None:
+        """The value the pressures give ``parameter`` (torque_gain, displacement_factor,
+        torque_offset_nm) next to the others of ``params``, with a 90 % interval (their
+        spread and tolerance); None for another parameter. At ``params``' time offset."""
+        return self.at(params)._value(parameter, params)
+
+    def _agrees(self, params: Mapping[str, float],
+                intervals: Mapping[str, tuple[float, float]]) -> bool:
         g = params.get("torque_gain", 1.0) * params.get("displacement_factor", 1.0)
         o = params.get("torque_offset_nm", 0.0)
 
@@ -80,14 +89,8 @@ class TorqueEvidence:
                                                                          False)
         return abs(np.log(g / self.gain)) <= tol_g and abs(o - self.offset_nm) <= tol_o
 
-    def measured(self, parameter: str, params: Mapping[str, float]
-                 ) -> tuple[float, tuple[float, float]] | None:
-        """The value the pressures give ``parameter`` (torque_gain, displacement_factor,
-        torque_offset_nm) next to the others of ``params``, with a 90 % interval (their
-        spread and tolerance); None for another parameter."""
-        ev = self.at(params)
-        if ev is not self:
-            return ev.measured(parameter, params)
+    def _value(self, parameter: str, params: Mapping[str, float]
+               ) -> tuple[float, tuple[float, float]] | None:
         if parameter == "torque_offset_nm":
             half = max(1.645 * self.offset_se_nm, OFFSET_TOLERANCE_NM / 2.0)
             return self.offset_nm, (self.offset_nm - half, self.offset_nm + half)
@@ -109,9 +112,11 @@ def _run_line(unit, j: float, t: np.ndarray, speed: np.ndarray, torque: np.ndarr
               ) -> np.ndarray | None:
     """The line drive torque = g x pressure torque + o with the drive's signals taken
     ``lag_s`` later than the pressures: (g, o)."""
-    inside = ok & (t + lag_s >= t[0]) & (t + lag_s <= t[-1])
-    n = np.interp(t + lag_s, t, speed)
-    tau_d = np.interp(t + lag_s, t, torque)
+    if lag_s:
+        inside = ok & (t + lag_s >= t[0]) & (t + lag_s <= t[-1])
+        n, tau_d = np.interp(t + lag_s, t, speed), np.interp(t + lag_s, t, torque)
+    else:
+        inside, n, tau_d = ok, speed, torque
     tau_p = np.asarray(unit.motor_torque_nm(dp_a, dp_b, n), dtype=float)
     accel = np.gradient(n, t)
     tau = tau_d - j * RPM_RAD_S * accel
