@@ -182,6 +182,9 @@ class EstimatorConfig:
     uncertainty_per_travel: float = field(metadata={"ge": 0.0, "le": 1.0})
     uncertainty_hold_mm_per_s: float = field(metadata={"ge": 0.0, "le": 1000.0})
     state_save_interval_s: float = field(metadata=_positive(ge=0.1, le=3600.0))
+    # `dynamic`: a torque change within one sample larger than this share of the motor's
+    # torque limit is read as a step of unknown shape, not a ramp (README: temperature sweep)
+    dynamic_torque_step: float = field(default=0.45, metadata={"gt": 0.0, "le": 2.0})
 
 
 DEFAULT_BUS = "default"      # the bus of the top-level `bus:` key; `buses:` names the others

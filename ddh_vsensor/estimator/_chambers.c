@@ -10,11 +10,12 @@
 
 enum {
     P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
-    P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S,
+    P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S, P_TORQUE_STEP,
     P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
 };
-enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_SIZE };
+enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
+       S_SIZE };
 
 /* The drive samples its speed on an even cadence; the stamps' differences jitter around it.
  * The rotor's acceleration is the speed difference over that cadence (a filtered step), not
@@ -71,6 +72,18 @@ static void solve(const double *P, double fa, double fb, double da, double db, d
     *rb = best_b;
 }
 
+/* One chamber's pressure with the rod still, from its own flows, in its consistent regime. */
+static void still(const double *P, int g, int ge, double relief, double f, double d, int *r,
+                  double *p)
+{
+    for (int i = 0; i < 4; i++) {
+        *r = i;
+        *p = (f + P[ge + i]) / (d + P[g + i]);
+        if (regime(*p, P[P_CRACK], relief) == i)
+            return;
+    }
+}
+
 static int direction(double n) { return n > 0.0 ? 2 : n < 0.0 ? 0 : 1; }
 
 /* The steady state at this speed and (pump) torque: the step with no compliance. */
@@ -92,6 +105,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         if (S[S_STARTED] == 0.0 || h > 0.0) {
             settle(P, S, n, tau, mu);
             S[S_N] = n; S[S_TAU] = tau; S[S_STARTED] = 1.0; S[S_HF] = 0.0;
+            S[S_PUMP_TAU] = tau;
         }
         return S[S_V];
     }
@@ -105,7 +119,20 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     double hf = S[S_HF];
     double hn = hf > 0.0 && fabs(h - hf) < 0.75 * hf ? hf : h;
     S[S_HF] = hf > 0.0 ? hf + HF_GAIN * (h - hf) : h;
-    double torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / hn;
+    double inertia = P[P_INERTIA] * (n - S[S_N]) / hn;
+    double torque = 0.5 * (tau + S[S_TAU]) - inertia;
+    /* A torque step within the sample (the drive reaching its speed limit, the PID reversing
+     * off an end stop) has an unknown shape: the step's mean lies somewhere between the two
+     * ends, and the endpoints' mean read as pump torque is a wrong pressure that a one-way
+     * valve or the torque-blind common mode of the two chambers keeps. The pump torque
+     * (the pressures) changes smoothly, so the mean is the value in that range nearest the
+     * last step's. */
+    if (fabs(tau - S[S_TAU]) > P[P_TORQUE_STEP]) {
+        double lo = fmin(tau, S[S_TAU]) - inertia, hi = fmax(tau, S[S_TAU]) - inertia;
+        double last = S[S_PUMP_TAU];
+        torque = last < lo ? lo : last > hi ? hi : last;
+    }
+    S[S_PUMP_TAU] = torque;
     double ga = P[P_LEAK_A] / mu, gb = P[P_LEAK_B] / mu;
     double ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h);
     double cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h);
@@ -114,6 +141,21 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     /* pumping or motoring: over the step, as the mean torque (a reversal within the step
      * would otherwise switch the efficiencies a whole step early) */
     int d = direction(n + S[S_N]);
+    /* Reversing on an end stop, the pumps' friction is static for a moment and the step's
+     * mean torque mixes the motoring and the pumping one: any torque between the two holds
+     * the pressures. Within that band the torque says nothing about them (outside it, the
+     * pumps slip the way it points); read as pressure, it moves the model's rod off the stop
+     * and back into it, where the stop keeps the travel as a one-way valve keeps volume.
+     * (Applied at every standstill, it let holds drift: README.) */
+    int ra = (int)S[S_RA], rb = (int)S[S_RB];
+    if (n * S[S_N] <= 0.0 && known && (x <= 0.0 || x >= stroke)) {
+        double t_neg = P[P_K_A + ra] * pa + P[P_K_B + rb] * pb;
+        double t_pos = P[P_K_A + 8 + ra] * pa + P[P_K_B + 8 + rb] * pb;
+        if (torque >= fmin(t_neg, t_pos) && torque <= fmax(t_neg, t_pos))
+            torque = P[P_K_A + 4 * d + ra] * pa + P[P_K_B + 4 * d + rb] * pb;
+        else
+            d = (torque > fmax(t_neg, t_pos)) == (t_pos > t_neg) ? 2 : 0;
+    }
     if (P[P_BLEND_S] > 0.0) {
         /* pulled towards the steady state with time constant blend_s (model errors) */
         int sa = (int)S[S_SA], sb = (int)S[S_SB];
@@ -123,13 +165,23 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         double ka = ca * h / P[P_BLEND_S], kb = cb * h / P[P_BLEND_S];
         fa += ka * qa; fb += kb * qb; da += ka; db += kb;
     }
-    int ra = (int)S[S_RA], rb = (int)S[S_RB];
-    double v;
-    solve(P, fa, fb, da, db, torque, d, &ra, &rb, &pa, &pb, &v);
-    /* A rod the pumps press into its end stop does not move: the flow goes over the relief
-     * valve, where a fraction of a bar of pressure error would read as travel. */
-    if (known && ((x <= 0.0 && n < 0.0) || (x >= stroke && n > 0.0)))
+    double v = 0.0;
+    /* A rod on its end stop stays there unless the motor drives it away: pressed into the
+     * stop, the pumps' flow goes over the relief valve (a fraction of a bar of pressure error
+     * would read as travel); with the motor stopped, leakage decompresses the chambers. */
+    int stopped = known && ((x <= 0.0 && n <= 0.0) || (x >= stroke && n >= 0.0));
+    if (!stopped) {
+        solve(P, fa, fb, da, db, torque, d, &ra, &rb, &pa, &pb, &v);
+        /* Both chambers on a one-way valve (relief, anti-cavitation): their pressures are
+         * pinned, and the torque, which only sees pressures, cannot tell the rod's speed (a
+         * newton-metre of error reads as hundreds of mm/s). The valves take the flow. */
+        stopped = (ra == 0 || ra == 3) && (rb == 0 || rb == 3);
+    }
+    if (stopped) {
         v = 0.0;
+        still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da, &ra, &pa);
+        still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db, &rb, &pb);
+    }
     double x_new = x + 0.5 * h * (S[S_V] + v);
     S[S_X] = x_new < 0.0 ? 0.0 : x_new > stroke ? stroke : x_new;
     S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n; S[S_TAU] = tau;

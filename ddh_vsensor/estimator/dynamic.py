@@ -15,11 +15,17 @@ the tables' steady state, and the first sample (and one after an input gap) star
 
 Model errors: a wrong pump parameter moves the steady state the pressures settle to, it
 cannot run away — the valves bound every pressure, and leakage pulls it back with the time
-constant C/g. A rod the pumps press into its end stop (the model's own position at the
-stroke end, the motor driving towards it) does not move: its pumps' flow goes over the relief
-valve, where a fraction of a bar of pressure error would otherwise read as travel. ``blend_s`` > 0 adds a pull towards the steady state with that time constant
+constant C/g. ``blend_s`` > 0 adds a pull towards the steady state with that time constant
 (a virtual leakage C/blend_s); ``estimator.dynamic_blend_s`` in the configuration says which
 value was chosen and why.
+
+Where the torque cannot tell the rod's speed, the step does not ask it (README: temperature
+sweep): a rod on its end stop (the model's own position at the stroke end) stays there unless
+the motor drives it away, and so does a rod whose chambers both sit on a one-way valve;
+reversing on an end stop, the pumps' static friction lets any torque between the motoring
+and the pumping one hold the pressures; and a torque step within one sample larger than
+``torque_step_nm`` has an unknown shape, so the step's mean pump torque is taken nearest the
+last one.
 
 The step is compiled C (``_chambers.c``, built with the package as an optional extension and
 loaded with ctypes): the online face calls it per sample, the offline face runs the same
@@ -49,9 +55,11 @@ RPM_RAD_S = 2.0 * math.pi / 60.0
 _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valve regime
 # indices of the parameter and state vectors (the P_* / S_* enums of _chambers.c)
 (P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
- P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S) = range(16)
-P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 16, 20, 24, 28, 32, 44, 56
-S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_SIZE = range(13)
+ P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S,
+ P_TORQUE_STEP) = range(17)
+P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 17, 21, 25, 29, 33, 45, 57
+(S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
+ S_SIZE) = range(14)
 HF_GAIN = 0.05                                       # HF_GAIN of _chambers.c
 
 
@@ -83,8 +91,8 @@ def library() -> ctypes.CDLL | None:
     return _LIB  # type: ignore[return-value]
 
 
-def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
-               ) -> np.ndarray:
+def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float,
+               torque_step_nm: float = math.inf) -> np.ndarray:
     """The step's parameter vector for one unit (SI units, speeds in motor rpm)."""
     a, b = unit.a, unit.b
     p = np.zeros(P_SIZE)
@@ -100,6 +108,7 @@ def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
     p[P_BETA] = unit.bulk_modulus_pa
     p[P_BLEND_S] = blend_s
     p[P_MAX_GAP_S] = max_gap_s
+    p[P_TORQUE_STEP] = torque_step_nm
     for side, g, ge, k in ((a, P_G_A, P_GE_A, P_K_A), (b, P_G_B, P_GE_B, P_K_B)):
         g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
         g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
@@ -115,11 +124,14 @@ class DynamicModel:
 
     def __init__(self, unit: DDHUnit, position_mm: float, *, inertia: bool = True,
                  blend_s: float = 0.0, max_gap_s: float = math.inf,
-                 use_compiled: bool = True) -> None:
+                 torque_step_nm: float = math.inf, use_compiled: bool = True) -> None:
         if not blend_s >= 0.0:
             raise ValueError(f"blend time constant must be >= 0 s, got {blend_s!r}")
+        if not torque_step_nm > 0.0:
+            raise ValueError(f"torque step must be > 0 N·m, got {torque_step_nm!r}")
         self.oil: Oil = unit.oil
-        self.params = parameters(unit, inertia=inertia, blend_s=blend_s, max_gap_s=max_gap_s)
+        self.params = parameters(unit, inertia=inertia, blend_s=blend_s, max_gap_s=max_gap_s,
+                                 torque_step_nm=torque_step_nm)
         self.state = np.zeros(S_SIZE)
         self.state[S_X] = position_mm * 1e-3
         self.state[S_RA] = self.state[S_RB] = self.state[S_SA] = self.state[S_SB] = 2.0
@@ -221,6 +233,14 @@ def _solve(P, fa, fb, da, db, torque, d, ra, rb):
     return pa, pb, v, ra, rb
 
 
+def _still(P, g: int, ge: int, relief: float, f: float, d: float) -> tuple[float, int]:
+    for i in range(4):
+        p = (f + P[ge + i]) / (d + P[g + i])
+        if _regime(p, P[P_CRACK], relief) == i:
+            break
+    return p, i
+
+
 def _direction(n: float) -> int:
     return 2 if n > 0.0 else 0 if n < 0.0 else 1
 
@@ -236,7 +256,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             S[S_PA], S[S_PB], S[S_V] = pa, pb, v
             S[S_RA] = S[S_SA] = ra
             S[S_RB] = S[S_SB] = rb
-            S[S_N], S[S_TAU], S[S_STARTED], S[S_HF] = n, tau, 1.0, 0.0
+            S[S_N], S[S_TAU], S[S_STARTED], S[S_HF], S[S_PUMP_TAU] = n, tau, 1.0, 0.0, tau
         return float(S[S_V])
     pa, pb, x, stroke = float(S[S_PA]), float(S[S_PB]), float(S[S_X]), P[P_STROKE]
     known = x == x                                      # NaN: position unknown
@@ -244,13 +264,26 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     hf = float(S[S_HF])
     hn = hf if hf > 0.0 and abs(h - hf) < 0.75 * hf else h
     S[S_HF] = hf + HF_GAIN * (h - hf) if hf > 0.0 else h
-    torque = 0.5 * (tau + S[S_TAU]) - P[P_INERTIA] * (n - S[S_N]) / hn
+    inertia = P[P_INERTIA] * (n - S[S_N]) / hn
+    torque = 0.5 * (tau + S[S_TAU]) - inertia
+    if abs(tau - S[S_TAU]) > P[P_TORQUE_STEP]:
+        lo, hi = min(tau, S[S_TAU]) - inertia, max(tau, S[S_TAU]) - inertia
+        torque = min(max(float(S[S_PUMP_TAU]), lo), hi)
+    S[S_PUMP_TAU] = torque
     ga, gb = P[P_LEAK_A] / mu, P[P_LEAK_B] / mu
     ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h)
     cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h)
     fa, fb = P[P_Q_A] * n + ca * pa, P[P_Q_B] * n + cb * pb
     da, db = ca + ga, cb + gb
     d = _direction(n + S[S_N])
+    ra, rb = int(S[S_RA]), int(S[S_RB])
+    if n * S[S_N] <= 0.0 and known and (x <= 0.0 or x >= stroke):
+        t_neg = P[P_K_A + ra] * pa + P[P_K_B + rb] * pb
+        t_pos = P[P_K_A + 8 + ra] * pa + P[P_K_B + 8 + rb] * pb
+        if min(t_neg, t_pos) <= torque <= max(t_neg, t_pos):
+            torque = P[P_K_A + 4 * d + ra] * pa + P[P_K_B + 4 * d + rb] * pb
+        else:
+            d = 2 if (torque > max(t_neg, t_pos)) == (t_pos > t_neg) else 0
     if P[P_BLEND_S] > 0.0:
         qa, qb, _, sa, sb = _solve(P, P[P_Q_A] * n, P[P_Q_B] * n, ga, gb, torque, d,
                                    int(S[S_SA]), int(S[S_SB]))
@@ -260,9 +293,15 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         fb += kb * qb
         da += ka
         db += kb
-    pa, pb, v, ra, rb = _solve(P, fa, fb, da, db, torque, d, int(S[S_RA]), int(S[S_RB]))
-    if known and ((x <= 0.0 and n < 0.0) or (x >= stroke and n > 0.0)):
+    v = 0.0
+    stopped = known and ((x <= 0.0 and n <= 0.0) or (x >= stroke and n >= 0.0))
+    if not stopped:
+        pa, pb, v, ra, rb = _solve(P, fa, fb, da, db, torque, d, ra, rb)
+        stopped = ra in (0, 3) and rb in (0, 3)
+    if stopped:
         v = 0.0
+        pa, ra = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
+        pb, rb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)
     x_new = x + 0.5 * h * (S[S_V] + v)
     S[S_X] = min(max(x_new, 0.0), stroke) if known else math.nan
     S[S_PA], S[S_PB], S[S_V], S[S_N], S[S_TAU] = pa, pb, v, n, tau

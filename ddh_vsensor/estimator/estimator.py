@@ -130,7 +130,9 @@ class Estimator:
         # for the chamber volumes (it sees no references, so both faces feed it alike)
         self.dynamic = (DynamicModel(DDHUnit.from_config(cfg, actuator), self.position_mm,
                                      inertia=ecfg.inertia_compensation,
-                                     blend_s=ecfg.dynamic_blend_s, max_gap_s=self.max_gap_s)
+                                     blend_s=ecfg.dynamic_blend_s, max_gap_s=self.max_gap_s,
+                                     torque_step_nm=ecfg.dynamic_torque_step
+                                     * cfg.unit(actuator).motor.torque_limit_nm)
                         if self.mode == "dynamic" else None)
         self.u_base = self.u_ref
         self._referenced = True         # False after a restore or a provisional preset
