@@ -5,9 +5,12 @@
 - a 50-cycle run with references: max error overall, first ten cycles vs last ten;
 - the temperature sweep (issue 12): oil at -10, 0, 10, 27, 50, 80 degC x the paper's cycle at
   four speeds x 0/1040 kg, plus the dig-dump cycle (both end stops, 0/1040 kg) and random work
-  cycles with end-stop contact (seeds 201.., never used for tuning): worst and RMS error per
-  temperature, per mode, per actuator, no references.
-Run: python bench/accuracy.py [--cycles 50] [--skip-sweep]
+  cycles with end-stop contact (seeds 201..): worst and RMS error per temperature, per mode,
+  per actuator, no references. ``--sweep check`` runs the second set instead (oil at -5..75
+  degC, 500 kg paper cycles, dig-dump at speeds 2-3, four random cycles per temperature with
+  0-1040 kg and 40 % of the moves into an end stop, seeds 401..), which checked the rules the
+  first set had shown (README).
+Run: python bench/accuracy.py [--cycles 50] [--skip-sweep | --sweep-only] [--sweep main|check]
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ def _estimate(cfg, tables, actuator, run, mode, references):
 MODES = ("dynamic", "full", "paper")
 SWEEP_TEMPS_C = (-10.0, 0.0, 10.0, 27.0, 50.0, 80.0)
 SWEEP_SEED = 201
+CHECK_TEMPS_C = (-5.0, 5.0, 20.0, 40.0, 65.0, 75.0)
+CHECK_SEED = 401
 
 
 def sweep_specs(cfg, temp_c: float) -> list[RunSpec]:
@@ -55,11 +60,26 @@ def sweep_specs(cfg, temp_c: float) -> list[RunSpec]:
     return specs
 
 
-def temperature_sweep(cfg, tables, figures: dict[str, object]) -> None:
+def check_specs(cfg, temp_c: float) -> list[RunSpec]:
+    """The check set's runs at one temperature: paper cycle at speeds 2 and 4 with 500 kg,
+    dig-dump at speed 3 (500 kg) and 2 (1040 kg), four random cycles with end stops."""
+    specs = [RunSpec(speed=s, payload_kg=500.0, oil_temp_c=temp_c) for s in (2, 4)]
+    specs += [RunSpec(cycle=dig_dump_cycle(cfg, s), payload_kg=p, oil_temp_c=temp_c)
+              for s, p in ((3, 500.0), (2, 1040.0))]
+    seed = CHECK_SEED + 4 * CHECK_TEMPS_C.index(temp_c)
+    specs += [RunSpec(cycle=random_cycle(cfg, seed + j, end_stop_share=0.4), payload_kg=p,
+                      oil_temp_c=temp_c, seed=j)
+              for j, p in enumerate((0.0, 300.0, 700.0, 1040.0))]
+    return specs
+
+
+def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "main") -> None:
     rows = []
-    for temp in SWEEP_TEMPS_C:
+    temps, make = (SWEEP_TEMPS_C, sweep_specs) if which == "main" else \
+        (CHECK_TEMPS_C, check_specs)
+    for temp in temps:
         t0 = time.perf_counter()
-        specs = sweep_specs(cfg, temp)
+        specs = make(cfg, temp)
         runs = simulate_campaign(cfg, specs)
         print(f"{temp:g} degC: simulated {len(specs)} runs in {time.perf_counter() - t0:.0f} s",
               flush=True)
@@ -79,7 +99,7 @@ def temperature_sweep(cfg, tables, figures: dict[str, object]) -> None:
                     sq += float(np.sum(err ** 2))
                     count += err.size
                 rms = (sq / count) ** 0.5
-                key = f"sweep_{mode}_{actuator}_{temp:g}C"
+                key = f"{'sweep' if which == 'main' else 'check'}_{mode}_{actuator}_{temp:g}C"
                 figures[f"{key}_max_abs_error_mm"] = round(worst, 3)
                 figures[f"{key}_rms_error_mm"] = round(rms, 3)
                 figures[f"{key}_worst_run"] = worst_run
@@ -89,14 +109,8 @@ def temperature_sweep(cfg, tables, figures: dict[str, object]) -> None:
         print(f"{temp:5g} {mode:8} {actuator:8} {worst:7.2f} {rms:7.2f}  {run}")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--cycles", type=int, default=50)
-    parser.add_argument("--skip-sweep", action="store_true")
-    args = parser.parse_args()
-    cfg = load_config(None)
-    tables = {a: build_unit_tables(cfg, a) for a in cfg.unit_names}
-    figures: dict[str, object] = {}
+def nominal_and_drift(cfg, tables, figures: dict[str, object], cycles: int) -> None:
+    """The 27 degC table and the multi-cycle drift / references run."""
     t0 = time.perf_counter()
     specs = [RunSpec(speed=s, payload_kg=p, oil_temp_c=27.0) for s in (1, 2, 3, 4)
              for p in (0.0, 1040.0)]
@@ -120,13 +134,13 @@ def main() -> None:
 
     t0 = time.perf_counter()
     long = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=0.0, oil_temp_c=27.0,
-                                           cycles=args.cycles)])[0]
-    print(f"simulated {args.cycles} cycles in {time.perf_counter() - t0:.1f} s")
+                                           cycles=cycles)])[0]
+    print(f"simulated {cycles} cycles in {time.perf_counter() - t0:.1f} s")
     for mode in ("dynamic", "full"):
         for actuator in cfg.unit_names:
             r = long[actuator]
-            period = r.time_s[-1] / args.cycles
-            cycle = np.minimum((r.time_s / period).astype(int), args.cycles - 1)
+            period = r.time_s[-1] / cycles
+            cycle = np.minimum((r.time_s / period).astype(int), cycles - 1)
             for refs in (False, True):
                 est = Estimator(cfg, actuator, tables[actuator], mode=mode, references=refs,
                                 initial_position_mm=float(r.position_mm[0]))
@@ -134,22 +148,38 @@ def main() -> None:
                               r.refs if refs else None)
                 err = res.position_mm - r.position_mm
                 per_cycle = np.array([np.nanmax(np.abs(err[cycle == c]))
-                                      for c in range(args.cycles)])
-                tag = f"{mode}_{actuator}_{args.cycles}cycles_{'refs' if refs else 'norefs'}"
+                                      for c in range(cycles)])
+                tag = f"{mode}_{actuator}_{cycles}cycles_{'refs' if refs else 'norefs'}"
                 figures[f"{tag}_max_abs_error_mm"] = round(float(np.nanmax(np.abs(err))), 3)
                 figures[f"{tag}_first10_max_mm"] = round(float(per_cycle[:10].max()), 3)
                 figures[f"{tag}_last10_max_mm"] = round(float(per_cycle[-10:].max()), 3)
                 if not refs:
                     ends = np.array([err[cycle == c][np.isfinite(err[cycle == c])][-1]
-                                     for c in range(args.cycles)])
-                    drift = np.polyfit(np.arange(args.cycles), ends, 1)[0]
+                                     for c in range(cycles)])
+                    drift = np.polyfit(np.arange(cycles), ends, 1)[0]
                     figures[f"{mode}_{actuator}_drift_per_cycle_norefs_mm"] = round(
                         float(drift), 4)
                 else:
-                    figures[f"{mode}_{actuator}_gains_after_{args.cycles}_cycles"] = [
+                    figures[f"{mode}_{actuator}_gains_after_{cycles}_cycles"] = [
                         round(float(g), 5) for g in est.gain.gain]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--cycles", type=int, default=50)
+    parser.add_argument("--skip-sweep", action="store_true")
+    parser.add_argument("--sweep", choices=("main", "check"), default="main",
+                        help="the temperature sweep's run set (check: the second set)")
+    parser.add_argument("--sweep-only", action="store_true",
+                        help="skip the 27 degC table and the multi-cycle runs")
+    args = parser.parse_args()
+    cfg = load_config(None)
+    tables = {a: build_unit_tables(cfg, a) for a in cfg.unit_names}
+    figures: dict[str, object] = {}
+    if not args.sweep_only:
+        nominal_and_drift(cfg, tables, figures, args.cycles)
     if not args.skip_sweep:
-        temperature_sweep(cfg, tables, figures)
+        temperature_sweep(cfg, tables, figures, args.sweep)
     publish("accuracy", figures)
 
 
