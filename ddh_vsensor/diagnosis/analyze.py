@@ -18,7 +18,7 @@ from .pressures import TorqueEvidence, torque_evidence
 from .residual import ResidualFit, fit_residual
 from .runs import AnalysisRun
 from .selection import (AMBIGUITY_RATIO, MAX_CAUSES, MAX_HETEROGENEITY, MIN_ADDED, MIN_SCORE,
-                        RESIDUAL_SHARE, Decision, bound, rms)
+                        OWN_ERROR_RMS_MM, RESIDUAL_SHARE, Decision, bound, rms)
 from .workbench import Workbench
 
 Progress = Callable[[str, float], None]
@@ -268,7 +268,8 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
         largest = max(shares, key=shares.get)
         structured = on_set is not None and on_set.explained > s.explained and \
             _sse(on_set.heldout, weights) <= (1.0 - MIN_ADDED) * s.sse and \
-            s.sse - _sse(on_set.heldout, weights) >= RESIDUAL_SHARE * total
+            s.sse - _sse(on_set.heldout, weights) >= RESIDUAL_SHARE * total and \
+            rms(s.heldout, weights) > OWN_ERROR_RMS_MM
         het = s.heterogeneity
         mixed = het > MAX_HETEROGENEITY and s.sse - s.own_sse >= RESIDUAL_SHARE * total
         if s.score >= MIN_SCORE and not mixed and not structured:

@@ -13,7 +13,10 @@ single catalogued effects (numbers in diagnosis/README.md), never from the open-
    parameter value describes every run (not: held-out error over each run's own best fit
    above :data:`MAX_HETEROGENEITY` *and* the difference :data:`RESIDUAL_SHARE` of the
    original error) and the residual model finds no structured error left (it must not
-   remove :data:`MIN_ADDED` of what is left *and* :data:`RESIDUAL_SHARE` of the original).
+   remove :data:`MIN_ADDED` of what is left *and* :data:`RESIDUAL_SHARE` of the original,
+   *and* what is left must be more than the model's own error: :data:`OWN_ERROR_RMS_MM`.
+   The residual model removes ~75 % of the own error itself, so a small effect, named
+   right, left only that and was called unexplained).
 4. Two candidates are *ambiguous* when the second leaves at most :data:`AMBIGUITY_RATIO`
    times the held-out error of the first; if the largest contributor is ambiguous the
    answer is ``ambiguous``, never one of the two.
@@ -36,6 +39,9 @@ MIN_ADDED = 0.5
 MAX_HETEROGENEITY = 3.0
 RESIDUAL_SHARE = 0.03
 AMBIGUITY_RATIO = 1.25
+# The nominal model's own held-out error (RMS) on runs without an effect, 90th percentile of
+# 32 analyses (paper cycles 0.16-0.33 mm, random cycles 0.10-0.79 mm; diagnosis/README.md)
+OWN_ERROR_RMS_MM = 0.5
 MAX_CAUSES = 3
 
 # What would tell two look-alikes apart (order-free pairs); the default names the signatures.
