@@ -2,7 +2,7 @@
 
 The pumps' torque at the motor follows from the two chamber pressures through the physics'
 torque gains and efficiencies (``DDHUnit.motor_torque_nm``). Against the drive's torque less
-the rotor's inertia torque, in quasi-steady samples, a straight line tau = g tau_p + o gives
+the rotor's inertia torque, in quasi-steady samples with the motor turning, a straight line tau = g tau_p + o gives
 the drive's torque gain times the pumps' displacement factor (g) and the torque offset (o)
 directly, whatever the leakage, the temperature sensor or the position sensor do. That is
 what separates a torque or displacement error from leakage: a candidate set whose g and o
@@ -30,6 +30,10 @@ from .workbench import Workbench
 
 RPM_RAD_S = 2.0 * np.pi / 60.0
 MAX_ACCEL_RPM_S = 2000.0       # quasi-steady: the rotor's inertia torque is small
+# A standing motor's pumps hold their pressures with any torque between the motoring and the
+# pumping one (static friction): no line there. Without this the boom's loaded holds at 0 rpm
+# pulled the line to 0.96-0.98 on random cycles with no effect at all (1.000 without them).
+STANDSTILL_RPM = 0.5
 MIN_SHARE_OF_MAX = 0.15        # samples with |pump torque| above this share of the maximum
 MIN_SAMPLES = 200
 # The pressures' line is the physics' own: its efficiencies and friction are not exactly
@@ -120,7 +124,7 @@ def _run_line(unit, j: float, t: np.ndarray, speed: np.ndarray, torque: np.ndarr
     tau_p = np.asarray(unit.motor_torque_nm(dp_a, dp_b, n), dtype=float)
     accel = np.gradient(n, t)
     tau = tau_d - j * RPM_RAD_S * accel
-    use = inside & (np.abs(accel) < MAX_ACCEL_RPM_S)
+    use = inside & (np.abs(accel) < MAX_ACCEL_RPM_S) & (np.abs(n) >= STANDSTILL_RPM)
     if not use.any():
         return None
     use &= np.abs(tau_p) > MIN_SHARE_OF_MAX * max(float(np.max(np.abs(tau_p[use]))), 1e-9)

@@ -1,5 +1,6 @@
-"""The pressures' evidence under a logging offset: a candidate time offset is judged against
-the line fitted at its own lag, not against the lag's bias."""
+"""The pressures' evidence: without an effect the line is the physics' own; under a logging
+offset a candidate time offset is judged against the line fitted at its own lag, not against
+the lag's bias."""
 
 from __future__ import annotations
 
@@ -7,9 +8,9 @@ import math
 
 import pytest
 
-from ddh_vsensor.diagnosis.pressures import GAIN_TOLERANCE, torque_evidence
+from ddh_vsensor.diagnosis.pressures import GAIN_TOLERANCE, OFFSET_TOLERANCE_NM, torque_evidence
 from ddh_vsensor.diagnosis.runs import prepare_run
-from ddh_vsensor.diagnosis.trials import Trial, simulate_trial
+from ddh_vsensor.diagnosis.trials import Trial, draw_trial, simulate_trial
 from ddh_vsensor.diagnosis.workbench import Workbench
 
 OFFSET_S = 0.3
@@ -27,9 +28,10 @@ def test_a_time_offset_is_checked_against_the_pressures_at_its_own_lag(cfg, lagg
     bench = Workbench(cfg, actuator, [prepare_run(r[actuator]) for r in lagging_runs], "full")
     ev = torque_evidence(bench)
     assert ev is not None
-    # sample by sample the lag reads as a torque error beyond the tolerance (3-3.5 %)...
-    assert abs(math.log(ev.gain)) > GAIN_TOLERANCE
-    assert not ev.consistent({})
+    # sample by sample the lag reads as a torque gain error (2.4 % boom, 1.9 % bucket; the
+    # boom's beyond the tolerance with its offset: that rules out the true cause)...
+    assert abs(math.log(ev.gain)) > 0.75 * GAIN_TOLERANCE
+    assert ev.consistent({}) == (actuator == "bucket")
     # ...at the candidate's own lag the line is the nominal one, and the candidate stands
     at_lag = ev.at({"time_offset_s": OFFSET_S})
     assert at_lag.lag_s == OFFSET_S
@@ -37,3 +39,17 @@ def test_a_time_offset_is_checked_against_the_pressures_at_its_own_lag(cfg, lagg
     assert ev.consistent({"time_offset_s": OFFSET_S})
     # without a time offset the evidence is the unlagged line itself
     assert ev.at({"pump_leakage": 1.5}) is ev
+
+
+@pytest.mark.parametrize("cycle", ["random", "paper"])
+def test_without_an_effect_the_line_is_the_physics_own(cfg, cycle):
+    """No effect: drive torque against pressure torque is 1 x + 0, on random cycles too. The
+    boom's loaded holds at 0 rpm (any torque within the pumps' static friction holds the
+    pressure) had pulled its gain to 0.96-0.98 on random cycles, beyond the 2 % tolerance,
+    and ruled out every boom cause with a nominal torque chain."""
+    runs = simulate_trial(cfg, draw_trial(7002, "none", cycle=cycle))
+    for actuator in ("boom", "bucket"):
+        bench = Workbench(cfg, actuator, [prepare_run(r[actuator]) for r in runs], "full")
+        ev = torque_evidence(bench)
+        assert abs(math.log(ev.gain)) < 0.25 * GAIN_TOLERANCE, (actuator, ev)
+        assert abs(ev.offset_nm) < 0.1 * OFFSET_TOLERANCE_NM, (actuator, ev)
