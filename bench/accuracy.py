@@ -73,10 +73,14 @@ def check_specs(cfg, temp_c: float) -> list[RunSpec]:
     return specs
 
 
+# run set -> (figure prefix, temperatures, runs at one temperature)
+SWEEPS = {"main": ("sweep", SWEEP_TEMPS_C, sweep_specs),
+          "check": ("check", CHECK_TEMPS_C, check_specs)}
+
+
 def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "main") -> None:
     rows = []
-    temps, make = (SWEEP_TEMPS_C, sweep_specs) if which == "main" else \
-        (CHECK_TEMPS_C, check_specs)
+    prefix, temps, make = SWEEPS[which]
     for temp in temps:
         t0 = time.perf_counter()
         specs = make(cfg, temp)
@@ -99,7 +103,7 @@ def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "mai
                     sq += float(np.sum(err ** 2))
                     count += err.size
                 rms = (sq / count) ** 0.5
-                key = f"{'sweep' if which == 'main' else 'check'}_{mode}_{actuator}_{temp:g}C"
+                key = f"{prefix}_{mode}_{actuator}_{temp:g}C"
                 figures[f"{key}_max_abs_error_mm"] = round(worst, 3)
                 figures[f"{key}_rms_error_mm"] = round(rms, 3)
                 figures[f"{key}_worst_run"] = worst_run
@@ -168,7 +172,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--cycles", type=int, default=50)
     parser.add_argument("--skip-sweep", action="store_true")
-    parser.add_argument("--sweep", choices=("main", "check"), default="main",
+    parser.add_argument("--sweep", choices=tuple(SWEEPS), default="main",
                         help="the temperature sweep's run set (check: the second set)")
     parser.add_argument("--sweep-only", action="store_true",
                         help="skip the 27 degC table and the multi-cycle runs")

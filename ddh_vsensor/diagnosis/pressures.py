@@ -2,9 +2,9 @@
 
 The pumps' torque at the motor follows from the two chamber pressures through the physics'
 torque gains and efficiencies (``DDHUnit.motor_torque_nm``). Against the drive's torque less
-the rotor's inertia torque, in quasi-steady samples with the motor turning, a straight line tau = g tau_p + o gives
-the drive's torque gain times the pumps' displacement factor (g) and the torque offset (o)
-directly, whatever the leakage, the temperature sensor or the position sensor do. That is
+the rotor's inertia torque, in quasi-steady samples with the motor turning, a straight line
+tau = g tau_p + o gives the drive's torque gain times the pumps' displacement factor (g) and
+the torque offset (o) directly, whatever the leakage, the temperature sensor or the position sensor do. That is
 what separates a torque or displacement error from leakage: a candidate set whose g and o
 disagree with the pressures is not an answer.
 
