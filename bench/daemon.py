@@ -292,6 +292,7 @@ def phase_sweep(cfg, tables, seconds: float, input_hz: float, phases: int) -> di
         rows.append({"phase_ms": round(PHASE_S * 1e3, 3), "latency_p99_ms": r["latency_p99_ms"],
                      "input_age_at_publish_p99_ms": r["input_age_at_publish_p99_ms"],
                      "inputs_behind_share_pct": r["inputs_behind_share_pct"],
+                     "jitter_p99_ms": r["jitter_p99_ms"],
                      "cpu_share_pct": r["cpu_share_pct"], "load_avg_1min": round(
                          os.getloadavg()[0], 2)})
         print(" ".join(f"{k_}={v}" for k_, v in rows[-1].items()), flush=True)
@@ -310,6 +311,7 @@ def phase_sweep(cfg, tables, seconds: float, input_hz: float, phases: int) -> di
                 float(np.percentile(lat - age, 99)) * 1e3, 3),
             "pooled_inputs_behind_share_pct": round(100 * float(np.mean(behind > 0)), 1),
             "phases_meeting_p99_2ms": sum(r["latency_p99_ms"] <= 2.0 for r in rows),
+            "jitter_p99_ms_worst_phase": max(r["jitter_p99_ms"] for r in rows),
             "cpu_share_pct_mean": round(float(np.mean(cpu)), 1),
             "sevcon_frames_lost": int(lost)}
 
@@ -487,13 +489,15 @@ def run_remote(cfg, seconds: float, other_hz: float) -> dict[str, float]:
 class SocketPairBus(can.BusABC):
     """SocketCAN's frame layout (can_id, dlc, pad, 8 data bytes) over an AF_UNIX seqpacket
     socket (one record per frame, queued up to the socket buffer like a SocketCAN socket's
-    receive queue): recv(0) never blocks, fileno() is the socket, as on SocketCAN."""
+    receive queue): recv(0) never blocks, fileno() is the socket, each frame is stamped by the
+    kernel on arrival (SO_TIMESTAMPNS, as python-can's socketcan reads them)."""
 
     FRAME = struct.Struct("=IB3x8s")
 
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
         self.sock.setblocking(False)
+        self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         self.channel_info = "socketpair"
         self.send_errors = 0
         super().__init__(channel="socketpair")
@@ -504,11 +508,16 @@ class SocketPairBus(can.BusABC):
             if not ready:
                 return None, False
         try:
-            data = self.sock.recv(16)
+            data, ancillary, _, _ = self.sock.recvmsg(16, 64)
         except BlockingIOError:
             return None, False
+        stamp = time.time()
+        for level, kind, value in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                sec, nsec = TIMESPEC.unpack(value)
+                stamp = sec + nsec * 1e-9
         can_id, dlc, payload = self.FRAME.unpack(data)
-        return can.Message(timestamp=time.time(), arbitration_id=can_id, data=payload[:dlc],
+        return can.Message(timestamp=stamp, arbitration_id=can_id, data=payload[:dlc],
                            is_extended_id=False), True
 
     def send(self, msg, timeout=None):

@@ -222,6 +222,9 @@ class CanConfig:
     # CiA 301 behaviour of the emulated sensor nodes
     nmt_auto_start: bool = True     # boot to OPERATIONAL; False: PRE-OPERATIONAL, master starts
     emcy_enabled: bool = True       # EMCY producer valid at boot (0x1014 bit 31 clear)
+    # a unit whose newest controller frame is older than this when its TPDO1 is due
+    # publishes right after its next frame instead (held at most one input period)
+    fresh_input_ms: float = field(default=1.0, metadata={"ge": 0.0, "le": 1000.0})
 
 
 END_STOP_OVERTRAVEL_MAX_MM = 100.0     # a cycle setpoint beyond a stroke end presses the rod

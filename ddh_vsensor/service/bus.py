@@ -130,6 +130,7 @@ class BusLink:
         # the loop's wakes
         self.grid_anchor_s: float | None = None
         self.wakes = 0
+        self.prompt = False         # read_promptly()
         self._watching = False
         self._rearm: asyncio.TimerHandle | None = None
         self._rx_at_poll = 0       # rx_frames when the pending timer read was scheduled
@@ -269,9 +270,19 @@ class BusLink:
             self._loop.add_reader(self._fd, self._on_readable, bus, generation)
             self._watching = True
 
+    def read_promptly(self, on: bool) -> None:
+        """While on, every frame is read as it comes (no coalescing): a unit waits for its
+        next frame to publish. Off: coalescing resumes at the next wake."""
+        self.prompt = on
+        if on and self._rearm is not None and self.bus is not None:
+            self._rearm.cancel()
+            self._rearm = None
+            self._watch(self.bus, self._generation)
+
     def _on_readable(self, bus: can.BusABC, generation: int) -> None:
         self.wakes += 1
-        if self.coalesce_s > 0.0 and self._loop is not None and self._fd is not None:
+        if self.coalesce_s > 0.0 and not self.prompt and self._loop is not None \
+                and self._fd is not None:
             self._loop.remove_reader(self._fd)
             self._watching = False
             self._schedule_poll(bus, generation)

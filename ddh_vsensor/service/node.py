@@ -245,6 +245,10 @@ class SensorNode:
             self._next = (min(self._next[0], self._tick + pos),
                           min(self._next[1], self._tick + diag))
 
+    def due(self, tick_index: int) -> bool:
+        """Whether :meth:`publish` at this tick sends the position (TPDO1)."""
+        return self.operational and tick_index >= self._next[0]
+
     def publish(self, p: Published, tick_index: int) -> int:
         """TPDO1 (and TPDO2) if due at this tick; frames sent (none unless OPERATIONAL)."""
         self._tick = tick_index

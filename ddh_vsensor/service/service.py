@@ -8,7 +8,8 @@ One asyncio loop:
 - the publishing tick, from absolute deadlines at the fastest TPDO1 event timer (bounded to
   ``faults.event_timer_min_ms..event_timer_max_ms``; a new timer takes effect at once),
   sends every OPERATIONAL node's TPDO1 (and TPDO2 on its own, slower timer), each on its
-  unit's bus;
+  unit's bus; a unit whose newest Sevcon frame is older than ``can.fresh_input_ms`` then
+  (slow input: 500 Hz) sends right after its next frame instead, at most a period later;
 - the housekeeping tick, fixed at ``faults.housekeeping_tick_ms`` whatever the event timers:
   heartbeats, the systemd watchdog (while the integration keeps up), READY once every bus is
   open, the systemd status, and the estimates saved every ``state_save_interval_s`` (in a
@@ -65,6 +66,8 @@ STATUS_INTERVAL_S = 2.0
 # reads before publishing, at most: a read that found frames is followed by another, since
 # handling the first batch takes long enough (0.2-0.5 ms) for a controller's next frame to come
 DRAIN_ROUNDS = 3
+# a held unit (can.fresh_input_ms) is published by the next tick's half period at the latest
+HOLD_MAX_TICKS = 0.5
 BUS_PATH_LOGGERS = ("canopen", "ddh_vsensor.service.node", "ddh_vsensor.service.pdo",
                     "ddh_vsensor.service.emcy", "can")
 
@@ -90,13 +93,15 @@ class Service:
                  notifier: SystemdNotifier | None = None,
                  opener: Callable[..., can.BusABC] | None = None,
                  buses: dict[str, dict[str, Any]] | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 wall_clock: Callable[[], float] = time.time) -> None:
         """``bus``: the settings of the default bus (the config's ``bus:`` with command-line
         overrides); ``buses``: settings of the other buses by name (default: the config's);
         ``clock``: monotonic time for what is not passed a time (presets, SDO reads, the
-        heartbeat consumers): a campaign driving a service never started passes its own."""
+        heartbeat consumers): a campaign driving a service never started passes its own;
+        ``wall_clock``: what SocketCAN stamps frames with, for their age at a tick."""
         self.cfg, self.options = cfg, options or ServiceOptions()
-        self.clock = clock
+        self.clock, self.wall_clock = clock, wall_clock
         self.faults = cfg.faults
         self.notifier = notifier or SystemdNotifier()
         self.codec = FrameCodec(cfg)
@@ -144,6 +149,11 @@ class Service:
         self._next_status_s = 0.0
         self._last_publish_s = math.inf
         self._tick_index = 0          # ticks since start, missed ones included
+        # units whose due TPDO1 waits for their next Sevcon frame (can.fresh_input_ms) ->
+        # the tick it belongs to; released by that frame or by the timer at the latest
+        self._held: dict[str, int] = {}
+        self._release: asyncio.TimerHandle | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
         self.started = False
         self.ticks = 0
         self.housekeeping_ticks = 0
@@ -213,8 +223,11 @@ class Service:
     # --- per unit ----------------------------------------------------------------------------
 
     def _on_sevcon(self, unit: Unit, msg: can.Message, now: float) -> None:
-        if unit.integrate(msg, now) and self.options.record_latency:
-            self.latency_s.append(time.time() - msg.timestamp)
+        if unit.integrate(msg, now):
+            if self.options.record_latency:
+                self.latency_s.append(time.time() - msg.timestamp)
+            if self._held and unit.actuator in self._held:
+                self._publish_held(unit)
 
     def stale(self, unit: Unit, now: float | None = None) -> tuple[bool, str]:
         return unit.stale(self.clock() if now is None else now)
@@ -238,7 +251,7 @@ class Service:
         return self._exit_code
 
     async def start(self) -> None:
-        loop = asyncio.get_running_loop()
+        loop = self._loop = asyncio.get_running_loop()
         self._stop_event = asyncio.Event()
         self.log_limiter.attach(BUS_PATH_LOGGERS)
         for link in self.links.values():
@@ -303,6 +316,7 @@ class Service:
         if self._save_task is not None:
             await asyncio.gather(self._save_task, return_exceptions=True)
         self.save_states(clean=True)
+        self._end_hold()
         self.ticker.close()
         self.housekeeper.close()
         for link in self.links.values():
@@ -374,19 +388,68 @@ class Service:
             # every frame received so far is in what goes out now, also those that came
             # while the reads before were being handled
             link.drain(DRAIN_ROUNDS)
-        now = time.monotonic()
+        now = self.clock()
         self.ticks += 1
         self._tick_index += 1 + missed
         self._last_publish_s = now
+        if self._held:               # a hold outlived its bound (this tick came late)
+            self._release_held()
+        fresh_s = self.cfg.can.fresh_input_ms / 1000.0
+        # Frame ages at the deadline decide the holds: what a unit does then depends on its
+        # controller's phase alone, not on how late this wake came or on the unit's place in
+        # the loop (either switched units between the tick and their next frame: measured,
+        # 1.3-1.8 ms of jitter). A frame that came after the deadline is fresh.
+        wall_s = self.wall_clock() - max(now - deadline, 0.0)
+        release_s = 0.0
         for i, unit in enumerate(self.units.values()):
             assert unit.node is not None
+            link = self.links[self.cfg.can.units[unit.actuator].bus]
             if i:                    # what arrived while the units before were published
-                self.links[self.cfg.can.units[unit.actuator].bus].drain(DRAIN_ROUNDS)
-            p = self.published(unit, now)
-            self.frames_published += unit.node.publish(p, self._tick_index)
-            unit.node.report_faults(p)
-            for observer in self.observers:
-                observer(unit.actuator, p, unit.last_frame_t)
+                link.drain(DRAIN_ROUNDS)
+            if unit.node.due(self._tick_index):
+                wait_s = unit.hold_for_input_s(wall_s, fresh_s)
+                if wait_s > 0.0:
+                    self._held[unit.actuator] = self._tick_index
+                    link.read_promptly(True)
+                    release_s = max(release_s, deadline + wait_s)
+                    continue
+            self._publish(unit, now, self._tick_index)
+        if self._held and self._loop is not None:
+            if self._release is not None:
+                self._release.cancel()
+            self._release = self._loop.call_later(
+                min(release_s, deadline + HOLD_MAX_TICKS * self.ticker.period_s)
+                - self.clock(), self._release_held)
+
+    def _publish(self, unit: Unit, now: float, tick_index: int) -> None:
+        assert unit.node is not None
+        p = self.published(unit, now)
+        self.frames_published += unit.node.publish(p, tick_index)
+        unit.node.report_faults(p)
+        for observer in self.observers:
+            observer(unit.actuator, p, unit.last_frame_t)
+
+    def _publish_held(self, unit: Unit) -> None:
+        """A held unit's next frame is in: its position goes out now."""
+        self._publish(unit, self.clock(), self._held.pop(unit.actuator))
+        if not self._held:
+            self._end_hold()
+
+    def _release_held(self) -> None:
+        """The hold's bound passed without the held units' next frames: out as they are."""
+        self._release = None
+        now = self.clock()
+        for actuator, tick_index in list(self._held.items()):
+            del self._held[actuator]
+            self._publish(self.units[actuator], now, tick_index)
+        self._end_hold()
+
+    def _end_hold(self) -> None:
+        if self._release is not None:
+            self._release.cancel()
+            self._release = None
+        for link in self.links.values():
+            link.read_promptly(False)
 
     def _housekeeping(self, tick: Tick) -> None:
         try:

@@ -49,6 +49,7 @@ STALE_TICK_CAP_S = 0.01
 # reception; a remote hub passes the sender's time on): then the newest integrated frame's
 # own age says how old the published position is, delivery delays included.
 WALL_CLOCK_MATCH_S = 5.0
+HOLD_SLACK_PERIODS = 0.25    # hold_for_input_s: the next frame's arrival, beyond one period
 WALL_STEP_MIN_S = 0.005       # wall clock slews (NTP) below this: no step
 # The largest uncertainty the diagnostic frame can carry (UNSIGNED24 counts): a bound beyond
 # it is published as "not referenced".
@@ -264,6 +265,24 @@ class Unit:
                                   estimator_flags(est) & ~Flags.NOT_REFERENCED)
 
     # --- what is published -----------------------------------------------------------------
+
+    def hold_for_input_s(self, wall_s: float, fresh_s: float) -> float:
+        """How long after ``wall_s`` (the tick's deadline) to hold this unit's position
+        for its next Sevcon frame (0: publish now). Held when the newest integrated
+        frame is older than ``fresh_s`` and the next one is due within the measured input
+        period (a quarter period of slack for its arrival): with slow input (500 Hz) a fixed
+        tick would otherwise publish values up to a whole period old. Frames stamped by
+        another clock than this host's, no measured period, or a frame overdue: not held.
+        Frames arriving at the threshold's phase switch between the tick and the next frame:
+        a jitter of the period less ``fresh_s``."""
+        t, period = self.last_frame_t, self.input_period_s
+        if t is None or period is None:
+            return 0.0
+        age_s = wall_s - t
+        slack_s = HOLD_SLACK_PERIODS * period
+        if not fresh_s < age_s < period + slack_s:
+            return 0.0
+        return period + slack_s - age_s
 
     def stale(self, now: float) -> tuple[bool, str]:
         if self.inputs.oil_temp_c is None:

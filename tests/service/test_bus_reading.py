@@ -176,3 +176,45 @@ def test_a_drain_with_rounds_takes_the_frames_that_came_while_it_handled() -> No
 
     assert asyncio.run(scenario(1)) == (2, [2])
     assert asyncio.run(scenario(3)) == (3, [2, 1])
+
+
+def test_while_read_promptly_every_frame_is_read_as_it_comes() -> None:
+    """Coalescing at 1 s: a frame sent while a poll is pending waits for it; once
+    read_promptly is on, the pending poll gives way to the watched fd and each frame is read
+    in the wake its arrival makes (counted over reads, not over time)."""
+
+    async def scenario():
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        reads: list[int] = []
+        link = BusLink({"interface": "pair"}, None, lambda batch: reads.append(len(batch)),
+                       opener=lambda settings, filters: PairBus(mine), watch_fd=True,
+                       coalesce_s=1.0)
+        await link.start()
+        frame = FRAME.pack(0x181, 8, bytes(8))
+        theirs.send(frame)
+        for _ in range(50):                  # the first wake reads it and starts coalescing
+            await asyncio.sleep(0.001)
+            if reads:
+                break
+        assert reads == [1] and link._rearm is not None               # noqa: SLF001
+        theirs.send(frame)
+        await asyncio.sleep(0.02)
+        assert reads == [1]                  # waits for the coalescing poll, 1 s away
+        link.read_promptly(True)
+        for _ in range(50):
+            await asyncio.sleep(0.001)
+            if len(reads) == 2:
+                break
+        assert reads == [1, 1]
+        for k in range(3):
+            theirs.send(frame)
+            for _ in range(50):
+                await asyncio.sleep(0.001)
+                if len(reads) == 3 + k:
+                    break
+            assert reads == [1] * (3 + k) and link._rearm is None      # noqa: SLF001
+        link.read_promptly(False)
+        await link.close()
+        theirs.close()
+
+    asyncio.run(scenario())

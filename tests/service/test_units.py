@@ -21,9 +21,11 @@ class Driven:
 
     def __init__(self, cfg, unit_tables) -> None:
         self.now = 1000.0
+        self.wall_s = 1.8e9
         self.service = Service(cfg, unit_tables, {"interface": "virtual",
                                                   "channel": channel_name()},
-                               ServiceOptions(), clock=lambda: self.now)
+                               ServiceOptions(), clock=lambda: self.now,
+                               wall_clock=lambda: self.wall_s)
         self.codec = FrameCodec(cfg)
 
     def send(self, msg, now: float) -> None:
@@ -126,3 +128,85 @@ def test_io_frames_read_late_take_the_hall_edge_back_to_its_time(cfg, unit_table
     in_order = _over_the_mid_switch(cfg, unit_tables, 0.0)
     late = _over_the_mid_switch(cfg, unit_tables, -0.05)
     assert late == pytest.approx(in_order, abs=0.01)
+
+
+SLOW_PERIOD_S = 0.002             # 500 Hz input: a fixed tick would publish values this old
+
+
+class Held:
+    """The boom at 500 Hz, frames stamped by this host's wall clock (as SocketCAN stamps
+    them); the tick driven by hand, the release timer's loop never run."""
+
+    def __init__(self, cfg, unit_tables) -> None:
+        import asyncio
+        self.d = Driven(cfg, unit_tables)
+        self.service = self.d.service
+        self.service._loop = asyncio.new_event_loop()              # noqa: SLF001
+        for unit in self.service.units.values():
+            unit.node.boot()
+        self.boom = self.service.units["boom"]
+        self.d.send(self.d.codec.encode_oil_temp(30.0, 50.0), self.d.now)
+
+    def frames(self, n: int, last_age_s: float) -> None:
+        """``n`` boom frames, the last ``last_age_s`` old by the wall clock now."""
+        t_last = self.d.wall_s - last_age_s
+        for k in range(n):
+            t = t_last - (n - 1 - k) * SLOW_PERIOD_S
+            self.d.send(self.d.codec.encode_sevcon("boom", 4.0, RPM, t),
+                        self.d.now + SLOW_PERIOD_S)
+
+    def tick(self) -> None:
+        self.service._on_tick(self.d.now, 0)                       # noqa: SLF001
+
+    def close(self) -> None:
+        self.service._loop.close()                                 # noqa: SLF001
+
+
+@pytest.fixture
+def held(cfg, unit_tables):
+    h = Held(cfg, unit_tables)
+    yield h
+    h.close()
+
+
+def test_a_fresh_input_is_published_at_the_tick(held, cfg) -> None:
+    held.frames(20, 0.5 * cfg.can.fresh_input_ms / 1000.0)
+    held.tick()
+    assert "boom" not in held.service._held                        # noqa: SLF001
+    assert held.boom.node._tick == held.service._tick_index        # noqa: SLF001
+
+
+def test_an_old_input_waits_for_the_next_frame_and_goes_out_with_it(held, cfg) -> None:
+    """The newest frame 1.5 ms old at the tick (fresh: 1 ms): the position waits for the next
+    frame, due 0.5 ms later, and is published with it; what goes out then includes it."""
+    held.frames(20, 0.0015)
+    held.tick()
+    assert "boom" in held.service._held                            # noqa: SLF001
+    published = held.service.frames_published
+    seen = []
+    held.service.observers.append(lambda unit, p, t: seen.append((unit, p.input_frames, t)))
+    held.d.wall_s += 0.0005
+    held.frames(1, 0.0)
+    assert held.service.frames_published > published
+    received = held.service.inputs.units["boom"].received
+    assert ("boom", received, held.boom.last_frame_t) in seen
+    assert not held.service._held and held.service._release is None   # noqa: SLF001
+
+
+def test_a_held_position_goes_out_when_its_frame_does_not_come(held) -> None:
+    """The hold is bounded by the timer (here called by hand) and by the next tick."""
+    held.frames(20, 0.0015)
+    held.tick()
+    handle = held.service._release                                  # noqa: SLF001
+    assert handle is not None
+    published = held.service.frames_published
+    handle._run()                                                   # noqa: SLF001
+    assert held.service.frames_published > published and not held.service._held  # noqa: SLF001
+
+
+def test_an_overdue_frame_is_not_waited_for(held) -> None:
+    """Older than a period and its slack: the controller stopped or a frame was lost."""
+    held.frames(20, 1.5 * SLOW_PERIOD_S)
+    held.tick()
+    assert "boom" not in held.service._held                        # noqa: SLF001
+
