@@ -176,10 +176,18 @@ def _grow(diag: Diagnosis, first: CauseFit, stepwise: bool, weights: list[float]
                 continue
             bench.use(s.motor_inertia)
             value, interval = ev.measured(c.parameter, s.params)
-            j = fit_set(bench, s.causes, s.params, weights, total,
-                        fixed={c: (c.clip(value), interval)})
-            if j.resolved() and _consistent(ev, j.params, j.intervals) and j.sse <= s.sse:
-                shares[name] = (s.sse - j.sse) / total if total else 0.0
+            fixed = {c: (c.clip(value), interval)}
+            j = fit_set(bench, s.causes, s.params, weights, total, fixed=fixed)
+            kept = tuple(m for m in s.causes if m.resolved(j.params.get(m.parameter)))
+            if not j.resolved() and kept and len(kept) < len(s.causes):
+                # a member that only stood in for the pressures' cause goes
+                j = fit_set(bench, kept, j.params, weights, total, fixed=fixed)
+            # the set without it disagrees with the pressures: no answer to keep, so the
+            # consistent one may leave more of the error (up to what a member must remove)
+            if j.resolved() and _consistent(ev, j.params, j.intervals) \
+                    and j.sse * (1.0 - MIN_ADDED) <= s.sse:
+                shares = {m.name: shares.get(m.name, 0.0) for m in j.causes if m.name != name}
+                shares[name] = max(s.sse - j.sse, 0.0) / total if total else 0.0
                 s = j
                 break
     if not _consistent(ev, s.params, s.intervals):

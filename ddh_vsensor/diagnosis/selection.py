@@ -8,7 +8,10 @@ single catalogued effects (numbers in diagnosis/README.md), never from the open-
    carry chamber pressures, agrees with what they measure (:mod:`.pressures`).
 2. The set grows from the best single candidate, one cause at a time, up to three; a cause
    joins only if the joint fit, cross-validated, removes at least :data:`MIN_ADDED` of the
-   held-out error left without it and every parameter stays resolved.
+   held-out error left without it and every parameter stays resolved. A set the pressures
+   disagree with is no answer: the cause they point at joins at its measured value, a member
+   it leaves unresolved goes (it stood in for it), and the set counts if it leaves at most
+   1 / (1 - :data:`MIN_ADDED`) times the error the disagreeing set left.
 3. The set is named when it explains :data:`MIN_SCORE` of the held-out squared error, one
    parameter value describes every run (not: held-out error over each run's own best fit
    above :data:`MAX_HETEROGENEITY` *and* the difference :data:`RESIDUAL_SHARE` of the

@@ -53,3 +53,18 @@ def test_without_an_effect_the_line_is_the_physics_own(cfg, cycle):
         ev = torque_evidence(bench)
         assert abs(math.log(ev.gain)) < 0.25 * GAIN_TOLERANCE, (actuator, ev)
         assert abs(ev.offset_nm) < 0.1 * OFFSET_TOLERANCE_NM, (actuator, ev)
+
+
+def test_the_pressures_cause_joins_where_it_makes_a_member_redundant(cfg):
+    """Belt slip and a torque gain error on the bucket: slip alone explains 99 % but the
+    pressures measure the gain (1.108 for a true 1.11), so slip alone is no answer; the set
+    grown from it took pump leakage in, and with the gain held at its measured value the
+    leakage fell to neutral (unresolved), which refused the set: the answer was
+    `unexplained`. The member the pressures' cause stood in for goes, and the true pair is
+    named."""
+    from ddh_vsensor.diagnosis.analyze import diagnose
+    runs = simulate_trial(cfg, Trial(10003, "belt_slip", 14.98, (2, 3), (24.2, 48.3), "paper",
+                                     more=(("torque_gain", 1.111),)))
+    d = diagnose(cfg, "bucket", [prepare_run(r["bucket"]) for r in runs], "full")
+    assert set(d.named) == {"belt_slip", "torque_gain"}, d.decision.reason
+    assert d.chosen_set.params["torque_gain"] == pytest.approx(1.111, rel=0.01)
