@@ -80,6 +80,15 @@ from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 INPUT_HZ = 1000.0
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)    # Linux; not exported by Python
 TIMESPEC = struct.Struct("@qq")
+
+
+def kernel_stamp(ancillary: list, default: float) -> float:
+    """The kernel's arrival time of a datagram read with recvmsg (SO_TIMESTAMPNS on)."""
+    for level, kind, value in ancillary:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+            sec, nsec = TIMESPEC.unpack(value)
+            return sec + nsec * 1e-9
+    return default
 OTHER_IDS = [0x200 + i for i in range(1, 40)] + [0x300 + i for i in range(1, 40)]
 
 
@@ -511,11 +520,7 @@ class SocketPairBus(can.BusABC):
             data, ancillary, _, _ = self.sock.recvmsg(16, 64)
         except BlockingIOError:
             return None, False
-        stamp = time.time()
-        for level, kind, value in ancillary:
-            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-                sec, nsec = TIMESPEC.unpack(value)
-                stamp = sec + nsec * 1e-9
+        stamp = kernel_stamp(ancillary, time.time())
         can_id, dlc, payload = self.FRAME.unpack(data)
         return can.Message(timestamp=stamp, arbitration_id=can_id, data=payload[:dlc],
                            is_extended_id=False), True
@@ -557,11 +562,7 @@ def _machine_process(cfg, socks: dict[str, socket.socket], other_hz: float, inpu
                 except BlockingIOError:
                     continue
                 woke = time.time()
-                stamp = woke
-                for level, kind, value in ancillary:
-                    if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-                        sec, nsec = TIMESPEC.unpack(value)
-                        stamp = sec + nsec * 1e-9
+                stamp = kernel_stamp(ancillary, woke)
                 stamp_delays.append(woke - stamp)
                 can_id, dlc, payload = SocketPairBus.FRAME.unpack(data)
                 received.append((stamp, can_id, payload[:dlc]))

@@ -439,8 +439,8 @@ class Service:
         """The hold's bound passed without the held units' next frames: out as they are."""
         self._release = None
         now = self.clock()
-        for actuator, tick_index in list(self._held.items()):
-            del self._held[actuator]
+        held, self._held = self._held, {}
+        for actuator, tick_index in held.items():
             self._publish(self.units[actuator], now, tick_index)
         self._end_hold()
 
