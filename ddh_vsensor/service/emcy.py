@@ -4,7 +4,9 @@ pre-defined error field 0x1003.
 Each fault flag of ``Published.flags`` sends its emergency when it appears and an error reset
 (code 0000, remaining error register) when it clears, one per inhibit time 0x1015 at most; a
 fault that appears enters the error field (newest first). An EMCY's manufacturer bytes: the
-flag set or cleared, then the fault flags active after it.
+flag set or cleared (0: none), then the fault flags active after it. A fault that came and went
+while the inhibit time held its EMCY back is not announced, but the register the master was
+last told may have counted it: an error reset with no flag then brings it up to date.
 """
 
 from __future__ import annotations
@@ -56,13 +58,14 @@ class EmcyProducer:
                  cob_id: int) -> None:
         self.node, self.network, self.name, self.cob_id = node, network, name, cob_id
         self.reported = 0                   # fault flags the master has been told of
+        self.told_register = 0              # the error register of the last EMCY sent
         self.active = 0                     # fault flags in the error field already
         self.next_emcy_s = 0.0              # monotonic time the inhibit time ends
         self.errors: list[int] = []         # 0x1003: newest first
 
     def booted(self) -> None:
         """Active faults are reported again after every boot."""
-        self.reported = 0
+        self.reported = self.told_register = 0
 
     def reset(self) -> None:
         """Error field cleared; active faults enter it again."""
@@ -104,24 +107,28 @@ class EmcyProducer:
                     self.errors.insert(0, code | bit << 16)
                     del self.errors[ERROR_FIELD_SIZE:]
             self.active = faults
-        if faults == self.reported or self.node.nmt.state in ("STOPPED", "INITIALISING"):
+        register = error_register(faults)
+        if faults == self.reported and register == self.told_register \
+                or self.node.nmt.state in ("STOPPED", "INITIALISING"):
             return 0
         cob_id = value_of(self.node.get_data(0x1014, 0))
         now_s = time.monotonic() if now_s is None else now_s
         if cob_id & PDO_INVALID or now_s < self.next_emcy_s:
             return 0
         inhibit_s = value_of(self.node.get_data(0x1015, 0)) * 1e-4     # 100 us units
+        changes = [(bit, code) for bit, (code, _) in EMCY_FAULTS.items()
+                   if (faults ^ self.reported) & bit] or [(0, 0x0000)]   # register only
         sent = 0
-        for bit, (code, _) in EMCY_FAULTS.items():
-            if (faults ^ self.reported) & bit:
-                appeared = bool(faults & bit)
-                self.network.send_message(cob_id & 0x7FF, struct.pack(
-                    "<HBBB3x", code if appeared else 0x0000, error_register(faults), bit, faults))
-                log.info("%s: EMCY %04X (flag 0x%02X %s)", self.name,
-                         code if appeared else 0, bit, "set" if appeared else "cleared")
-                self.reported ^= bit
-                sent += 1
-                if inhibit_s > 0.0:
-                    self.next_emcy_s = now_s + inhibit_s
-                    break
+        for bit, code in changes:
+            appeared = bool(faults & bit)
+            self.network.send_message(cob_id & 0x7FF, struct.pack(
+                "<HBBB3x", code if appeared else 0x0000, register, bit, faults))
+            log.info("%s: EMCY %04X (flag 0x%02X %s)", self.name, code if appeared else 0,
+                     bit, "set" if appeared else "cleared")
+            self.reported ^= bit
+            self.told_register = register
+            sent += 1
+            if inhibit_s > 0.0:
+                self.next_emcy_s = now_s + inhibit_s
+                break
         return sent

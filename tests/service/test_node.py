@@ -145,3 +145,16 @@ def test_emcy_inhibit_time_bounds_a_flapping_flag(node, sent) -> None:
     assert node.report_faults(both, now_s=1.010) == 1
     assert [int.from_bytes(m.data[:2], "little") for m in sent[first:]] == [0x8100, 0xFF02]
     assert node.node.sdo[0x1003][1].raw & 0xFFFF == 0xFF02           # the field: at once
+
+
+def test_a_fault_gone_before_its_emcy_leaves_no_stale_register(node, sent) -> None:
+    """Stale clears while a preset's unconfirmed flag waits for the inhibit time, which then
+    clears too: the error reset of stale counted it, a last reset says the register is 0."""
+    sent.clear()
+    assert node.report_faults(Published(1.0, 0.0, 0.1, 0x01, 0, 0), now_s=1.0) == 1
+    assert node.report_faults(Published(1.0, 0.0, 0.1, 0x20, 0, 0), now_s=1.010) == 1
+    assert bytes(sent[-1].data[:5]) == bytes([0x00, 0x00, 0x81, 0x01, 0x20])   # stale cleared
+    assert node.report_faults(Published(1.0, 0.0, 0.1, 0x00, 0, 0), now_s=1.015) == 0
+    assert node.report_faults(Published(1.0, 0.0, 0.1, 0x00, 0, 0), now_s=1.020) == 1
+    assert bytes(sent[-1].data[:5]) == bytes([0x00, 0x00, 0x00, 0x00, 0x00])   # register 0
+    assert node.report_faults(Published(1.0, 0.0, 0.1, 0x00, 0, 0), now_s=1.030) == 0
