@@ -15,7 +15,7 @@ enum {
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
 };
 enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
-       S_SIZE };
+       S_LOAD_F, S_SIZE };
 
 /* The drive samples its speed on an even cadence; the stamps' differences jitter around it.
  * The rotor's acceleration is the speed difference over that cadence (a filtered step), not
@@ -165,11 +165,26 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         double ka = ca * h / P[P_BLEND_S], kb = cb * h / P[P_BLEND_S];
         fa += ka * qa; fb += kb * qb; da += ka; db += kb;
     }
+    double load = S[S_LOAD_F];
     double v = 0.0;
     /* A rod on its end stop stays there unless the motor drives it away: pressed into the
      * stop, the pumps' flow goes over the relief valve (a fraction of a bar of pressure error
      * would read as travel); with the motor stopped, leakage decompresses the chambers. */
     int stopped = known && ((x <= 0.0 && n <= 0.0) || (x >= stroke && n >= 0.0));
+    if (!stopped && known && (x <= 0.0 || x >= stroke) && load == load) {
+        /* Driven away from its stop, the rod stays until the chambers' force overcomes the
+         * load it held arriving (the load does not change on the stop; its friction only
+         * delays the start further): until then the pumps' flow (de)compresses the chambers,
+         * which the torque, read as pressure, would turn into travel. Both chambers pinned
+         * by their valves are the most force they can make: the load cannot be more. */
+        int qa, qb;
+        double sa, sb;
+        still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da, &qa, &sa);
+        still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db, &qb, &sb);
+        double force = sa * P[P_AREA_A] - sb * P[P_AREA_B];
+        int pinned = (qa == 0 || qa == 3) && (qb == 0 || qb == 3);
+        stopped = !pinned && (x <= 0.0 ? force < load : force > load);
+    }
     if (!stopped) {
         solve(P, fa, fb, da, db, torque, d, &ra, &rb, &pa, &pb, &v);
         /* Both chambers on a one-way valve (relief, anti-cavitation): their pressures are
@@ -186,6 +201,8 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     S[S_X] = x_new < 0.0 ? 0.0 : x_new > stroke ? stroke : x_new;
     S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n; S[S_TAU] = tau;
     S[S_RA] = ra; S[S_RB] = rb;
+    if (v != 0.0 && known)
+        S[S_LOAD_F] = pa * P[P_AREA_A] - pb * P[P_AREA_B];
     return v;
 }
 

@@ -21,7 +21,9 @@ value was chosen and why.
 
 Where the torque cannot tell the rod's speed, the step does not ask it (README: temperature
 sweep): a rod on its end stop (the model's own position at the stroke end) stays there unless
-the motor drives it away, and so does a rod whose chambers both sit on a one-way valve;
+the motor drives it away and the chambers' force has overcome the load the rod held arriving
+there (the chamber force of its last moving step), and so does a rod whose chambers both sit
+on a one-way valve;
 reversing on an end stop, the pumps' static friction lets any torque between the motoring
 and the pumping one hold the pressures; and a torque step within one sample larger than
 ``torque_step_nm`` has an unknown shape, so the step's mean pump torque is taken nearest the
@@ -59,7 +61,7 @@ _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valv
  P_TORQUE_STEP) = range(17)
 P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 17, 21, 25, 29, 33, 45, 57
 (S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
- S_SIZE) = range(14)
+ S_LOAD_F, S_SIZE) = range(15)
 HF_GAIN = 0.05                                       # HF_GAIN of _chambers.c
 
 
@@ -134,6 +136,7 @@ class DynamicModel:
                                  torque_step_nm=torque_step_nm)
         self.state = np.zeros(S_SIZE)
         self.state[S_X] = position_mm * 1e-3
+        self.state[S_LOAD_F] = math.nan                 # no load seen moving yet
         self.state[S_RA] = self.state[S_RB] = self.state[S_SA] = self.state[S_SB] = 2.0
         self._lib = library() if use_compiled else None
         self._p_list = self.params.tolist()
@@ -199,7 +202,8 @@ class DynamicModel:
 # --- the same step in Python (no compiler) ------------------------------------------------
 
 def _regime(dp: float, crack: float, relief: float) -> int:
-    return (dp >= crack) + (dp >= 0.0) + (dp > relief)
+    # int() each: numpy booleans (a numpy float's comparisons) add as a logical or
+    return int(dp >= crack) + int(dp >= 0.0) + int(dp > relief)
 
 
 def _attempt(P, ra, rb, fa, fb, da, db, torque, d):
@@ -293,8 +297,15 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         fb += kb * qb
         da += ka
         db += kb
+    load = float(S[S_LOAD_F])
     v = 0.0
     stopped = known and ((x <= 0.0 and n <= 0.0) or (x >= stroke and n >= 0.0))
+    if not stopped and known and (x <= 0.0 or x >= stroke) and load == load:
+        sa, qa = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
+        sb, qb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)
+        force = sa * P[P_AREA_A] - sb * P[P_AREA_B]
+        pinned = qa in (0, 3) and qb in (0, 3)
+        stopped = not pinned and (force < load if x <= 0.0 else force > load)
     if not stopped:
         pa, pb, v, ra, rb = _solve(P, fa, fb, da, db, torque, d, ra, rb)
         stopped = ra in (0, 3) and rb in (0, 3)
@@ -306,4 +317,6 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     S[S_X] = min(max(x_new, 0.0), stroke) if known else math.nan
     S[S_PA], S[S_PB], S[S_V], S[S_N], S[S_TAU] = pa, pb, v, n, tau
     S[S_RA], S[S_RB] = ra, rb
+    if v != 0.0 and known:
+        S[S_LOAD_F] = pa * P[P_AREA_A] - pb * P[P_AREA_B]
     return v
