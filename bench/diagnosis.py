@@ -59,7 +59,7 @@ def one_draw(args: tuple[int, str, str]) -> list[dict]:
     out = []
     for actuator in cfg.unit_names:
         started = time.perf_counter()
-        d = diagnose(cfg, actuator, [prepare_run(r[actuator]) for r in runs], "full")
+        d = diagnose(cfg, actuator, [prepare_run(r[actuator]) for r in runs])
         before = max(float(np.nanmax(np.abs(e))) for e in d.baseline)
         after = max(float(np.max(np.abs(h))) for h in d.heldout)
         s = d.chosen_set

@@ -48,7 +48,7 @@ def one_draw(args: tuple[int, str, bool]) -> list[dict]:
         after = max(float(np.max(np.abs(e))) for e in ext) if d.cause not in (
             "none", "unexplained") else before
         started = time.perf_counter()
-        p = diagnose(cfg, actuator, [prepare_run(r[actuator]) for r in runs], "full") \
+        p = diagnose(cfg, actuator, [prepare_run(r[actuator]) for r in runs]) \
             if position else None
         out.append({"seed": seed, "effect": effect, "value": trial.value,
                     "actuator": actuator, "named": d.cause,

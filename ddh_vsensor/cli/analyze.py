@@ -30,9 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "at least two")
     add_config_arg(p)
     add_actuator_arg(p)
-    p.add_argument("--mode", choices=("full", "paper"), default=None,
-                   help="estimator mode to diagnose (default: the config's; full if that "
-                        "is dynamic)")
+    p.add_argument("--mode", choices=("dynamic", "full", "paper"), default=None,
+                   help="estimator mode to diagnose (default: the config's)")
     p.add_argument("--report", required=True, metavar="DIR", help="report directory")
     p.add_argument("--json", action="store_true", help="print report.json to stdout")
     p.add_argument("--truth", choices=("auto", "position", "references"), default="auto",
@@ -46,10 +45,9 @@ def _run(args: argparse.Namespace) -> int:
     from ..diagnosis.report import prepare_report_dir, write_report
     from ..diagnosis.runs import load_analysis_run
     from ..diagnosis.selection import separation
-    from ..diagnosis.workbench import analysis_mode
 
     cfg = config_from(args)
-    mode = args.mode or analysis_mode(cfg.estimator.mode)
+    mode = args.mode or cfg.estimator.mode
     if args.truth != "position":
         from .analyze_references import lacks_position, read_any, run_references
         raw = [read_any(path, args.actuator, cfg) for path in args.runs]

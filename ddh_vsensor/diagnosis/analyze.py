@@ -75,9 +75,9 @@ def _fit_either_torque(cause: Cause, bench: Workbench, target: list[np.ndarray],
     inertia taken off); keep the one that explains more of ``target`` on held-out runs.
 
     In a transient the tables' velocity can hinge on a few N*m (a valve regime), so which
-    torque reads right depends on the runs and on the cause; the chamber model of
-    ``compressibility`` takes the inertia into account itself. The sensor causes are fitted
-    on the model's own choice only (time).
+    torque reads right depends on the runs and on the cause; the chamber models (``dynamic``
+    mode, and ``compressibility``'s) take the inertia into account themselves. The sensor
+    causes are fitted on the model's own choice only (time).
     """
     if cause.name == "none":
         bench.use(bench.default_inertia)
@@ -85,7 +85,7 @@ def _fit_either_torque(cause: Cause, bench: Workbench, target: list[np.ndarray],
         fit.motor_inertia = bench.default_inertia
         return fit
     best = None
-    for inertia in ((False, True) if cause.name in BOTH_TORQUES
+    for inertia in ((False, True) if cause.name in BOTH_TORQUES and bench.mode != "dynamic"
                     else (bench.default_inertia,)):
         bench.use(inertia)
         own = [(x - r.position_mm)[m] for x, r, m in zip(bench.base, bench.runs, bench.masks)]
@@ -100,15 +100,17 @@ def _sse(res: Sequence[np.ndarray], weights: Sequence[float]) -> float:
     return float(sum(w * np.dot(r, r) for r, w in zip(res, weights)))
 
 
-def diagnose(cfg: Config, actuator: str, runs: Sequence[AnalysisRun], mode: str = "full",
+def diagnose(cfg: Config, actuator: str, runs: Sequence[AnalysisRun], mode: str | None = None,
              progress: Progress | None = None) -> Diagnosis:
     """Fit every cause of the catalogue, grow a set jointly, fit the residual model, and
-    decide (cross-validated one run out at a time throughout)."""
+    decide (cross-validated one run out at a time throughout); in the configured estimator
+    mode unless ``mode`` says otherwise."""
+    mode = mode or cfg.estimator.mode
     if len(runs) < 2:
         raise UserError(f"{len(runs)} run given: the diagnosis needs at least two runs (the "
                         "fit is judged on runs it did not see)")
-    if mode not in ("full", "paper"):
-        raise UserError(f"unknown mode {mode!r} (full or paper)")
+    if mode not in ("dynamic", "full", "paper"):
+        raise UserError(f"unknown mode {mode!r} (dynamic, full or paper)")
     report = progress or (lambda stage, fraction: None)
     report("baseline", 0.0)
     bench = Workbench(cfg, actuator, runs, mode)

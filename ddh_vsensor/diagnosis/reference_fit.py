@@ -112,14 +112,16 @@ def _fit(cause: Cause, bench: Workbench, rruns: Sequence[ReferenceRun],
 
 
 def diagnose_references(cfg: Config, actuator: str, rruns: Sequence[ReferenceRun],
-                        mode: str = "full", progress: Progress | None = None,
+                        mode: str | None = None, progress: Progress | None = None,
                         causes: Mapping[str, Cause] | None = None) -> ReferenceDiagnosis:
-    """Fit every cause to the references and holds, held out one run at a time; decide."""
+    """Fit every cause to the references and holds, held out one run at a time; decide (in
+    the configured estimator mode unless ``mode`` says otherwise)."""
+    mode = mode or cfg.estimator.mode
     if len(rruns) < 2:
         raise UserError(f"{len(rruns)} run given: the diagnosis needs at least two runs (the "
                         "fit is judged on runs it did not see)")
-    if mode not in ("full", "paper"):
-        raise UserError(f"unknown mode {mode!r} (full or paper)")
+    if mode not in ("dynamic", "full", "paper"):
+        raise UserError(f"unknown mode {mode!r} (dynamic, full or paper)")
     report = progress or (lambda stage, fraction: None)
     report("baseline", 0.0)
     bench = Workbench(cfg, actuator, [rr.run for rr in rruns], mode)

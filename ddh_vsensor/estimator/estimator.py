@@ -102,7 +102,10 @@ class Estimator:
     def __init__(self, cfg: Config, actuator: str, tables: UnitTables, *,
                  mode: Mode | None = None, references: bool = True,
                  adaptation: bool | None = None,
-                 initial_position_mm: float | None = None) -> None:
+                 initial_position_mm: float | None = None,
+                 unit: DDHUnit | None = None) -> None:
+        """``unit``: the physics `dynamic` mode's chamber model runs (default: the configured
+        unit's), as ``tables`` are the other modes' (an extension's scaled pumps)."""
         ecfg, ucfg = cfg.estimator, cfg.unit(actuator)
         self.cfg, self.actuator = cfg, actuator
         self.mode: Mode = mode or ecfg.mode
@@ -128,7 +131,7 @@ class Estimator:
         self.position_mm = 0.0 if initial_position_mm is None else float(initial_position_mm)
         # `dynamic`: the chamber pressures are states; the model carries its own rod position
         # for the chamber volumes (it sees no references, so both faces feed it alike)
-        self.dynamic = (DynamicModel(DDHUnit.from_config(cfg, actuator), self.position_mm,
+        self.dynamic = (DynamicModel(unit or DDHUnit.from_config(cfg, actuator), self.position_mm,
                                      inertia=ecfg.inertia_compensation,
                                      blend_s=ecfg.dynamic_blend_s, max_gap_s=self.max_gap_s,
                                      torque_step_nm=ecfg.dynamic_torque_step

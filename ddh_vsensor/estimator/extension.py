@@ -295,9 +295,9 @@ class Extension:
 
     def estimator_mode(self, mode: str | None) -> str:
         """The mode to estimate in: the speed-continuous tables for low_speed_leakage, else
-        the one asked for, else the one the extension was fitted in. The extension's physics
-        live in the tables it was fitted with, which the dynamic mode does not read: asked for
-        dynamic, it runs in the mode it was fitted in."""
+        the one asked for, else the one the extension was fitted in. Fitted in a tables' mode
+        and asked for dynamic, it runs in the mode it was fitted in (its parameters make up
+        for that mode's own errors, not the chamber model's)."""
         if "low_speed_leakage" in self.causes:
             return "full"
         if mode == "dynamic" and self.mode != "dynamic":
@@ -330,7 +330,7 @@ class ExtendedEstimator:
         mode = extension.estimator_mode(kwargs.pop("mode", None))
         cfg = with_inertia_compensation(cfg, extension.motor_inertia)
         self.estimator = Estimator(cfg, extension.actuator, extension.tables(cfg, tables),
-                                   mode=mode, **kwargs)
+                                   mode=mode, unit=extension.unit(cfg), **kwargs)
         self._cfg = cfg
         self._params = dict(extension.parameters)
         self._air = extension.param("air_fraction") > 0.0 or "compressibility" in \
@@ -390,7 +390,7 @@ class ExtendedEstimator:
         if self._air and len(t):
             plain = Estimator(self._cfg, ext.actuator, self.estimator.model.tables,
                               mode=self.estimator.model.mode, references=False,
-                              adaptation=False, initial_position_mm=start)
+                              adaptation=False, initial_position_mm=start, unit=self._unit)
             tables_x = plain.run(t, pumps_n, tau, temp).position_mm
         res = self.estimator.run(t, pumps_n, tau, temp, refs)
         if (not self._air and ext.residual is None) or len(t) == 0:

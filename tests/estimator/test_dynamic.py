@@ -189,3 +189,23 @@ def test_a_rod_driven_off_its_end_stop_waits_for_its_load(cfg, unit_tables, buck
                           use_compiled=False)
     assert np.max(np.abs(_drive(compiled, run) - _drive(python, run))) < 1e-9
     assert np.allclose(compiled.state, python.state, rtol=1e-12, atol=1e-6)
+
+
+def test_the_dynamic_mode_runs_the_pumps_it_is_given(cfg, unit_tables, boom):
+    """An extension's pumps (leakage x 3 here) reach `dynamic` through ``unit``, as they
+    reach the tables' modes through their tables: held inputs settle at that unit's steady
+    state, not the configured one's."""
+    worn = boom.with_pumps(leakage=3.0, displacement=1.0)
+    st = steady_state(worn, 300.0, boom.load_force_n(1040.0), 27.0)
+    nominal = steady_state(boom, 300.0, boom.load_force_n(1040.0), 27.0)
+    t = np.arange(0.0, 20.0, 0.01)
+    got = {}
+    for name, unit in (("worn", worn), ("configured", None)):
+        est = Estimator(cfg, "boom", unit_tables["boom"], mode="dynamic", references=False,
+                        initial_position_mm=150.0, unit=unit)
+        res = est.run(t, np.full_like(t, 300.0), np.full_like(t, float(st.torque_nm)),
+                      np.full_like(t, 27.0))
+        got[name] = float(np.diff(res.position_mm[-101:]).sum())       # mm in the last 1 s
+    assert got["worn"] == pytest.approx(float(st.velocity_m_s) * 1e3, rel=0.01)
+    assert abs(got["configured"] - got["worn"]) > 0.5 * abs(
+        float(st.velocity_m_s - nominal.velocity_m_s)) * 1e3
