@@ -94,11 +94,12 @@ def interval(fit: CauseFit, level: float = INTERVAL) -> tuple[float, float] | No
 
 def _fit(cause: Cause, bench: Workbench, rruns: Sequence[ReferenceRun],
          target: list[np.ndarray], weights: list[float]) -> CauseFit:
-    """The cause fitted on either torque (as :func:`.analyze._fit_either_torque`)."""
+    """The cause fitted on either torque (as :func:`.analyze._fit_either_torque`; the
+    chamber model has the inertia in it)."""
     wrapped = _Observed(cause, rruns)
     proxy = _ObservedBench(bench, [np.ones(len(t), dtype=bool) for t in target])
     options = ((bench.default_inertia,) if cause.name in ("none", "compressibility")
-               else (False, True))
+               or bench.mode == "dynamic" else (False, True))
     best = None
     for inertia in options:
         bench.use(inertia)
