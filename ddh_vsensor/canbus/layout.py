@@ -300,7 +300,9 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
                  "cleared, the register shows what remains).",
                  choices={0: "ErrorReset", **dict(EMCY_CODES.values())}),
          *register,
-         _signal("FlagConcerned", 24, 8, "The status flag (0x2002 bit) that was set or cleared.",
+         _signal("FlagConcerned", 24, 8, "The status flag (0x2002 bit) that was set or cleared; "
+                 "0 in an error reset that only brings the register up to date (a fault came "
+                 "and went within the inhibit time).",
                  choices={int(f): camel(f.name or "") for f in EMCY_CODES}),
          *active,
          _signal("Reserved", 40, 24, "Manufacturer-specific error field bytes 5..7, 0.")],

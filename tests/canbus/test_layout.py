@@ -28,7 +28,9 @@ FUNCTION_CODES = {"sevcon": 0x180, "heartbeat": 0x700, "position": 0x180, "diag"
 REWORDED = {(None, None),                                        # the database's
             ("IO_MODULE_TPDO1", None),                           # signals follow the wiring
             ("POSITION_BOOM_TPDO1", None), ("POSITION_BUCKET_TPDO1", None),  # EDS per unit
-            ("POSITION_BOOM_TPDO1", "Position"), ("POSITION_BUCKET_TPDO1", "Position")}
+            ("POSITION_BOOM_TPDO1", "Position"), ("POSITION_BUCKET_TPDO1", "Position"),
+            ("SENSOR_BOOM_EMCY", "FlagConcerned"),                # 0: a register-only reset
+            ("SENSOR_BUCKET_EMCY", "FlagConcerned")}
 
 
 def test_packaged_dbc_is_a_relative_link_to_the_repo_dbc() -> None:
@@ -89,6 +91,8 @@ def test_reworded_comments_say_what_is_now_true() -> None:
         db.get_message_by_name("POSITION_BUCKET_TPDO1").comment
     assert "(0.01 mm, can.position_step_mm)" in db.get_message_by_name(
         "POSITION_BOOM_TPDO1").get_signal_by_name("Position").comment
+    assert "0 in an error reset that only brings the register up to date" in \
+        db.get_message_by_name("SENSOR_BUCKET_EMCY").get_signal_by_name("FlagConcerned").comment
 
 
 @pytest.fixture(params=["loader", "three_units", "wide_inputs"])
