@@ -80,6 +80,7 @@ from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 INPUT_HZ = 1000.0
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)    # Linux; not exported by Python
 TIMESPEC = struct.Struct("@qq")
+OTHER_IDS = [0x200 + i for i in range(1, 40)] + [0x300 + i for i in range(1, 40)]
 
 
 def kernel_stamp(ancillary: list, default: float) -> float:
@@ -89,7 +90,6 @@ def kernel_stamp(ancillary: list, default: float) -> float:
             sec, nsec = TIMESPEC.unpack(value)
             return sec + nsec * 1e-9
     return default
-OTHER_IDS = [0x200 + i for i in range(1, 40)] + [0x300 + i for i in range(1, 40)]
 
 
 class Feeder(threading.Thread):

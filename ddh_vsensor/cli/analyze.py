@@ -45,9 +45,10 @@ def _run(args: argparse.Namespace) -> int:
     from ..diagnosis.report import prepare_report_dir, write_report
     from ..diagnosis.runs import load_analysis_run
     from ..diagnosis.selection import separation
+    from ..diagnosis.workbench import resolve_mode
 
     cfg = config_from(args)
-    mode = args.mode or cfg.estimator.mode
+    mode = resolve_mode(cfg, args.mode)
     if args.truth != "position":
         from .analyze_references import lacks_position, read_any, run_references
         raw = [read_any(path, args.actuator, cfg) for path in args.runs]

@@ -19,7 +19,7 @@ from .residual import ResidualFit, fit_residual
 from .runs import AnalysisRun
 from .selection import (AMBIGUITY_RATIO, MAX_CAUSES, MAX_HETEROGENEITY, MIN_ADDED, MIN_SCORE,
                         OWN_ERROR_RMS_MM, RESIDUAL_SHARE, Decision, bound, rms)
-from .workbench import Workbench
+from .workbench import Workbench, resolve_mode
 
 Progress = Callable[[str, float], None]
 CANDIDATES_PER_STEP = (3, 2)          # causes tried as the second and the third
@@ -85,7 +85,7 @@ def _fit_either_torque(cause: Cause, bench: Workbench, target: list[np.ndarray],
         fit.motor_inertia = bench.default_inertia
         return fit
     best = None
-    for inertia in ((False, True) if cause.name in BOTH_TORQUES and bench.mode != "dynamic"
+    for inertia in (bench.inertia_choices if cause.name in BOTH_TORQUES
                     else (bench.default_inertia,)):
         bench.use(inertia)
         own = [(x - r.position_mm)[m] for x, r, m in zip(bench.base, bench.runs, bench.masks)]
@@ -105,12 +105,10 @@ def diagnose(cfg: Config, actuator: str, runs: Sequence[AnalysisRun], mode: str 
     """Fit every cause of the catalogue, grow a set jointly, fit the residual model, and
     decide (cross-validated one run out at a time throughout); in the configured estimator
     mode unless ``mode`` says otherwise."""
-    mode = mode or cfg.estimator.mode
+    mode = resolve_mode(cfg, mode)
     if len(runs) < 2:
         raise UserError(f"{len(runs)} run given: the diagnosis needs at least two runs (the "
                         "fit is judged on runs it did not see)")
-    if mode not in ("dynamic", "full", "paper"):
-        raise UserError(f"unknown mode {mode!r} (dynamic, full or paper)")
     report = progress or (lambda stage, fraction: None)
     report("baseline", 0.0)
     bench = Workbench(cfg, actuator, runs, mode)

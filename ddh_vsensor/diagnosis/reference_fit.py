@@ -24,7 +24,7 @@ from .causes import ALL_CAUSES, Cause
 from .fit import CauseFit, fit_cause, rescore
 from .references import ReferenceRun
 from .selection import Decision, decide_single
-from .workbench import Workbench
+from .workbench import Workbench, resolve_mode
 
 Progress = Callable[[str, float], None]
 # RMS of the increments, mm, beyond which an error no cause explains is called unexplained.
@@ -94,12 +94,11 @@ def interval(fit: CauseFit, level: float = INTERVAL) -> tuple[float, float] | No
 
 def _fit(cause: Cause, bench: Workbench, rruns: Sequence[ReferenceRun],
          target: list[np.ndarray], weights: list[float]) -> CauseFit:
-    """The cause fitted on either torque (as :func:`.analyze._fit_either_torque`; the
-    chamber model has the inertia in it)."""
+    """The cause fitted on either torque (as :func:`.analyze._fit_either_torque`)."""
     wrapped = _Observed(cause, rruns)
     proxy = _ObservedBench(bench, [np.ones(len(t), dtype=bool) for t in target])
     options = ((bench.default_inertia,) if cause.name in ("none", "compressibility")
-               or bench.mode == "dynamic" else (False, True))
+               else bench.inertia_choices)
     best = None
     for inertia in options:
         bench.use(inertia)
@@ -117,12 +116,10 @@ def diagnose_references(cfg: Config, actuator: str, rruns: Sequence[ReferenceRun
                         causes: Mapping[str, Cause] | None = None) -> ReferenceDiagnosis:
     """Fit every cause to the references and holds, held out one run at a time; decide (in
     the configured estimator mode unless ``mode`` says otherwise)."""
-    mode = mode or cfg.estimator.mode
+    mode = resolve_mode(cfg, mode)
     if len(rruns) < 2:
         raise UserError(f"{len(rruns)} run given: the diagnosis needs at least two runs (the "
                         "fit is judged on runs it did not see)")
-    if mode not in ("dynamic", "full", "paper"):
-        raise UserError(f"unknown mode {mode!r} (dynamic, full or paper)")
     report = progress or (lambda stage, fraction: None)
     report("baseline", 0.0)
     bench = Workbench(cfg, actuator, [rr.run for rr in rruns], mode)

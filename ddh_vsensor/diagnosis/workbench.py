@@ -12,11 +12,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
+from typing import get_args
 
 import numpy as np
 
 from ..config import Config
+from ..errors import UserError
 from ..estimator.estimator import Estimator
+from ..estimator.model import Mode
 from ..physics.unit import DDHUnit
 from ..tables.build import build_unit_tables
 from ..tables.lookup import UnitTables
@@ -26,6 +29,19 @@ from ..estimator.extension import (NEUTRAL, corrected_inputs, shift_signal,
 from .runs import AnalysisRun
 
 Params = dict[str, float]
+
+
+def resolve_mode(cfg: Config, mode: str | None) -> str:
+    """The estimator mode a diagnosis runs in: the one asked for, else the configured one."""
+    mode = mode or cfg.estimator.mode
+    if mode not in get_args(Mode):
+        raise UserError(f"unknown mode {mode!r} ({', '.join(get_args(Mode))})")
+    return mode
+
+
+def _pump_factors(p: Params) -> tuple[float, float]:
+    """(leakage, displacement) factors of the pumps under ``p``."""
+    return float(p.get("leakage_factor", 1.0)), float(p.get("displacement_factor", 1.0))
 
 
 TEMP_MARGIN_C = 30.0       # the oil temperature sensor's offset is searched within +-this
@@ -78,6 +94,13 @@ class Workbench:
         self.use(self.default_inertia)
         self._chamber_cache: dict[float, list[np.ndarray]] = {}
         self._table_cache: dict[tuple[float, float], UnitTables] = {}
+
+    @property
+    def inertia_choices(self) -> tuple[bool, ...]:
+        """The torques a cause may be fitted on: the motor's or the pumps' (its inertia
+        taken off) in the tables' modes; the chamber model's own choice only, since its
+        torque balance has the inertia in it."""
+        return (self.default_inertia,) if self.mode == "dynamic" else (False, True)
 
     @property
     def estimator_config(self) -> Config:
@@ -166,12 +189,9 @@ class Workbench:
         if rows:
             units: dict[tuple[float, float], list[int]] = {}
             for m, (j, i, _) in enumerate(where):
-                p = per[j][i]
-                key = (p.get("leakage_factor", 1.0), p.get("displacement_factor", 1.0))
-                units.setdefault(key, []).append(m)
+                units.setdefault(_pump_factors(per[j][i]), []).append(m)
             for (leak, disp), members in units.items():
-                unit = self.unit.with_pumps(leakage=leak, displacement=disp) \
-                    if (leak, disp) != (1.0, 1.0) else self.unit
+                unit = self.scaled_unit({"leakage_factor": leak, "displacement_factor": disp})
                 tracks = track_chambers(unit, [rows[m] for m in members],
                                         max_gap_s=self.cfg.estimator.max_gap_s)
                 for m, tr in zip(members, tracks):
@@ -181,20 +201,19 @@ class Workbench:
 
     def scaled_unit(self, p: Params) -> DDHUnit:
         """The unit with the pumps of ``p``."""
-        leak, disp = p.get("leakage_factor", 1.0), p.get("displacement_factor", 1.0)
+        leak, disp = _pump_factors(p)
         return self.unit.with_pumps(leakage=leak, displacement=disp) \
             if (leak, disp) != (1.0, 1.0) else self.unit
 
     def scaled_tables(self, p: Params) -> UnitTables:
         """Tables of the unit with the pumps of ``p`` (cached)."""
-        key = (float(p.get("leakage_factor", 1.0)), float(p.get("displacement_factor", 1.0)))
+        key = _pump_factors(p)
         if key == (1.0, 1.0):
             return self.nominal_tables
         if key not in self._table_cache:
             if len(self._table_cache) > 64:
                 self._table_cache.clear()
-            self._table_cache[key] = self.tables(self.unit.with_pumps(leakage=key[0],
-                                                                      displacement=key[1]))
+            self._table_cache[key] = self.tables(self.scaled_unit(p))
         return self._table_cache[key]
 
     def chambers(self, air_fractions: Sequence[float]) -> list[list[np.ndarray]]:

@@ -167,6 +167,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     }
     double load = S[S_LOAD_F];
     double v = 0.0;
+    int still_done = 0;         /* pa, pb, ra, rb already the chambers' own (rod still) */
     /* A rod on its end stop stays there unless the motor drives it away: pressed into the
      * stop, the pumps' flow goes over the relief valve (a fraction of a bar of pressure error
      * would read as travel); with the motor stopped, leakage decompresses the chambers. */
@@ -183,7 +184,10 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db, &qb, &sb);
         double force = sa * P[P_AREA_A] - sb * P[P_AREA_B];
         int pinned = (qa == 0 || qa == 3) && (qb == 0 || qb == 3);
-        stopped = !pinned && (x <= 0.0 ? force < load : force > load);
+        stopped = still_done = !pinned && (x <= 0.0 ? force < load : force > load);
+        if (still_done) {
+            pa = sa; ra = qa; pb = sb; rb = qb;
+        }
     }
     if (!stopped) {
         solve(P, fa, fb, da, db, torque, d, &ra, &rb, &pa, &pb, &v);
@@ -192,11 +196,12 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
          * newton-metre of error reads as hundreds of mm/s). The valves take the flow. */
         stopped = (ra == 0 || ra == 3) && (rb == 0 || rb == 3);
     }
-    if (stopped) {
-        v = 0.0;
+    if (stopped && !still_done) {
         still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da, &ra, &pa);
         still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db, &rb, &pb);
     }
+    if (stopped)
+        v = 0.0;
     double x_new = x + 0.5 * h * (S[S_V] + v);
     S[S_X] = x_new < 0.0 ? 0.0 : x_new > stroke ? stroke : x_new;
     S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n; S[S_TAU] = tau;

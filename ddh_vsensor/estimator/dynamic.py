@@ -299,20 +299,24 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         db += kb
     load = float(S[S_LOAD_F])
     v = 0.0
+    still_done = False
     stopped = known and ((x <= 0.0 and n <= 0.0) or (x >= stroke and n >= 0.0))
     if not stopped and known and (x <= 0.0 or x >= stroke) and load == load:
         sa, qa = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
         sb, qb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)
         force = sa * P[P_AREA_A] - sb * P[P_AREA_B]
         pinned = qa in (0, 3) and qb in (0, 3)
-        stopped = not pinned and (force < load if x <= 0.0 else force > load)
+        stopped = still_done = not pinned and (force < load if x <= 0.0 else force > load)
+        if still_done:
+            pa, ra, pb, rb = sa, qa, sb, qb
     if not stopped:
         pa, pb, v, ra, rb = _solve(P, fa, fb, da, db, torque, d, ra, rb)
         stopped = ra in (0, 3) and rb in (0, 3)
-    if stopped:
-        v = 0.0
+    if stopped and not still_done:
         pa, ra = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
         pb, rb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)
+    if stopped:
+        v = 0.0
     x_new = x + 0.5 * h * (S[S_V] + v)
     S[S_X] = min(max(x_new, 0.0), stroke) if known else math.nan
     S[S_PA], S[S_PB], S[S_V], S[S_N], S[S_TAU] = pa, pb, v, n, tau

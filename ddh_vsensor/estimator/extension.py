@@ -329,13 +329,13 @@ class ExtendedEstimator:
         self.extension = extension
         mode = extension.estimator_mode(kwargs.pop("mode", None))
         cfg = with_inertia_compensation(cfg, extension.motor_inertia)
+        self._unit = extension.unit(cfg)
         self.estimator = Estimator(cfg, extension.actuator, extension.tables(cfg, tables),
-                                   mode=mode, unit=extension.unit(cfg), **kwargs)
+                                   mode=mode, unit=self._unit, **kwargs)
         self._cfg = cfg
         self._params = dict(extension.parameters)
         self._air = extension.param("air_fraction") > 0.0 or "compressibility" in \
             extension.causes
-        self._unit = extension.unit(cfg)
         self._tables_x: float | None = None     # compressibility: tables, no references
         self._v = 0.0
         self._max_gap_s = cfg.estimator.max_gap_s
