@@ -23,6 +23,7 @@ and within the jump bound, and stays flagged until a reference switch confirms i
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -51,6 +52,8 @@ STALE_TICK_CAP_S = 0.01
 WALL_CLOCK_MATCH_S = 5.0
 HOLD_SLACK_PERIODS = 0.25    # hold_for_input_s: the next frame's arrival, beyond one period
 WALL_STEP_MIN_S = 0.005       # wall clock slews (NTP) below this: no step
+WALL_READ_TRIES = 3
+WALL_READ_GOOD_S = 1e-4       # a read of the two clocks this close together is not retried
 # The largest uncertainty the diagnostic frame can carry (UNSIGNED24 counts): a bound beyond
 # it is published as "not referenced".
 UNCERTAINTY_MAX_MM = UINT24_MAX * UNCERTAINTY_STEP_MM
@@ -61,6 +64,23 @@ _NOT_REFERENCED = int(Flags.NOT_REFERENCED)
 _TABLE_CLAMPED = int(Flags.TABLE_CLAMPED)
 _PRESET_UNCONFIRMED = int(Flags.PRESET_UNCONFIRMED)
 _CONTROLLER_NOT_OPERATIONAL = int(Flags.CONTROLLER_NOT_OPERATIONAL)
+
+
+def read_wall_offset() -> tuple[float, float, float]:
+    """The wall clock, the wall clock less the monotonic one, and how far that difference
+    may be off: half the interval between two monotonic reads around the wall one. A process
+    preempted between reading the two clocks (a loaded controller) would otherwise see a
+    clock step of the preemption's length; the narrowest of a few reads is kept."""
+    best = (0.0, 0.0, math.inf)
+    for _ in range(WALL_READ_TRIES):
+        before = time.monotonic()
+        wall_s = time.time()
+        half_s = 0.5 * (time.monotonic() - before)
+        if half_s < best[2]:
+            best = (wall_s, wall_s - before - half_s, half_s)
+        if half_s <= WALL_READ_GOOD_S:
+            break
+    return best
 
 
 def estimator_flags(est: Estimator, clamped: bool = False) -> int:
@@ -85,6 +105,7 @@ class Unit:
     last_frame_t: float | None = None        # timestamp of the last integrated Sevcon frame
     last_rx_s: float | None = None           # monotonic time it was integrated
     last_wall_offset_s: float = 0.0          # wall less monotonic clock then
+    last_wall_offset_err_s: float = 0.0      # how far that reading may be off
     last_steps_back: int = 0                 # Inputs.clock_steps_back then
     input_period_s: float | None = None      # measured Sevcon period (smoothed)
     integrated: int = 0
@@ -154,11 +175,11 @@ class Unit:
             return False
         est = self.estimator
         since = self.last_frame_t if self.last_frame_t is not None else self.first_held_t
-        wall_s = time.time()
-        wall_offset_s = wall_s - time.monotonic()
+        wall_s, wall_offset_s, offset_err_s = read_wall_offset()
         if since is not None:
             dt = sample.t_s - since
-            untracked_s = self.untracked_s(dt, now, sample.t_s, wall_s, wall_offset_s)
+            untracked_s = self.untracked_s(dt, now, sample.t_s, wall_s, wall_offset_s,
+                                           offset_err_s)
             if 0.0 < dt <= est.max_gap_s and untracked_s <= est.max_gap_s \
                     and self.last_frame_t is not None:
                 self.input_period_s = dt if self.input_period_s is None else \
@@ -179,7 +200,7 @@ class Unit:
                         self.inputs.refs_since_s)
         self.last_step = step
         self.last_frame_t, self.last_rx_s = sample.t_s, now
-        self.last_wall_offset_s = wall_offset_s
+        self.last_wall_offset_s, self.last_wall_offset_err_s = wall_offset_s, offset_err_s
         self.last_steps_back = self.inputs.clock_steps_back
         self.integrated += 1
         if step.reference is not None and not was_referenced:
@@ -205,11 +226,11 @@ class Unit:
         return True
 
     def untracked_s(self, dt: float, now: float, t_s: float, wall_s: float,
-                    wall_offset_s: float) -> float:
+                    wall_offset_s: float, offset_err_s: float = 0.0) -> float:
         """How long the machine may have moved since the last integrated frame, by the
         clocks that can be trusted. Frames stamped by this host's wall clock: their interval,
         less any step of the wall clock against the monotonic one since (an NTP step during a
-        gap hides travel). Frames stamped by another clock (an interface's own, a campaign's):
+        gap hides travel; a step within the two readings' own error is not one). Frames stamped by another clock (an interface's own, a campaign's):
         their interval, unless that clock was seen going back (on any input) since; then the
         longer of it and the arrival interval, which a step never shortens (and a backlog read
         late lengthens: counted as travel, the safe side)."""
@@ -217,7 +238,8 @@ class Unit:
             return dt
         if abs(wall_s - t_s) < WALL_CLOCK_MATCH_S:
             stepped_s = wall_offset_s - self.last_wall_offset_s
-            return dt - stepped_s if abs(stepped_s) > WALL_STEP_MIN_S else dt
+            min_step_s = WALL_STEP_MIN_S + offset_err_s + self.last_wall_offset_err_s
+            return dt - stepped_s if abs(stepped_s) > min_step_s else dt
         if self.inputs.clock_steps_back != self.last_steps_back:
             return max(dt, now - self.last_rx_s)
         return dt

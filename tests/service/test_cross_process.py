@@ -114,7 +114,8 @@ class Daemon:
         raise AssertionError(f"no {key} from the daemon within {timeout_s} s:\n{self.log()}")
 
     def log(self) -> str:
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         return self.log_path.read_text(errors="replace")
 
     def stop(self) -> int | None:
@@ -164,13 +165,16 @@ def _feed(url: str, frames: list[can.Message]) -> None:
     assert stats.frames == len(frames)
 
 
-def _check_against_offline(cfg, tables, frames, actuator, **offline_kwargs) -> list:
+def _check_against_offline(cfg, tables, frames, actuator, daemon: Daemon,
+                           **offline_kwargs) -> list:
     offline = offline_estimate(cfg, tables, actuator, frames, **offline_kwargs)
     pairs = [p for p in paired_outputs(cfg, frames, actuator) if p.input_frames > offline.held]
     assert len(pairs) >= 10, actuator
     for p in pairs:
         expected = offline.position_mm[p.input_frames - 1 - offline.held]
-        assert p.position_mm == pytest.approx(expected, abs=cfg.can.position_step_mm + 1e-9)
+        assert p.position_mm == pytest.approx(expected, abs=cfg.can.position_step_mm + 1e-9), \
+            f"{actuator} at input frame {p.input_frames}; the daemon's log ends:\n" \
+            f"{daemon.log()[-3000:]}"
     return pairs
 
 
@@ -195,7 +199,7 @@ def test_daemon_process_sigterm_and_restart(cfg, unit_tables, frames, remote_url
     assert code == 0, first.log()
     assert any("STOPPING=1" in m for m in first.messages)
     for actuator in cfg.can.units:
-        _check_against_offline(cfg, unit_tables, seen1, actuator,
+        _check_against_offline(cfg, unit_tables, seen1, actuator, first,
                                preset_mm=START_MM[actuator])
     saved = {a: load_state(state_dir / f"{a}.json", a, cfg.physics_hash())
              for a in cfg.can.units}
@@ -224,4 +228,4 @@ def test_daemon_process_sigterm_and_restart(cfg, unit_tables, frames, remote_url
         assert restored, second.log()
         assert restored[-1]["Position"] == pytest.approx(saved[actuator].position_mm, abs=0.01)
         assert restored[-1]["Status"] & Flags.NOT_REFERENCED      # until a reference switch
-        _check_against_offline(cfg, unit_tables, seen2, actuator, state=saved[actuator])
+        _check_against_offline(cfg, unit_tables, seen2, actuator, second, state=saved[actuator])

@@ -1,7 +1,7 @@
 """What a unit counts as travel it did not integrate, when the clocks disagree: a frame clock
 that stepped back during a gap (seen on another input) must not shorten the gap; a backlog read
-late is no gap; a wall clock step (frames stamped by this host) is taken out of the interval.
-And which Hall states a sample meets when the I/O module's frames are read ahead of it."""
+late is no gap; a wall clock step (frames stamped by this host) is taken out of the interval,
+and a process preempted while it reads the two clocks sees no step. And which Hall states a sample meets when the I/O module's frames are read ahead of it."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec
 from ddh_vsensor.service import Service, ServiceOptions
+from ddh_vsensor.service import units as units_module
 
 from .conftest import channel_name
 
@@ -81,6 +82,45 @@ def test_a_wall_clock_step_is_taken_out_of_the_frame_interval(driven) -> None:
                             wall_s - 1000.0 - 1.5) == pytest.approx(2.0)
     assert boom.untracked_s(0.01, 1000.5, wall_s + 0.01, wall_s + 0.5,
                             wall_s - 1000.0) == pytest.approx(0.01)
+
+
+class _PreemptedClocks:
+    """time.monotonic / time.time as a loaded host reads them: the first read of the pair is
+    preempted for 20 ms between the wall clock and the monotonic one."""
+
+    def __init__(self) -> None:
+        self.mono_s, self.offset_s, self.reads = 1000.0, 1.8e9 - 1000.0, 0
+
+    def monotonic(self) -> float:
+        self.reads += 1
+        if self.reads == 2:
+            self.mono_s += 0.02
+        self.mono_s += 1e-6
+        return self.mono_s
+
+    def time(self) -> float:
+        return self.mono_s + self.offset_s
+
+
+def test_a_preempted_clock_read_is_no_clock_step(driven, monkeypatch) -> None:
+    """Preempted between the two clocks, a read of their difference is 10 ms off: read again,
+    the narrowest read stands; and two reads whose difference is within their own error are
+    no step (a step there would have counted 8 ms of phantom travel, and on a loaded
+    controller a phantom gap forgets the Hall states: a reference missed)."""
+    clocks = _PreemptedClocks()
+    monkeypatch.setattr(units_module.time, "monotonic", clocks.monotonic)
+    monkeypatch.setattr(units_module.time, "time", clocks.time)
+    wall_s, offset_s, err_s = units_module.read_wall_offset()
+    assert offset_s == pytest.approx(clocks.offset_s, abs=1e-5)
+    assert err_s < 1e-5
+    monkeypatch.undo()
+    boom = driven.service.units["boom"]
+    base_s = 1.8e9 - 1000.0
+    boom.last_rx_s, boom.last_wall_offset_s, boom.last_wall_offset_err_s = 1000.0, base_s, 0.01
+    assert boom.untracked_s(0.01, 1000.01, 1.8e9, 1.8e9, base_s - 0.008, 0.0) == 0.01
+    boom.last_wall_offset_err_s = 0.0
+    assert boom.untracked_s(0.01, 1000.01, 1.8e9, 1.8e9, base_s - 0.008, 0.0) == \
+        pytest.approx(0.018, abs=1e-6)
 
 
 def test_a_slow_event_timer_does_not_make_old_input_fresh(driven) -> None:
