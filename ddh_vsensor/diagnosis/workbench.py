@@ -75,12 +75,17 @@ class Workbench:
         self.reference = [r.position_mm for r in self.runs]
         self.masks = [r.mask for r in self.runs]
         self.inertia = False
-        self.as_is = self.estimate()                          # the estimator as it stands
-        self.full_as_is = self.as_is if mode == "full" else self.estimate(mode="full")
+        self.without_inertia = self.estimate()
+        self.full_without_inertia = (self.without_inertia if mode == "full"
+                                     else self.estimate(mode="full"))
         self.inertia = True
         self.with_inertia = self.estimate()
         self.full_with_inertia = (self.with_inertia if mode == "full"
                                   else self.estimate(mode="full"))
+        # the estimator as configured: what the service publishes, the error a cause's
+        # extension is judged against
+        self.as_is = (self.with_inertia if cfg.estimator.inertia_compensation
+                      else self.without_inertia)
         if inertia is None and mode == "dynamic":
             # The chamber model's torque balance has the rotor's inertia in it: no choice.
             # (Judged on runs with an effect in them, the effect's error decided it: an oil
@@ -89,7 +94,7 @@ class Workbench:
         elif inertia is None:
             # Parameter-free, so judged on all runs: kept if it lowers the error of the
             # speed-continuous tables (in paper mode their low-speed error would dominate).
-            inertia = self.sse(self.full_with_inertia) < self.sse(self.full_as_is)
+            inertia = self.sse(self.full_with_inertia) < self.sse(self.full_without_inertia)
         self.default_inertia = bool(inertia)
         self.use(self.default_inertia)
         self._chamber_cache: dict[float, list[np.ndarray]] = {}
@@ -110,8 +115,9 @@ class Workbench:
     def use(self, inertia: bool) -> None:
         """Evaluate with (or without) the motor's inertia taken off the motor torque."""
         self.inertia = bool(inertia)
-        self.base = self.with_inertia if self.inertia else self.as_is     # the model
-        self.full_estimate = self.full_with_inertia if self.inertia else self.full_as_is
+        self.base = self.with_inertia if self.inertia else self.without_inertia  # the model
+        self.full_estimate = (self.full_with_inertia if self.inertia
+                              else self.full_without_inertia)
 
     def sse(self, estimates: Sequence[np.ndarray]) -> float:
         """Squared error against the references, each run weighted by its duration."""

@@ -95,7 +95,7 @@ def test_names_a_catalogued_cause(campaigns):
 
 def test_paper_mode_names_low_speed_leakage_and_reaches_full_mode(campaigns):
     trial, _ = campaigns.get("sensor")
-    full = campaigns.analyze("sensor", "boom")
+    full = campaigns.analyze("sensor", "boom", "--mode", "full")
     paper = campaigns.analyze("sensor", "boom", "--mode", "paper")
     assert paper["mode"] == "paper" and paper["cause"] == "low_speed_leakage", trial
     assert paper["baseline"]["max_abs_error_mm"] > 5.0       # the paper's creep
