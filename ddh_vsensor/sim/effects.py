@@ -34,11 +34,15 @@ The measurement chain (logging only, not the plant; applied in ``sensors.measure
 neutral 0)
     The draw-wire reads scale x true + offset.
 
-A deviation the diagnosis' catalogue does not have (for testing it on the unknown):
+Deviations the diagnosis' catalogue does not have (for testing it on the unknown):
 
 ``valve_leak`` (L/min at 100 bar above 40 bar, 0..20, neutral 0)
     Each chamber's relief valve seeps from 40 bar on, its flow growing linearly with the
     pressure above that and independent of the oil's viscosity (unlike pump leakage).
+``pump_fill`` (% of the flow lost at the motor's speed limit, 0..20, neutral 0)
+    The pumps' inlets fill short at speed (a suction restriction): the delivered flow drops
+    by this share x (motor speed / speed limit)^2, whatever the torque (unlike belt slip)
+    and not in proportion to the speed (unlike displacement).
 """
 
 from __future__ import annotations
@@ -88,6 +92,8 @@ EFFECTS: dict[str, EffectDef] = {e.name: e for e in (
               "the draw-wire reads true position + offset"),
     EffectDef("valve_leak", "L/min at 100 bar above 40 bar", 0.0, lambda v: 0.0 <= v <= 20.0,
               "0 <= L/min <= 20", "relief valves seep above 40 bar, viscosity-independent"),
+    EffectDef("pump_fill", "% at the speed limit", 0.0, lambda v: 0.0 <= v <= 20.0,
+              "0 <= % <= 20", "pumps fill short at speed: flow lost ~ speed squared"),
 )}
 
 VALVE_LEAK_OPEN_BAR = 40.0
@@ -108,6 +114,7 @@ class UnitEffects:
     position_scale: float = 1.0
     position_offset: float = 0.0
     valve_leak: float = 0.0
+    pump_fill: float = 0.0
 
     def non_neutral(self) -> dict[str, float]:
         return {f.name: getattr(self, f.name) for f in fields(self)
@@ -122,7 +129,8 @@ class UnitEffects:
                                self.valve_leak * LPM_M3S / (100.0 * BAR_PA))
             unit = replace(unit, a=replace(unit.a, relief=seep), b=replace(unit.b, relief=seep))
         return RowSpec(unit=unit, payload_kg=payload_kg, air_fraction=self.compressibility,
-                       belt_slip_per_nm=self.belt_slip / 100.0 / 100.0)
+                       belt_slip_per_nm=self.belt_slip / 100.0 / 100.0,
+                       fill_loss=self.pump_fill / 100.0)
 
 
 NOMINAL = UnitEffects()

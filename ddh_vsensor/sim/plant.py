@@ -73,6 +73,7 @@ class RowSpec:
     payload_kg: float = 0.0
     air_fraction: float = 0.0       # entrained air volume fraction at atmospheric pressure
     belt_slip_per_nm: float = 0.0   # fractional speed-ratio drop per N*m of |motor torque|
+    fill_loss: float = 0.0          # share of the flow lost at the speed limit (~ speed^2)
 
 
 class Plant:
@@ -115,6 +116,8 @@ class Plant:
         self.slip = col(lambda r: r.belt_slip_per_nm)
         self.has_air = bool(np.any(self.air > 0.0))
         self.has_slip = bool(np.any(self.slip > 0.0))
+        self.fill = col(lambda r: r.fill_loss)
+        self.has_fill = bool(np.any(self.fill > 0.0))
         # pump flow per motor rpm, signed into the chamber; leakage coefficient (m^3)
         self.q_a = col(lambda r: u(r).a.pump.geometric_flow_m3_s(1.0))
         self.q_b = col(lambda r: u(r).b.pump.geometric_flow_m3_s(1.0))
@@ -252,6 +255,9 @@ class Plant:
         if self.has_slip:
             ratio = np.maximum(1.0 - self.slip * np.abs(self.torque), 0.0)
             qa, qb = qa * ratio, qb * ratio
+        if self.has_fill:
+            filled = 1.0 - self.fill * (n0 / self.speed_limit) ** 2
+            qa, qb = qa * filled, qb * filled
         if self.has_air:
             inv_ba = self._air_only(compliance(pa0, self.air, self.beta_oil,
                                                          self.reservoir))
