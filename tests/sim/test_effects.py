@@ -21,6 +21,7 @@ CASES = {
     "sensors": ["boom.torque_gain=0.9", "boom.torque_offset=2", "boom.oil_temp_offset=-10",
                 "boom.position_scale=1.02", "boom.position_offset=3"],
     "valve_leak": ["boom.valve_leak=5"],
+    "pump_fill": ["boom.pump_fill=5"],
 }
 TRUTH_FIELDS = ("x_m", "v_m_s", "dp_a_pa", "dp_b_pa", "speed_rpm", "torque_nm")
 
@@ -135,7 +136,8 @@ def test_same_effect_twice_is_an_error():
         build_effects(["pump_leakage=2", "boom.pump_leakage=3"], ("boom", "bucket"))
     assert set(EFFECTS) == {"pump_leakage", "compressibility", "belt_slip", "displacement",
                             "time_offset", "oil_temp_offset", "torque_gain", "torque_offset",
-                            "position_scale", "position_offset", "valve_leak"}
+                            "position_scale", "position_offset", "valve_leak",
+                            "pump_fill"}
 
 
 def test_measurement_chain_effects_change_the_log_not_the_plant(runs):
@@ -163,3 +165,18 @@ def test_valve_leak_needs_pump_flow_only_above_its_opening(runs):
     assert 50e5 < np.mean(t_nom.dp_a_pa[hold]) < 70e5
     extra = np.mean(t_leak.speed_rpm[hold]) - np.mean(t_nom.speed_rpm[hold])
     assert 20.0 < extra < 80.0
+
+
+def test_pump_fill_needs_more_speed_the_faster_the_motor_turns(runs, cfg):
+    """Filling short, the pumps deliver 1 - 5 % x (n / limit)^2 of their flow: the position
+    loop turns the motor faster for the same rod motion, by that share at each speed."""
+    nominal, short = runs["nominal"], runs["pump_fill"]
+    assert _same_truth(short["bucket"][1], nominal["bucket"][1])
+    t_nom, t_short = nominal["boom"][1], short["boom"][1]
+    np.testing.assert_allclose(t_short.x_m, t_nom.x_m, atol=2e-3)
+    limit = cfg.unit("boom").motor.speed_limit_rpm
+    fast = np.abs(t_nom.speed_rpm) > 0.3 * limit
+    assert fast.sum() > 20
+    ratio = np.median(t_short.speed_rpm[fast] / t_nom.speed_rpm[fast])
+    expected = np.median(1.0 / (1.0 - 0.05 * (t_nom.speed_rpm[fast] / limit) ** 2))
+    assert ratio == pytest.approx(expected, abs=0.2 * (expected - 1.0))
