@@ -2,7 +2,7 @@
 
 The velocity error is modelled as a linear combination of physical features of the inputs
 (:func:`estimator.extension.residual_features`: estimated velocity, torque over viscosity,
-torque, speed, velocity x |torque|, torque beyond three knots on either side, a constant). Integrated over
+torque, speed, speed cubed, velocity x |torque|, torque beyond three knots on either side, a constant). Integrated over
 each run, they are fitted to the position error by ridge regression with the ridge weight
 chosen by leave-one-run-out cross-validation; the model is linear in its weights and its
 features do not depend on them, so the held-out error is exact. The weights are on

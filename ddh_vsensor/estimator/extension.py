@@ -70,7 +70,8 @@ CAUSE_PARAMETER: dict[str, str | None] = {
     "compressibility": "air_fraction", "oil_temp_offset": "oil_temp_offset_c",
     "torque_gain": "torque_gain", "torque_offset": "torque_offset_nm",
     "position_scale": "position_scale"}
-RESIDUAL_FEATURES = ("velocity", "torque_per_viscosity", "torque", "speed", "velocity_x_torque",
+RESIDUAL_FEATURES = ("velocity", "torque_per_viscosity", "torque", "speed", "speed_cubed",
+                     "velocity_x_torque",
                      "torque_above_1", "torque_above_2", "torque_above_3", "torque_below_1",
                      "torque_below_2", "torque_below_3", "constant")
 MU_REF_PA_S = 0.03                  # viscosity the torque-per-viscosity feature is scaled to
@@ -146,13 +147,15 @@ def residual_features(speed_rpm: ArrayLike, torque_nm: ArrayLike, mu_pa_s: Array
                       velocity_mm_s: ArrayLike, knots_nm: tuple[float, ...]) -> np.ndarray:
     """[samples, features] of :data:`RESIDUAL_FEATURES`: the estimated velocity (error ~
     travel), torque over viscosity (~ pressure / viscosity: leakage), torque (~ pressure),
-    motor speed, velocity x |torque| (slip), torque above +knot and below -knot for three
+    motor speed, its cube (a flow loss growing with speed: pumps filling short), velocity x
+    |torque| (slip), torque above +knot and below -knot for three
     knots (a valve or seal that gives way above a pressure, on one side), a constant."""
     n = np.atleast_1d(np.asarray(speed_rpm, dtype=float))
     tau = np.atleast_1d(np.asarray(torque_nm, dtype=float))
     v = np.atleast_1d(np.asarray(velocity_mm_s, dtype=float))
     mu = np.broadcast_to(np.asarray(mu_pa_s, dtype=float), tau.shape)
-    return np.stack([v, tau * (MU_REF_PA_S / mu), tau, n * 1e-3, v * np.abs(tau) * 1e-2,
+    return np.stack([v, tau * (MU_REF_PA_S / mu), tau, n * 1e-3, (n * 1e-3) ** 3,
+                     v * np.abs(tau) * 1e-2,
                      *(np.maximum(tau - k, 0.0) for k in knots_nm),
                      *(np.minimum(tau + k, 0.0) for k in knots_nm), np.ones_like(tau)],
                     axis=-1)

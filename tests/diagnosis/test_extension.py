@@ -24,7 +24,8 @@ def _ext(cfg, cause, causes=(), residual=None, **params) -> Extension:
 
 
 # a residual model that takes 2 % of the velocity off and drifts with the torque
-RESIDUAL = ResidualModel((0.02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.05, 0.0, 0.0, 0.0, 0.0, 0.0),
+RESIDUAL = ResidualModel(tuple({"velocity": 0.02, "torque_above_1": 0.05}.get(f, 0.0)
+                               for f in RESIDUAL_FEATURES),
                          (1.0,) * len(RESIDUAL_FEATURES), (5.0, 10.0, 25.0))
 
 
