@@ -28,7 +28,7 @@ from ..measured import Run, write_csv
 EFFECT_NAMES = ("none", "pump_leakage", "compressibility", "belt_slip", "displacement",
                 "time_offset", "oil_temp_offset", "torque_gain", "torque_offset", "position_scale")
 # Deviations of the simulator that the diagnosis' catalogue does not contain (open set).
-OUTSIDE_NAMES = ("valve_leak", "pump_fill")
+OUTSIDE_NAMES = ("valve_leak", "pump_fill", "bore_leak")
 PAYLOADS_KG = (0.0, 1040.0)
 # Oil temperatures: around the paper's 25-30 degC, and warm. Below about 20 degC the model's
 # own error (transients of the chamber pressures the steady-state tables cannot follow) grows
@@ -95,6 +95,8 @@ def draw_magnitude(effect: str, rng: np.random.Generator) -> float | None:
     if effect == "valve_leak":
         return float(rng.uniform(2.0, 8.0))
     if effect == "pump_fill":
+        return float(rng.uniform(2.0, 8.0))
+    if effect == "bore_leak":
         return float(rng.uniform(2.0, 8.0))
     raise ValueError(f"unknown effect {effect!r}")
 

@@ -43,6 +43,10 @@ Deviations the diagnosis' catalogue does not have (for testing it on the unknown
     The pumps' inlets fill short at speed (a suction restriction): the delivered flow drops
     by this share x (motor speed / speed limit)^2, whatever the torque (unlike belt slip)
     and not in proportion to the speed (unlike displacement).
+``bore_leak`` (L/min at 100 bar across the piston, 0..20, neutral 0)
+    A scored bore: over the middle third of the stroke the piston seal passes oil from the
+    higher-pressure chamber to the other, linearly with the pressure difference and
+    independent of the viscosity; elsewhere it seals.
 """
 
 from __future__ import annotations
@@ -94,6 +98,8 @@ EFFECTS: dict[str, EffectDef] = {e.name: e for e in (
               "0 <= L/min <= 20", "relief valves seep above 40 bar, viscosity-independent"),
     EffectDef("pump_fill", "% at the speed limit", 0.0, lambda v: 0.0 <= v <= 20.0,
               "0 <= % <= 20", "pumps fill short at speed: flow lost ~ speed squared"),
+    EffectDef("bore_leak", "L/min at 100 bar", 0.0, lambda v: 0.0 <= v <= 20.0,
+              "0 <= L/min <= 20", "the piston seal leaks over the middle third of the stroke"),
 )}
 
 VALVE_LEAK_OPEN_BAR = 40.0
@@ -115,6 +121,7 @@ class UnitEffects:
     position_offset: float = 0.0
     valve_leak: float = 0.0
     pump_fill: float = 0.0
+    bore_leak: float = 0.0
 
     def non_neutral(self) -> dict[str, float]:
         return {f.name: getattr(self, f.name) for f in fields(self)
@@ -130,7 +137,8 @@ class UnitEffects:
             unit = replace(unit, a=replace(unit.a, relief=seep), b=replace(unit.b, relief=seep))
         return RowSpec(unit=unit, payload_kg=payload_kg, air_fraction=self.compressibility,
                        belt_slip_per_nm=self.belt_slip / 100.0 / 100.0,
-                       fill_loss=self.pump_fill / 100.0)
+                       fill_loss=self.pump_fill / 100.0,
+                       bore_leak_m3_s_pa=self.bore_leak * LPM_M3S / (100.0 * BAR_PA))
 
 
 NOMINAL = UnitEffects()

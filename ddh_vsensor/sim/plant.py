@@ -74,6 +74,7 @@ class RowSpec:
     air_fraction: float = 0.0       # entrained air volume fraction at atmospheric pressure
     belt_slip_per_nm: float = 0.0   # fractional speed-ratio drop per N*m of |motor torque|
     fill_loss: float = 0.0          # share of the flow lost at the speed limit (~ speed^2)
+    bore_leak_m3_s_pa: float = 0.0  # A -> B across the piston in the stroke's middle third
 
 
 class Plant:
@@ -118,6 +119,8 @@ class Plant:
         self.has_slip = bool(np.any(self.slip > 0.0))
         self.fill = col(lambda r: r.fill_loss)
         self.has_fill = bool(np.any(self.fill > 0.0))
+        self.bore_leak = col(lambda r: r.bore_leak_m3_s_pa)
+        self.has_bore_leak = bool(np.any(self.bore_leak > 0.0))
         # pump flow per motor rpm, signed into the chamber; leakage coefficient (m^3)
         self.q_a = col(lambda r: u(r).a.pump.geometric_flow_m3_s(1.0))
         self.q_b = col(lambda r: u(r).b.pump.geometric_flow_m3_s(1.0))
@@ -267,7 +270,11 @@ class Plant:
             inv_ba = inv_bb = self._inv_beta
         ca, cb = va * inv_ba, vb * inv_bb
         gca, gcb = ca + ga, cb + gb
-        cpa, cpb = ca * pa0, cb * pb0
+        cross = 0.0                                # oil passing the piston (m^3), explicit
+        if self.has_bore_leak:                     # (slow next to the step)
+            scored = np.abs(x / self.stroke - 0.5) < 1.0 / 6.0
+            cross = np.where(scored, h * self.bore_leak * (pa0 - pb0), 0.0)
+        cpa, cpb = ca * pa0 - cross, cb * pb0 + cross
         jp = self._jp
         area_a, area_b = self.area_a, self.area_b
         psi = tau + jp * n0                        # torque the pump must take at n = 0
@@ -357,7 +364,7 @@ class Plant:
                         pb0, pb, self.air, self.beta_oil, self.reservoir))
                     ca, cb = va * inv_ba, vb * inv_bb
                     gca, gcb = ca + ga, cb + gb
-                    cpa, cpb = ca * pa0, cb * pb0
+                    cpa, cpb = ca * pa0 - cross, cb * pb0 + cross
                     air_passes -= 1
                     if not any_bad:
                         continue

@@ -22,6 +22,7 @@ CASES = {
                 "boom.position_scale=1.02", "boom.position_offset=3"],
     "valve_leak": ["boom.valve_leak=5"],
     "pump_fill": ["boom.pump_fill=5"],
+    "bore_leak": ["bucket.bore_leak=5"],
 }
 TRUTH_FIELDS = ("x_m", "v_m_s", "dp_a_pa", "dp_b_pa", "speed_rpm", "torque_nm")
 
@@ -137,7 +138,7 @@ def test_same_effect_twice_is_an_error():
     assert set(EFFECTS) == {"pump_leakage", "compressibility", "belt_slip", "displacement",
                             "time_offset", "oil_temp_offset", "torque_gain", "torque_offset",
                             "position_scale", "position_offset", "valve_leak",
-                            "pump_fill"}
+                            "pump_fill", "bore_leak"}
 
 
 def test_measurement_chain_effects_change_the_log_not_the_plant(runs):
@@ -180,3 +181,21 @@ def test_pump_fill_needs_more_speed_the_faster_the_motor_turns(runs, cfg):
     ratio = np.median(t_short.speed_rpm[fast] / t_nom.speed_rpm[fast])
     expected = np.median(1.0 / (1.0 - 0.05 * (t_nom.speed_rpm[fast] / limit) ** 2))
     assert ratio == pytest.approx(expected, abs=0.2 * (expected - 1.0))
+
+
+def test_bore_leak_is_fed_only_in_the_middle_of_the_stroke(runs):
+    """The bucket (850 mm) holds at 300 mm, in the scored third (283-567 mm), against
+    ~21 bar on B: 5 L/min per 100 bar there is ~1 L/min, some 40 rpm more; held at 600 mm,
+    outside it, the motor turns as without the leak (within the pressures' own settling)."""
+    nominal, scored = runs["nominal"], runs["bore_leak"]
+    assert _same_truth(scored["boom"][1], nominal["boom"][1])
+    t_nom, t_leak = nominal["bucket"][1], scored["bucket"][1]
+    np.testing.assert_allclose(t_leak.x_m, t_nom.x_m, atol=2e-3)
+
+    def extra(t0, t1):
+        sel = (t_nom.time_s > t0) & (t_nom.time_s < t1)
+        return abs(np.mean(t_leak.speed_rpm[sel])) - abs(np.mean(t_nom.speed_rpm[sel]))
+
+    assert 25.0 < extra(2.5, 2.8) < 70.0
+    assert abs(extra(6.0, 7.0)) < 5.0
+
