@@ -22,10 +22,11 @@ from .selection import (AMBIGUITY_RATIO, MAX_CAUSES, MAX_HETEROGENEITY, MIN_ADDE
 from .workbench import Workbench, resolve_mode
 
 Progress = Callable[[str, float], None]
-CANDIDATES_PER_STEP = (3, 2)          # causes tried as the second and the third
+CANDIDATES_PER_STEP = (8, 2)   # exact fits tried: every other cause as the second, two as the third
 # Causes fitted on both torques (a valve regime can hinge on a few N*m in a transient); the
 # others on the torque that suits the model without any cause.
 PRESSURE_CAUSES = ("torque_gain", "torque_offset", "displacement")   # what pressures measure
+INCONSISTENT_STARTS = 2     # the best single causes a set is grown from when none agrees
 BOTH_TORQUES = ("pump_leakage", "belt_slip", "displacement", "time_offset")
 
 
@@ -167,32 +168,46 @@ def _grow(diag: Diagnosis, first: CauseFit, stepwise: bool, weights: list[float]
         shares[grown[0].names[-1]] = (s.sse - grown[0].sse) / total if total else 0.0
         s = grown[0]
     s, shares = _prune(bench, s, shares, diag.fits, weights, total)
-    if not _consistent(ev, s.params, s.intervals) and len(s.causes) < MAX_CAUSES:
+    if not _consistent(ev, s.params, s.intervals):
         # the pressures measure the torque chain: the cause they point at joins on their
-        # evidence (it need not halve the error left: leakage can hide much of it)
-        for name in PRESSURE_CAUSES:
-            c = ALL_CAUSES[name]
-            if name in s.names:
-                continue
-            bench.use(s.motor_inertia)
-            value, interval = ev.measured(c.parameter, s.params)
-            fixed = {c: (c.clip(value), interval)}
-            j = fit_set(bench, s.causes, s.params, weights, total, fixed=fixed)
-            kept = tuple(m for m in s.causes if m.resolved(j.params.get(m.parameter)))
-            if not j.resolved() and kept and len(kept) < len(s.causes):
-                # a member that only stood in for the pressures' cause goes
-                j = fit_set(bench, kept, j.params, weights, total, fixed=fixed)
-            # the set without it disagrees with the pressures: no answer to keep, so the
-            # consistent one may leave more of the error (up to what a member must remove)
-            if j.resolved() and _consistent(ev, j.params, j.intervals) \
-                    and j.sse * (1.0 - MIN_ADDED) <= s.sse:
-                shares = {m.name: shares.get(m.name, 0.0) for m in j.causes if m.name != name}
-                shares[name] = max(s.sse - j.sse, 0.0) / total if total else 0.0
-                s = j
-                break
+        # evidence (it need not halve the error left: leakage can hide much of it), to the
+        # grown set or to the first cause alone (a member grown without the pressures may
+        # only have stood in for it)
+        bases = [(s, shares)]
+        if len(s.causes) > 1:
+            bases.append((SetFit.single(first), {first.cause.name: first.explained}))
+        joined = [j for base in bases if len(base[0].causes) < MAX_CAUSES
+                  for j in [_join_measured(bench, ev, *base, weights, total)] if j is not None]
+        if joined:
+            s, shares = min(joined, key=lambda js: js[0].sse)
     if not _consistent(ev, s.params, s.intervals):
         return None, {}, []
     return s, shares, [p for p in ambiguous if any(n in p for n in s.names)]
+
+
+def _join_measured(bench: Workbench, ev: TorqueEvidence, s: SetFit, shares: dict[str, float],
+                   weights: list[float], total: float
+                   ) -> tuple[SetFit, dict[str, float]] | None:
+    """``s`` with the cause the pressures point at held at its measured value (a member
+    that only stood in for it goes), if that agrees with the pressures and leaves at most
+    1 / (1 - :data:`MIN_ADDED`) times the error ``s`` left; else None."""
+    for name in PRESSURE_CAUSES:
+        c = ALL_CAUSES[name]
+        if name in s.names:
+            continue
+        bench.use(s.motor_inertia)
+        value, interval = ev.measured(c.parameter, s.params)
+        fixed = {c: (c.clip(value), interval)}
+        j = fit_set(bench, s.causes, s.params, weights, total, fixed=fixed)
+        kept = tuple(m for m in s.causes if m.resolved(j.params.get(m.parameter)))
+        if not j.resolved() and kept and len(kept) < len(s.causes):
+            j = fit_set(bench, kept, j.params, weights, total, fixed=fixed)
+        if j.resolved() and _consistent(ev, j.params, j.intervals) \
+                and j.sse * (1.0 - MIN_ADDED) <= s.sse:
+            joined = {m.name: shares.get(m.name, 0.0) for m in j.causes if m.name != name}
+            joined[name] = max(s.sse - j.sse, 0.0) / total if total else 0.0
+            return j, joined
+    return None
 
 
 def _prune(bench: Workbench, s: SetFit, shares: dict[str, float], fits: list[CauseFit],
@@ -244,18 +259,24 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
     eligible = [f for f in resolved
                 if _consistent(ev, f.parameters, {f.cause.parameter: f.interval})]
     # Start from the best pressure-consistent single cause; where the best of all is not
-    # consistent on its own (a leakage next to a torque error), also from it: a set grown
-    # from there counts if it ends consistent.
+    # consistent on its own (a leakage next to a torque error), also from it and the next
+    # best inconsistent ones (a torque error hides leakage and an oil temperature offset
+    # alike): a set grown from there counts if it ends consistent.
     starts = eligible[:1]
     if resolved and resolved[0] not in eligible:
-        starts.append(resolved[0])
+        starts += [f for f in resolved[:INCONSISTENT_STARTS] if f not in eligible]
+    if not starts and not _consistent(ev, {}):
+        # The pressures see a torque-chain error that no single cause resolves (another
+        # effect hides it: a torque offset next to air): grow from the best fits as they
+        # are; a set counts only if it ends resolved.
+        starts = [f for f in diag.fits if f.cause.parameter is not None][:INCONSISTENT_STARTS]
     ambiguous: list[tuple[str, str]] = []
     s: SetFit | None = None
     shares: dict[str, float] = {}
     for first in starts:
         got, got_shares, got_amb = _grow(diag, first, first in eligible, weights, total,
                                          report)
-        if got is None or (s is not None and got.sse >= s.sse):
+        if got is None or not got.resolved() or (s is not None and got.sse >= s.sse):
             continue
         s, shares, ambiguous = got, got_shares, got_amb
         if first in eligible and len(got.causes) == 1:
@@ -325,7 +346,8 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
     # what the model's own error can mimic: the best fit within its resolution
     mimic = max([f.explained for f in diag.fits if f.cause.parameter is not None
                  and not f.cause.resolved(f.value)] + [0.0])
-    if use.explained >= MIN_SCORE and (1.0 - use.explained) <= MIN_ADDED * (1.0 - mimic):
+    if before > OWN_ERROR_RMS_MM and use.explained >= MIN_SCORE \
+            and (1.0 - use.explained) <= MIN_ADDED * (1.0 - mimic):
         diag.residual, diag.heldout = use, use.heldout
         diag.decision = Decision("unexplained", f"{gap}; a residual model explains "
                                  f"{100 * use.explained:.0f} % of the held-out squared error "
@@ -337,4 +359,7 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
     diag.extension_inertia = bench.default_inertia
     diag.heldout = target
     diag.shares = {}
+    if before <= OWN_ERROR_RMS_MM:
+        gap += (f"; the model's held-out error, RMS {before:.2f} mm, is within its own "
+                f"({OWN_ERROR_RMS_MM:g} mm)")
     diag.decision = Decision("none", gap, before, before)

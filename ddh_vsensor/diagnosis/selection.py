@@ -8,10 +8,16 @@ single catalogued effects (numbers in diagnosis/README.md), never from the open-
    carry chamber pressures, agrees with what they measure (:mod:`.pressures`).
 2. The set grows from the best single candidate, one cause at a time, up to three; a cause
    joins only if the joint fit, cross-validated, removes at least :data:`MIN_ADDED` of the
-   held-out error left without it and every parameter stays resolved. A set the pressures
-   disagree with is no answer: the cause they point at joins at its measured value, a member
-   it leaves unresolved goes (it stood in for it), and the set counts if it leaves at most
-   1 / (1 - :data:`MIN_ADDED`) times the error the disagreeing set left.
+   held-out error left without it and every parameter stays resolved. Every cause is fitted
+   exactly as the second (a linearised screen ranked air last where it made a torque offset
+   exact); the third from the two the screen ranks best. A set the pressures disagree with
+   is no answer: the cause they point at joins at its measured value (to the grown set or to
+   its first cause alone), a member it leaves unresolved goes (it stood in for it), and the
+   set counts if it leaves at most 1 / (1 - :data:`MIN_ADDED`) times the error the
+   disagreeing set left. Where no single cause agrees with the pressures, sets are grown from
+   the two best (a torque error hides leakage and an oil temperature offset alike), and
+   where none is resolved but the pressures see a torque-chain error, from the two best fits
+   as they are (the set must end resolved).
 3. The set is named when it explains :data:`MIN_SCORE` of the held-out squared error, one
    parameter value describes every run (not: held-out error over each run's own best fit
    above :data:`MAX_HETEROGENEITY` *and* the difference :data:`RESIDUAL_SHARE` of the
@@ -23,7 +29,10 @@ single catalogued effects (numbers in diagnosis/README.md), never from the open-
 4. Two candidates are *ambiguous* when the second leaves at most :data:`AMBIGUITY_RATIO`
    times the held-out error of the first; if the largest contributor is ambiguous the
    answer is ``ambiguous``, never one of the two.
-5. Otherwise ``unexplained`` if the residual model explains :data:`MIN_SCORE` of the
+5. Otherwise ``unexplained`` if the model's held-out error is more than its own
+   (:data:`OWN_ERROR_RMS_MM`: a flexible model finds structure in any own error; without an
+   effect, the boom on random cycles, 0.38 mm at most, was answered ``unexplained``), the
+   residual model explains :data:`MIN_SCORE` of the
    held-out error and leaves at most :data:`MIN_ADDED` of what the best *unresolved* fit
    leaves (that fit is the model's own error, mimicked: without any effect the chamber
    model at nominal oil explains ~90 % of it; the residual model, being flexible, ~75 %);
