@@ -147,8 +147,8 @@ def _grow(diag: Diagnosis, first: CauseFit, stepwise: bool, weights: list[float]
     ambiguous: list[tuple[str, str]] = []
     parametric = [f for f in diag.fits if f.cause.parameter is not None]
     for step, tries in enumerate(CANDIDATES_PER_STEP):
-        if len(s.causes) >= MAX_CAUSES:
-            break
+        if len(s.causes) >= MAX_CAUSES or rms(s.heldout, weights) <= OWN_ERROR_RMS_MM:
+            break       # (what is left is the model's own error: anything fits half of it)
         report(f"joint fits ({len(s.causes) + 1} causes)", 0.6 + 0.15 * step)
         bench.use(s.motor_inertia)
         others = [f.cause for f in parametric if f.cause.name not in s.names]
@@ -308,7 +308,8 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
             diag.extension_inertia = s.motor_inertia
             amb = [p for p in ambiguous if largest in p]
             cause = "ambiguous" if amb else largest
-            why = (f"{names} explain {100 * s.explained:.0f} % of the held-out squared error "
+            verb = "explains" if len(s.causes) == 1 else "explain"
+            why = (f"{names} {verb} {100 * s.explained:.0f} % of the held-out squared error "
                    f"(RMS {before:.2f} -> {rms(s.heldout, weights):.2f} mm)")
             if amb:
                 why += "; " + "; ".join(f"{a} and {b} explain the runs about equally well"
