@@ -26,6 +26,12 @@ def _where(trial) -> str:
     return f"{trial.describe()} (DDH_DIAGNOSIS_SEED={BASE_SEED})"
 
 
+def _diagnosed(cfg, trial, actuator: str, mode: str | None = None):
+    """The trial simulated and one actuator's runs diagnosed."""
+    runs = simulate_trial(cfg, trial)
+    return diagnose(cfg, actuator, [prepare_run(r[actuator]) for r in runs], mode)
+
+
 def _halved(report: dict, trial) -> None:
     before = report["baseline"]["max_abs_error_mm"]
     after = report["extended"]["max_abs_error_mm"]
@@ -114,8 +120,7 @@ def test_a_small_effect_left_with_only_the_models_own_error_is_named(cfg):
     mm), three quarters of which the residual model takes as it does of any own error. That
     is no structured error left; it had been answered `unexplained`."""
     trial = draw_trial(7700, "torque_gain", cycle="paper")
-    runs = simulate_trial(cfg, trial)
-    d = diagnose(cfg, "boom", [prepare_run(r["boom"]) for r in runs], "full")
+    d = _diagnosed(cfg, trial, "boom", "full")
     assert d.cause == "torque_gain", d.decision.reason
     assert d.decision.rms_after_mm <= OWN_ERROR_RMS_MM
 
@@ -127,8 +132,7 @@ def test_an_oil_temperature_offset_is_not_taken_for_pump_leakage(cfg):
     (99.1 %) than the offset (98.6 %, fitted -7.4) and was named. The configured `dynamic`
     model's own error fits as x 0.996 or +0.1 degC: the offset is named, -8.6 degC."""
     trial = draw_trial(9002, "oil_temp_offset", cycle="random")
-    runs = simulate_trial(cfg, trial)
-    d = diagnose(cfg, "bucket", [prepare_run(r["bucket"]) for r in runs])
+    d = _diagnosed(cfg, trial, "bucket")
     assert d.mode == "dynamic" and d.cause == "oil_temp_offset", d.decision.reason
     lo, hi = d.chosen_set.intervals["oil_temp_offset_c"]
     assert lo <= trial.value <= hi
@@ -141,8 +145,7 @@ def test_a_torque_offset_hidden_by_air_is_found_with_it(cfg):
     pressures measure the offset. Grown from the best fits as they are, the pair is found;
     air is fitted as the second cause exactly (a linearised screen ranked it seventh)."""
     trial = draw_trial(25004, cycle="paper", pair=True)
-    runs = simulate_trial(cfg, trial)
-    d = diagnose(cfg, "bucket", [prepare_run(r["bucket"]) for r in runs])
+    d = _diagnosed(cfg, trial, "bucket")
     assert set(d.named) == {"torque_offset", "compressibility"}, d.decision.reason
     assert d.chosen_set.params["torque_offset_nm"] == pytest.approx(3.29, abs=0.3)
 
@@ -154,8 +157,7 @@ def test_the_pressures_tell_leakage_from_an_oil_offset_next_to_a_torque_gain(cfg
     measured joined it (an offset with a torque gain named). Grown from the two best, the
     pair that describes every run is chosen."""
     trial = draw_trial(25005, cycle="paper", pair=True)
-    runs = simulate_trial(cfg, trial)
-    d = diagnose(cfg, "bucket", [prepare_run(r["bucket"]) for r in runs])
+    d = _diagnosed(cfg, trial, "bucket")
     assert set(d.named) == {"pump_leakage", "torque_gain"}, d.decision.reason
     assert d.chosen_set.params["leakage_factor"] == pytest.approx(0.59, rel=0.05)
 
@@ -165,8 +167,7 @@ def test_an_error_within_the_models_own_is_not_unexplained(cfg):
     0.38 mm at most, within its own; the residual model still found 'structure' in it
     (the answer was `unexplained`)."""
     trial = draw_trial(27003, "none", cycle="random")
-    runs = simulate_trial(cfg, trial)
-    d = diagnose(cfg, "boom", [prepare_run(r["boom"]) for r in runs])
+    d = _diagnosed(cfg, trial, "boom")
     assert d.cause == "none", d.decision.reason
     assert d.decision.rms_before_mm <= OWN_ERROR_RMS_MM
 
@@ -178,8 +179,7 @@ def test_pumps_filling_short_at_speed_are_unexplained_and_the_residual_model_fol
     without that feature)."""
     base = draw_trial(31000, "none", cycle="paper")
     trial = dataclasses.replace(base, effect="pump_fill", value=4.285)
-    runs = simulate_trial(cfg, trial)
-    d = diagnose(cfg, "boom", [prepare_run(r["boom"]) for r in runs])
+    d = _diagnosed(cfg, trial, "boom")
     assert d.cause == "unexplained", d.decision.reason
     before = max(float(np.nanmax(np.abs(e))) for e in d.baseline)
     after = max(float(np.max(np.abs(h))) for h in d.heldout)
@@ -191,6 +191,5 @@ def test_no_cause_joins_a_set_that_leaves_only_the_models_own_error(cfg):
     gain of 1.03 took half of that (resolved, and within the pressures' tolerance) and was
     named with it once every cause was tried as the second."""
     trial = draw_trial(30012, "pump_leakage", cycle="paper")
-    runs = simulate_trial(cfg, trial)
-    d = diagnose(cfg, "boom", [prepare_run(r["boom"]) for r in runs])
+    d = _diagnosed(cfg, trial, "boom")
     assert list(d.named) == ["pump_leakage"], d.decision.reason
