@@ -17,8 +17,9 @@ from .joint import SetFit, fit_set, screen
 from .pressures import TorqueEvidence, torque_evidence
 from .residual import ResidualFit, fit_residual
 from .runs import AnalysisRun
-from .selection import (AMBIGUITY_RATIO, MAX_CAUSES, MAX_HETEROGENEITY, MIN_ADDED, MIN_SCORE,
-                        OWN_ERROR_RMS_MM, RESIDUAL_SHARE, Decision, bound, rms)
+from .selection import (AMBIGUITY_RATIO, GROWTH_FLOOR_RMS_MM, MAX_CAUSES, MAX_HETEROGENEITY,
+                        MIN_ADDED, MIN_SCORE, OWN_ERROR_RMS_MM, RESIDUAL_SHARE, Decision,
+                        bound, rms)
 from .workbench import Workbench, resolve_mode
 
 Progress = Callable[[str, float], None]
@@ -147,7 +148,7 @@ def _grow(diag: Diagnosis, first: CauseFit, stepwise: bool, weights: list[float]
     ambiguous: list[tuple[str, str]] = []
     parametric = [f for f in diag.fits if f.cause.parameter is not None]
     for step, tries in enumerate(CANDIDATES_PER_STEP):
-        if len(s.causes) >= MAX_CAUSES or rms(s.heldout, weights) <= OWN_ERROR_RMS_MM:
+        if len(s.causes) >= MAX_CAUSES or rms(s.heldout, weights) <= GROWTH_FLOOR_RMS_MM:
             break       # (what is left is the model's own error: anything fits half of it)
         report(f"joint fits ({len(s.causes) + 1} causes)", 0.6 + 0.15 * step)
         bench.use(s.motor_inertia)
