@@ -177,10 +177,14 @@ def _grow(diag: Diagnosis, first: CauseFit, stepwise: bool, weights: list[float]
         bases = [(s, shares)]
         if len(s.causes) > 1:
             bases.append((SetFit.single(first), {first.cause.name: first.explained}))
-        joined = [j for base in bases if len(base[0].causes) < MAX_CAUSES
-                  for j in [_join_measured(bench, ev, *base, weights, total)] if j is not None]
-        if joined:
-            s, shares = min(joined, key=lambda js: js[0].sse)
+        best = None
+        for base, base_shares in bases:
+            got = None if len(base.causes) >= MAX_CAUSES else \
+                _join_measured(bench, ev, base, base_shares, weights, total)
+            if got is not None and (best is None or got[0].sse < best[0].sse):
+                best = got
+        if best is not None:
+            s, shares = best
     if not _consistent(ev, s.params, s.intervals):
         return None, {}, []
     return s, shares, [p for p in ambiguous if any(n in p for n in s.names)]

@@ -10,6 +10,7 @@ table set of a modified unit cost about 10 ms.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from typing import get_args
@@ -74,18 +75,6 @@ class Workbench:
         self.nominal_tables = self.tables(self.unit)
         self.reference = [r.position_mm for r in self.runs]
         self.masks = [r.mask for r in self.runs]
-        self.inertia = False
-        self.without_inertia = self.estimate()
-        self.full_without_inertia = (self.without_inertia if mode == "full"
-                                     else self.estimate(mode="full"))
-        self.inertia = True
-        self.with_inertia = self.estimate()
-        self.full_with_inertia = (self.with_inertia if mode == "full"
-                                  else self.estimate(mode="full"))
-        # the estimator as configured: what the service publishes, the error a cause's
-        # extension is judged against
-        self.as_is = (self.with_inertia if cfg.estimator.inertia_compensation
-                      else self.without_inertia)
         if inertia is None and mode == "dynamic":
             # The chamber model's torque balance has the rotor's inertia in it: no choice.
             # (Judged on runs with an effect in them, the effect's error decided it: an oil
@@ -99,6 +88,43 @@ class Workbench:
         self.use(self.default_inertia)
         self._chamber_cache: dict[float, list[np.ndarray]] = {}
         self._table_cache: dict[tuple[float, float], UnitTables] = {}
+
+    # The nominal model's estimates, each computed when first asked for: the chamber model
+    # needs only its own (inertia on), the tables' modes choose between the two.
+    @functools.cached_property
+    def with_inertia(self) -> list[np.ndarray]:
+        return self.estimate(inertia=True)
+
+    @functools.cached_property
+    def without_inertia(self) -> list[np.ndarray]:
+        return self.estimate(inertia=False)
+
+    @functools.cached_property
+    def full_with_inertia(self) -> list[np.ndarray]:
+        return self.with_inertia if self.mode == "full" else \
+            self.estimate(mode="full", inertia=True)
+
+    @functools.cached_property
+    def full_without_inertia(self) -> list[np.ndarray]:
+        return self.without_inertia if self.mode == "full" else \
+            self.estimate(mode="full", inertia=False)
+
+    @property
+    def as_is(self) -> list[np.ndarray]:
+        """The estimator as configured: what the service publishes, the error a cause's
+        extension is judged against."""
+        return self.with_inertia if self.cfg.estimator.inertia_compensation \
+            else self.without_inertia
+
+    @property
+    def base(self) -> list[np.ndarray]:
+        """The nominal model, with the inertia as in use."""
+        return self.with_inertia if self.inertia else self.without_inertia
+
+    @property
+    def full_estimate(self) -> list[np.ndarray]:
+        """The speed-continuous tables' estimate, with the inertia as in use."""
+        return self.full_with_inertia if self.inertia else self.full_without_inertia
 
     @property
     def inertia_choices(self) -> tuple[bool, ...]:
@@ -115,9 +141,6 @@ class Workbench:
     def use(self, inertia: bool) -> None:
         """Evaluate with (or without) the motor's inertia taken off the motor torque."""
         self.inertia = bool(inertia)
-        self.base = self.with_inertia if self.inertia else self.without_inertia  # the model
-        self.full_estimate = (self.full_with_inertia if self.inertia
-                              else self.full_without_inertia)
 
     def sse(self, estimates: Sequence[np.ndarray]) -> float:
         """Squared error against the references, each run weighted by its duration."""
@@ -137,21 +160,22 @@ class Workbench:
 
     def estimate(self, tables: UnitTables | None = None, mode: str | None = None,
                  speed_rpm: Sequence[np.ndarray] | None = None,
-                 time_shift_s: float = 0.0) -> list[np.ndarray]:
+                 time_shift_s: float = 0.0, inertia: bool | None = None) -> list[np.ndarray]:
         """Position estimate (mm) of every run with the given tables, mode and inputs.
 
         ``time_shift_s`` feeds the estimator the motor signals that many seconds later
-        (logged speed and torque lagging the position by that much, undone).
+        (logged speed and torque lagging the position by that much, undone); ``inertia``:
+        the inertia compensation (default: as in use).
         """
         tables = tables or self.nominal_tables
+        cfg = self._cfg_inertia[self.inertia if inertia is None else inertia]
         out = []
         for i, r in enumerate(self.runs):
             n = r.speed_rpm if speed_rpm is None else speed_rpm[i]
-            motor, tau = r.speed_rpm, r.torque_nm
+            tau = r.torque_nm
             if time_shift_s:
-                n, motor, tau = (shift_signal(r.time_s, s, time_shift_s)
-                                 for s in (n, motor, tau))
-            est = Estimator(self._cfg_inertia[self.inertia], self.actuator, tables,
+                n, tau = (shift_signal(r.time_s, s, time_shift_s) for s in (n, tau))
+            est = Estimator(cfg, self.actuator, tables,
                             mode=mode or self.mode,
                             references=False, adaptation=False,
                             initial_position_mm=r.initial_position_mm)
