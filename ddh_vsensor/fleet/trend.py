@@ -2,12 +2,13 @@
 interval, the cause that explains the references across days, the expected position error
 now and where the parameter's trend takes it.
 
-Per log and cause (rows of :mod:`.analysis`): the parameter minimising the squared error of
-the observations (a parabola through the best grid point and its neighbours, on a log scale
-for factors) and a 90 % profile interval (squared error within F(1, n-1)/(n-1) of the best).
+Per log and cause (rows of :mod:`.analysis`): the parameter minimising the loss of the
+observations (squared error, linear beyond :data:`.analysis.ROBUST_MM`; a parabola through
+the best grid point and its neighbours, on a log scale for factors) and a 90 % profile
+interval (loss within F(1, n-1)/(n-1) of the best).
 Across the last :data:`WINDOW` logs the cause is judged held out, day by day: each log's
 parameter is predicted by the linear trend fitted to the *other* logs, and the score is the
-share of the references' squared error that prediction removes (minus a penalty per trend
+share of the references' loss that prediction removes (minus a penalty per trend
 parameter). The best cause is named when it scores :data:`MIN_SCORE` or more (the
 position-truth analysis's threshold).
 
@@ -51,9 +52,9 @@ class LogFit:
     lo_u: float
     hi_u: float
     grid_u: np.ndarray
-    sse: np.ndarray
+    loss: np.ndarray
     emax_mm: np.ndarray
-    sse_nominal: float
+    loss_nominal: float
     max_increment_mm: float
 
 
@@ -109,23 +110,23 @@ def _interp(x: float, xs: np.ndarray, ys: np.ndarray) -> float:
 
 def log_fit(cause: str, row: dict) -> LogFit:
     g = to_u(cause, np.asarray(row["grid"], float))
-    sse = np.asarray(row["sse"], float)
-    k = int(np.argmin(sse))
+    loss = np.asarray(row["loss"], float)
+    k = int(np.argmin(loss))
     u = float(g[k])
     if 0 < k < len(g) - 1:
-        x, y = g[k - 1:k + 2], sse[k - 1:k + 2]
+        x, y = g[k - 1:k + 2], loss[k - 1:k + 2]
         a, b, _ = np.polyfit(x, y, 2)
         if a > 0:
             u = float(np.clip(-b / (2 * a), x[0], x[-1]))
     n = max(int(row["n_obs"]), 2)
-    smin = float(np.min(sse))
+    smin = float(np.min(loss))
     limit = smin * (1.0 + f_dist.ppf(LEVEL, 1, n - 1) / (n - 1))
-    inside = np.flatnonzero(sse <= limit)
+    inside = np.flatnonzero(loss <= limit)
     lo_k, hi_k = int(inside.min()), int(inside.max())
-    lo = g[lo_k] if lo_k == 0 else _cross(g, sse, lo_k - 1, lo_k, limit)
-    hi = g[hi_k] if hi_k == len(g) - 1 else _cross(g, sse, hi_k, hi_k + 1, limit)
+    lo = g[lo_k] if lo_k == 0 else _cross(g, loss, lo_k - 1, lo_k, limit)
+    hi = g[hi_k] if hi_k == len(g) - 1 else _cross(g, loss, hi_k, hi_k + 1, limit)
     return LogFit(float(row["time_s"]), row["log_id"], u, float(min(lo, u)), float(max(hi, u)),
-                  g, sse, np.asarray(row["emax_mm"], float), float(row["sse_nominal"]),
+                  g, loss, np.asarray(row["emax_mm"], float), float(row["loss_nominal"]),
                   float(row["max_increment_mm"]))
 
 
@@ -158,7 +159,7 @@ def _weights(fits: Sequence[LogFit]) -> np.ndarray:
 
 
 def heldout_score(fits: Sequence[LogFit]) -> float:
-    """Share of the references' squared error removed when each log's parameter is
+    """Share of the references' loss removed when each log's parameter is
     predicted by the trend of the other logs, less the trend's penalty."""
     t = np.array([f.time_s for f in fits]) / DAY_S
     u = np.array([f.u for f in fits])
@@ -167,8 +168,8 @@ def heldout_score(fits: Sequence[LogFit]) -> float:
     for j, f in enumerate(fits):
         others = np.arange(len(fits)) != j
         a, b, _ = _line(t[others], u[others], w[others])
-        held += max(_interp(a + b * t[j], f.grid_u, f.sse), 0.0)
-        total += f.sse_nominal
+        held += max(_interp(a + b * t[j], f.grid_u, f.loss), 0.0)
+        total += f.loss_nominal
     return 1.0 - held / total - 2 * PENALTY_PER_PARAMETER if total > 0 else 0.0
 
 

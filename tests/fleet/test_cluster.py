@@ -67,7 +67,7 @@ def _tables(store) -> dict:
     return {t: s.query(f"SELECT * EXCLUDE (path) FROM {t} ORDER BY ALL" if t == "meta" else
                        f"SELECT * FROM {t} ORDER BY ALL").to_pylist()
             for t in ("meta", "events", "holds")} | {
-        "fits": s.query("SELECT machine, log_id, actuator, cause, sse, emax_mm FROM fits "
+        "fits": s.query("SELECT machine, log_id, actuator, cause, loss, emax_mm FROM fits "
                         "ORDER BY machine, log_id, actuator, cause").to_pylist()}
 
 

@@ -29,8 +29,8 @@ def rows(true_u_per_day, cause="pump_leakage", others=("displacement", "time_off
             else:                               # explains nothing
                 sse = np.full(len(grid), sse_nominal) + 5.0 * gu ** 2
                 emax = np.abs(gu)
-            out.append({"cause": c, "grid": list(grid), "sse": list(sse),
-                        "emax_mm": list(emax), "n_obs": 20, "sse_nominal": sse_nominal,
+            out.append({"cause": c, "grid": list(grid), "loss": list(sse),
+                        "emax_mm": list(emax), "n_obs": 20, "loss_nominal": sse_nominal,
                         "max_increment_mm": 1.0, "time_s": T0 + day * DAY_S,
                         "log_id": f"d{day}"})
     return out
