@@ -13,7 +13,7 @@ from ddh_vsensor.canbus.fastblf import write_blf_inputs
 from ddh_vsensor.cli.main import main
 from ddh_vsensor.diagnosis.holds import model_holding_speed_rpm, model_holding_speeds_rpm
 from ddh_vsensor.diagnosis.reference_fit import POSITION_SENSOR_CAUSES
-from ddh_vsensor.diagnosis.references import reference_run
+from ddh_vsensor.diagnosis.references import nominal_velocity_mm_s, reference_run
 from ddh_vsensor.diagnosis.trials import draw_trial, simulate_trial
 from ddh_vsensor.physics.steady import holding_speed, steady_state
 
@@ -89,3 +89,18 @@ def test_too_few_edges_is_a_clear_error(tmp_path, cfg, capsys):
     code = main(["analyze", *paths, "--actuator", "boom", "--report", str(tmp_path / "r")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "reference edge" in err[0]
+
+
+def test_the_nominal_velocity_meets_no_made_up_end_stop(cfg):
+    """Holds and the direction at each edge come from the nominal model's velocity, started
+    at a made-up position (mid-stroke): it must not stop the rod at an end stop met there
+    (the boom of the paper cycle stood still for 23 s of fast motor work that way)."""
+    runs = simulate_trial(cfg, draw_trial(6101, "none"))
+    for actuator in cfg.unit_names:
+        for per_unit in runs:
+            run = per_unit[actuator]
+            v = nominal_velocity_mm_s(cfg, actuator, run)
+            fast = np.abs(run.speed_rpm) > 500.0
+            assert fast.any()
+            still = int(np.sum(fast & (np.abs(v) <= 1.0)))
+            assert still == 0, f"{actuator}: still in {still} samples of fast motor work"
