@@ -26,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-references", action="store_true", help="ignore the Hall switches")
     p.add_argument("--no-adaptation", action="store_true", help="do not learn at references")
     p.add_argument("--initial-position-mm", type=float, default=None,
-                   help="start here (default: the run's first measured position)")
+                   help="start here (default: the run's first measured position; without "
+                        "one the estimate is not referenced until its first Hall switch)")
     p.add_argument("--extension", metavar="FILE",
                    help="extended model saved by 'ddh-vsensor analyze' (its extension.json)")
     p.add_argument("--out", metavar="EST.csv", help="write the estimate")
@@ -35,11 +36,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run)
 
 
-def initial_position(run: Run, given: float | None) -> float:
+def initial_position(run: Run, given: float | None) -> float | None:
+    """Where the rod starts: as given, else the run's first measured position, else not
+    known (a log without position frames)."""
     if given is not None:
         return given
     known = run.position_mm[np.isfinite(run.position_mm)]
-    return float(known[0]) if known.size else 0.0
+    return float(known[0]) if known.size else None
 
 
 def estimate_run(args: argparse.Namespace, cfg: Config, run: Run, actuator: str):
@@ -55,6 +58,9 @@ def estimate_run(args: argparse.Namespace, cfg: Config, run: Run, actuator: str)
                    initial_position_mm=initial_position(run, args.initial_position_mm))
     est = (Estimator(cfg, actuator, tables, **options) if extension is None
            else extension.estimator(cfg, tables, **options))
+    if options["initial_position_mm"] is None:
+        # a cold start: no end stop at a made-up position, nothing learnt from the first edge
+        est.referenced = False
     refs = None if args.no_references else run.refs
     return est, est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, refs)
 
