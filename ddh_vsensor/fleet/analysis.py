@@ -48,9 +48,9 @@ GRIDS: dict[str, tuple[float, ...]] = {
 # Tables over the oil a fleet's logs see (same grid nodes as the config's).
 TABLE_RANGE_C = (10.0, 80.0)
 # A log's fit is the squared error up to ROBUST_MM and linear beyond (Huber): 30 s of work
-# give 3-10 observations, and one that no cause makes (a hold that was flow over a relief
-# valve, the estimate creeping 2.3 mm/s for a motor turning 54 rpm against 8 modelled) had
-# carried the log's fit to a grid end and raised alarms (README: Fleet diagnosis).
+# give 3-10 observations, and one that no cause makes (a "hold" that was the slow end of a
+# move: 23 mm of creep against increments below 0.7 mm) had carried the log's fit to a grid
+# end and raised alarms (README: Fleet diagnosis).
 ROBUST_MM = 1.0
 # Every log replayed on the tables: the chamber model (which `analyze` uses) gave no better
 # warnings or fewer false alarms on two fleets (README: Fleet diagnosis), at the same cost.
