@@ -36,7 +36,7 @@ from ..diagnosis.causes import ALL_CAUSES
 from ..diagnosis.selection import MIN_SCORE
 
 WINDOW = 10                     # logs the naming and the trend look back over
-MIN_LOGS = 4                    # before that nothing is named
+MIN_LOGS = 7                    # a week of daily logs before anything is named (README)
 SLOPE_T = 4.0                   # |slope| / its standard error for a trend to count
 TREND_SCORE = 0.05              # held-out score a trending cause needs for an alarm
 PENALTY_PER_PARAMETER = 0.02

@@ -73,3 +73,14 @@ def test_a_trend_is_not_projected_further_ahead_than_the_days_it_was_fitted_on()
     # day 5 would see the crossing within its 14-day horizon, but only 5 days of trend
     assert day + min(day, 9.0) >= 18.75 - 0.5
     assert 18.75 - day >= 7.0
+
+
+def test_no_cause_is_named_from_less_than_a_week_of_logs():
+    """A young window's trend is the scatter of a few days' work (a fleet's false alarms
+    came on days 3-6): nothing is named or alarmed before a week of daily logs."""
+    u = np.log(1.0 + 0.15 * np.arange(12.0))            # steep: 3 mm by day 3
+    tr = unit_trend("M5", "boom", rows(u, seed=5), tolerance_mm=3.0, horizon_days=14.0)
+    week = 7
+    assert all(a is None for a in tr.alarms[:week - 1])
+    assert set(tr.named[:week - 1]) == {"none"}
+    assert tr.alarms[week - 1] is not None
