@@ -138,7 +138,8 @@ def analyse_machine(args: tuple[str, str, str | None]) -> dict:
     path = store.fits_path(machine)
     if path.is_file():
         done = pq.read_table(path)
-        if "loss" in done.column_names and sorted(set(done["log_id"].to_pylist())) == sorted(logs):
+        current = "loss" in done.column_names            # else fitted before the robust loss
+        if current and sorted(set(done["log_id"].to_pylist())) == sorted(logs):
             return {"machine": machine, "logs": len(logs), "cached": True}
     rows = []
     for log_id in logs:
