@@ -58,9 +58,6 @@ def estimate_run(args: argparse.Namespace, cfg: Config, run: Run, actuator: str)
                    initial_position_mm=initial_position(run, args.initial_position_mm))
     est = (Estimator(cfg, actuator, tables, **options) if extension is None
            else extension.estimator(cfg, tables, **options))
-    if options["initial_position_mm"] is None:
-        # a cold start: no end stop at a made-up position, nothing learnt from the first edge
-        est.referenced = False
     refs = None if args.no_references else run.refs
     return est, est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, refs)
 

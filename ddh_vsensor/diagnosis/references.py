@@ -81,10 +81,8 @@ def _nominal_tables(cfg: Config, actuator: str) -> UnitTables:
 def nominal_velocity_mm_s(cfg: Config, actuator: str, run: Run) -> np.ndarray:
     """The nominal model's velocity at each sample (position-free: direction and holds; the
     chamber model of `dynamic` mode meets no end stop while its position is unknown)."""
-    unit = cfg.unit(actuator)
     est = Estimator(cfg, actuator, _nominal_tables(cfg, actuator), references=False,
-                    adaptation=False, initial_position_mm=0.5 * unit.stroke_mm)
-    est.referenced = False          # a made-up start: no end stop is met at a made-up position
+                    adaptation=False)
     return est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c).velocity_mm_s
 
 

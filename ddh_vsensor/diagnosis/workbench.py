@@ -10,7 +10,6 @@ table set of a modified unit cost about 10 ms.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Mapping, Sequence
 from typing import get_args
@@ -75,6 +74,7 @@ class Workbench:
         self.nominal_tables = self.tables(self.unit)
         self.reference = [r.position_mm for r in self.runs]
         self.masks = [r.mask for r in self.runs]
+        self._nominal: dict[tuple[bool, str], list[np.ndarray]] = {}
         if inertia is None and mode == "dynamic":
             # The chamber model's torque balance has the rotor's inertia in it: no choice.
             # (Judged on runs with an effect in them, the effect's error decided it: an oil
@@ -83,48 +83,36 @@ class Workbench:
         elif inertia is None:
             # Parameter-free, so judged on all runs: kept if it lowers the error of the
             # speed-continuous tables (in paper mode their low-speed error would dominate).
-            inertia = self.sse(self.full_with_inertia) < self.sse(self.full_without_inertia)
+            inertia = self.sse(self.nominal(True, "full")) < self.sse(self.nominal(False, "full"))
         self.default_inertia = bool(inertia)
         self.use(self.default_inertia)
         self._chamber_cache: dict[float, list[np.ndarray]] = {}
         self._table_cache: dict[tuple[float, float], UnitTables] = {}
 
-    # The nominal model's estimates, each computed when first asked for: the chamber model
-    # needs only its own (inertia on), the tables' modes choose between the two.
-    @functools.cached_property
-    def with_inertia(self) -> list[np.ndarray]:
-        return self.estimate(inertia=True)
-
-    @functools.cached_property
-    def without_inertia(self) -> list[np.ndarray]:
-        return self.estimate(inertia=False)
-
-    @functools.cached_property
-    def full_with_inertia(self) -> list[np.ndarray]:
-        return self.with_inertia if self.mode == "full" else \
-            self.estimate(mode="full", inertia=True)
-
-    @functools.cached_property
-    def full_without_inertia(self) -> list[np.ndarray]:
-        return self.without_inertia if self.mode == "full" else \
-            self.estimate(mode="full", inertia=False)
+    def nominal(self, inertia: bool, mode: str | None = None) -> list[np.ndarray]:
+        """The nominal model's estimate (in ``mode``, default the bench's), computed when
+        first asked for: the chamber model needs only its own (inertia on), the tables'
+        modes choose between the two."""
+        key = (bool(inertia), mode or self.mode)
+        if key not in self._nominal:
+            self._nominal[key] = self.estimate(mode=key[1], inertia=key[0])
+        return self._nominal[key]
 
     @property
     def as_is(self) -> list[np.ndarray]:
         """The estimator as configured: what the service publishes, the error a cause's
         extension is judged against."""
-        return self.with_inertia if self.cfg.estimator.inertia_compensation \
-            else self.without_inertia
+        return self.nominal(self.cfg.estimator.inertia_compensation)
 
     @property
     def base(self) -> list[np.ndarray]:
         """The nominal model, with the inertia as in use."""
-        return self.with_inertia if self.inertia else self.without_inertia
+        return self.nominal(self.inertia)
 
     @property
     def full_estimate(self) -> list[np.ndarray]:
         """The speed-continuous tables' estimate, with the inertia as in use."""
-        return self.full_with_inertia if self.inertia else self.full_without_inertia
+        return self.nominal(self.inertia, "full")
 
     @property
     def inertia_choices(self) -> tuple[bool, ...]:

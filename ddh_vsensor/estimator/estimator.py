@@ -105,7 +105,9 @@ class Estimator:
                  initial_position_mm: float | None = None,
                  unit: DDHUnit | None = None) -> None:
         """``unit``: the physics `dynamic` mode's chamber model runs (default: the configured
-        unit's), as ``tables`` are the other modes' (an extension's scaled pumps)."""
+        unit's), as ``tables`` are the other modes' (an extension's scaled pumps).
+        ``initial_position_mm`` None: the rod's position is not known (a cold start: not
+        referenced until a reference or preset, which then sets it and teaches nothing)."""
         ecfg, ucfg = cfg.estimator, cfg.unit(actuator)
         self.cfg, self.actuator = cfg, actuator
         self.mode: Mode = mode or ecfg.mode
@@ -138,7 +140,9 @@ class Estimator:
                                      * cfg.unit(actuator).motor.torque_limit_nm)
                         if self.mode == "dynamic" else None)
         self.u_base = self.u_ref
-        self._referenced = True         # False after a restore or a provisional preset
+        self._referenced = True
+        # False with no start position, after a restore or a provisional preset
+        self.referenced = initial_position_mm is not None
         self.travel_mm = 0.0
         self.hold_s = 0.0
         self.s_ref = (0.0, 0.0)         # raw travel sums at the last reference's edge

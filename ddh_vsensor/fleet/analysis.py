@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+from scipy.special import huber
 
 from ..config import Config
 from ..diagnosis.causes import ALL_CAUSES
@@ -121,9 +122,8 @@ def fit_log(cfg: Config, rr: ReferenceRun, actuator: str,
 
 
 def robust_loss(residual_mm: np.ndarray) -> float:
-    """Squared error within ROBUST_MM of zero, linear beyond (mm²)."""
-    a = np.abs(residual_mm)
-    return float(np.sum(np.where(a <= ROBUST_MM, a * a, ROBUST_MM * (2.0 * a - ROBUST_MM))))
+    """Squared error within ROBUST_MM of zero, linear beyond (mm²: twice scipy's Huber)."""
+    return 2.0 * float(np.sum(huber(ROBUST_MM, residual_mm)))
 
 
 def analyse_machine(args: tuple[str, str, str | None]) -> dict:
