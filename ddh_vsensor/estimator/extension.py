@@ -389,22 +389,26 @@ class ExtendedEstimator:
         n, pumps_n, tau, temp = corrected_inputs(
             self._params, t, np.asarray(speed_rpm, dtype=float),
             np.asarray(torque_nm, dtype=float), np.asarray(oil_temp_c, dtype=float))
+        referenced = self.estimator.referenced
         start = self.estimator.position_mm
-        if self._air and len(t):
-            plain = Estimator(self._cfg, ext.actuator, self.estimator.model.tables,
-                              mode=self.estimator.model.mode, references=False,
-                              adaptation=False, initial_position_mm=start, unit=self._unit)
-            tables_x = plain.run(t, pumps_n, tau, temp).position_mm
         res = self.estimator.run(t, pumps_n, tau, temp, refs)
         if (not self._air and ext.residual is None) or len(t) == 0:
             return res
         correction = np.zeros(len(t))
-        if self._air:
+        # the air acts by the chamber volumes, so it is tracked from a known position only:
+        # from the start if referenced, else from the first reference on
+        s0 = 0 if referenced else (res.events[0].index if res.events else len(t))
+        if self._air and s0 < len(t):
+            x0 = start if s0 == 0 else float(res.position_mm[s0])
+            plain = Estimator(self._cfg, ext.actuator, self.estimator.model.tables,
+                              mode=self.estimator.model.mode, references=False,
+                              adaptation=False, initial_position_mm=x0, unit=self._unit)
+            tables_x = plain.run(t[s0:], pumps_n[s0:], tau[s0:], temp[s0:]).position_mm
             ch = chambers
-            air = ch.track_chambers(self._unit, [ch.ChamberRow(t, pumps_n, tau, temp, start,
-                                                               ext.param("air_fraction"))],
-                                    max_gap_s=self._max_gap_s)[0]
-            correction += air.position_mm - tables_x
+            air = ch.track_chambers(self._unit, [ch.ChamberRow(
+                t[s0:], pumps_n[s0:], tau[s0:], temp[s0:], x0, ext.param("air_fraction"))],
+                max_gap_s=self._max_gap_s)[0]
+            correction[s0:] += air.position_mm - tables_x
         if ext.residual is not None:
             mu = self._unit.oil.dynamic_viscosity_pa_s(temp)
             correction -= integrate_rate(t, ext.residual.rate(n, tau, mu, res.velocity_mm_s),
@@ -441,7 +445,7 @@ class ExtendedEstimator:
         h = None if self._t is None else t_s - self._t
         ok = h is not None and 0.0 < h <= self._max_gap_s
         mu = float(self._unit.oil.dynamic_viscosity_pa_s(temp))
-        if self._air:
+        if self._air and self.estimator.referenced:     # tracked from a known position
             if self._chambers is None:
                 ch = chambers
                 self._chambers = ch.ChamberModel(self._unit, [ext.param("air_fraction")],
