@@ -6,7 +6,7 @@ alone (no position column used) and from the reference position. Figures per eff
 share named correctly by each, and the error at the references (maximum |edge-to-edge error
 increment| on held-out runs) before and after the named extension.
 
-    python bench/references.py [--draws 8] [--seed 5000] [--jobs 1]
+    python bench/references.py [--draws 8] [--seed 5000] [--jobs 1] [--rows-only]
 """
 
 from __future__ import annotations
@@ -38,11 +38,15 @@ def right_answer(effect: str) -> str:
     return "none" if effect in POSITION_SENSOR_CAUSES else effect
 
 
-def one_draw(args: tuple[int, str, bool]) -> list[dict]:
-    seed, effect, position = args
+def one_draw(args: tuple[int, str, bool, bool]) -> list[dict]:
+    seed, effect, position, rows_only = args
     cfg = load_config(None)
     trial = draw_trial(seed, effect)
     runs = simulate_trial(cfg, trial)
+    if rows_only:           # as a CSV carries them: switch changes known to the sample
+        for per_unit in runs:
+            for run in per_unit.values():
+                run.ref_edge_s = {}
     out = []
     for actuator in cfg.unit_names:
         started = time.perf_counter()
@@ -81,13 +85,18 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--no-position", action="store_true",
                     help="skip the position-truth analysis (its figures: diagnosis/README.md)")
+    ap.add_argument("--rows-only", action="store_true",
+                    help="the switches' changes known to the sample only (a CSV's rows), not "
+                         "timed as an I/O module sending on change of state times them")
     args = ap.parse_args()
     cfg = load_config(None)
-    tasks = [(args.seed + 100 * i + j, effect, not args.no_position) for i in range(args.draws)
-             for j, effect in enumerate(EFFECT_NAMES)]
+    tasks = [(args.seed + 100 * i + j, effect, not args.no_position, args.rows_only)
+             for i in range(args.draws) for j, effect in enumerate(EFFECT_NAMES)]
     with ProcessPoolExecutor(args.jobs) as pool:
         rows = [row for rows in pool.map(one_draw, tasks) for row in rows]
-    figures: dict[str, object] = {"draws_per_effect": args.draws, "analyses": len(rows)}
+    figures: dict[str, object] = {"draws_per_effect": args.draws, "analyses": len(rows),
+                                  "switch changes": "sample rows" if args.rows_only
+                                  else "timed (I/O module on change of state)"}
     for effect in EFFECT_NAMES:
         mine = [r for r in rows if r["effect"] == effect]
         named = sum(r["named"] == right_answer(effect) for r in mine) / len(mine)

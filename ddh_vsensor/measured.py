@@ -44,6 +44,10 @@ class Run:
     refs: dict[str, np.ndarray] = field(default_factory=dict)   # "top" -> 0/1 per sample
     comments: list[str] = field(default_factory=list)
     source: str = "<memory>"
+    # "top" -> per sample, the time its switch changed to the state the sample first shows,
+    # where the log timed it finer than the samples (an I/O module that sends on change of
+    # state); NaN elsewhere. The CSV format has no such column: rows are its only times.
+    ref_edge_s: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name in (*REQUIRED, *PRESSURES):
@@ -54,8 +58,26 @@ class Run:
         lengths = {name: len(getattr(self, name)) for name in (*REQUIRED, *PRESSURES)
                    if getattr(self, name) is not None}
         lengths.update({REF_PREFIX + name: len(state) for name, state in self.refs.items()})
+        self.ref_edge_s = {name: np.asarray(t, dtype=np.float64)
+                           for name, t in self.ref_edge_s.items()}
+        lengths.update({f"edge time of {name}": len(t) for name, t in self.ref_edge_s.items()})
         if len(set(lengths.values())) > 1:
             raise ValueError(f"run {self.source}: columns differ in length: {lengths}")
+        unknown = sorted(set(self.ref_edge_s) - set(self.refs))
+        if unknown:
+            raise ValueError(f"run {self.source}: edge times of switch(es) without states: "
+                             f"{', '.join(unknown)}")
+        for name, t in self.ref_edge_s.items():
+            k = np.flatnonzero(np.isfinite(t))
+            bad = (k == 0) | (t[k] > self.time_s[k]) | (t[k] <= self.time_s[k - 1])
+            if bad.any():
+                raise ValueError(f"run {self.source}: the {name} switch's edge time "
+                                 f"{t[k[bad][0]]!r} s is not within its sample's period")
+
+    def shift_time(self, offset_s: float) -> None:
+        """Move the run in time (e.g. onto the wall clock), its switches' edge times along."""
+        self.time_s = self.time_s + offset_s
+        self.ref_edge_s = {name: t + offset_s for name, t in self.ref_edge_s.items()}
 
 
 # --- reading --------------------------------------------------------------------------------

@@ -23,7 +23,8 @@ from can.io import blf
 from ..config import Config
 from ..measured import MeasuredDataError, Run
 from .dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
-from .log import _BLF_WALL_CLOCK_MIN_S, _latest
+from .log import (_BLF_WALL_CLOCK_MIN_S, _latest, edge_times, io_frames,
+                  io_sends_on_change)
 
 # One classic CAN frame with a v1 object header: base (16) + v1 (16) + CAN_MSG (16) bytes.
 _FRAME = np.dtype([("sig", "S4"), ("hsize", "<u2"), ("hver", "<u2"), ("size", "<u4"),
@@ -188,20 +189,24 @@ def frames_to_runs(frames: Frames, cfg: Config, source: str,
             at = np.minimum(np.searchsorted(time_s, pt), len(time_s) - 1)
             same = time_s[at] == pt
             position_mm[at[same]] = pmm[same]
-        refs = {}
+        refs, edges = {}, {}
         if len(io):
-            held = _latest(frames.timestamp_s[io], time_s)
+            io_t = frames.timestamp_s[io]
+            held = _latest(io_t, time_s)
+            timed = io_sends_on_change(io_t, time_s)
             inputs = _raw(frames.data[io]) & _byte_mask(msgs[IO_MODULE].length)
             bits = cfg.can.units[actuator].hall_bits
             for name in cfg.unit(actuator).references_mm:
-                refs[name] = ((inputs >> np.uint64(bits[name])) & np.uint64(1)) \
-                    .astype(np.uint8)[held]
+                io_state = ((inputs >> np.uint64(bits[name])) & np.uint64(1)).astype(np.uint8)
+                refs[name] = io_state[held]
+                if timed:
+                    edges[name] = edge_times(io_t, io_state, time_s, refs[name])
         out[actuator] = Run(time_s=time_s,
                             speed_rpm=decode_signal(msgs[sevcon], "VelocityActual", d),
                             torque_nm=decode_signal(msgs[sevcon], "TorqueActual", d),
                             oil_temp_c=oil_c[_latest(oil_t, time_s)], position_mm=position_mm,
                             refs=refs, comments=[f"CAN log {source}, actuator {actuator}"],
-                            source=source)
+                            source=source, ref_edge_s=edges)
     return out
 
 
@@ -212,12 +217,11 @@ def write_blf_inputs(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> 
     codec = FrameCodec(cfg)
     actuators = list(runs)
     oil_actuator = actuators[0]
-    io_time = np.unique(np.concatenate([r.time_s for r in runs.values()]))
+    io_time, io_states = io_frames(runs)
     inputs = np.zeros(len(io_time), np.uint64)
     for a in actuators:
-        held = _latest(runs[a].time_s, io_time)
-        for name, state in runs[a].refs.items():
-            inputs |= state[held].astype(np.uint64) << np.uint64(cfg.can.units[a].hall_bits[name])
+        for name, state in io_states[a].items():
+            inputs |= state.astype(np.uint64) << np.uint64(cfg.can.units[a].hall_bits[name])
     parts = [(runs[oil_actuator].time_s, 0, 0, encode_signals(
         codec.messages[OIL_TEMP], {"OilTemp": runs[oil_actuator].oil_temp_c}),
         codec.ids[OIL_TEMP], codec.messages[OIL_TEMP].length)]

@@ -26,9 +26,61 @@ _BLF_WALL_CLOCK_MIN_S = 631152000.0
 _OIL, _IO, _SEVCON, _POSITION = range(4)
 
 
+# The I/O module's event timer: without a change of its inputs it sends at least this often.
+IO_REFRESH_S = 0.1
+
+
 def _latest(event_time_s: np.ndarray, time_s: np.ndarray) -> np.ndarray:
     """Index of the latest event at or before each time (the first event before any)."""
     return np.maximum(np.searchsorted(event_time_s, time_s, "right") - 1, 0)
+
+
+def io_frames(runs: Mapping[str, Run]) -> tuple[np.ndarray, dict[str, dict[str, np.ndarray]]]:
+    """When the I/O module sends, with every switch's state in each frame (actuator ->
+    switch -> 0/1 per frame). Where the runs timed their switches' changes, as CiA 401
+    modules do by default (can-facts): on every change, at its own time, and every
+    :data:`IO_REFRESH_S` at the samples. Else (a CSV's rows) at every sample: a log that
+    knows the changes no finer than its samples must not claim to."""
+    sample_t = np.unique(np.concatenate([run.time_s for run in runs.values()]))
+    on_change = all(set(run.ref_edge_s) == set(run.refs) for run in runs.values())
+    tick = np.floor((sample_t - sample_t[0]) / IO_REFRESH_S + 1e-9)
+    times = [sample_t[np.concatenate([[True], np.diff(tick) > 0])] if on_change else sample_t]
+    since: dict[tuple[str, str], np.ndarray] = {}     # from when each sample's state holds
+    for a, run in runs.items():
+        for name, state in run.refs.items():
+            start = run.time_s.copy()
+            k = np.flatnonzero(state[1:] != state[:-1]) + 1
+            edge = run.ref_edge_s.get(name)
+            if on_change and edge is not None:
+                timed = k[np.isfinite(edge[k])]
+                start[timed] = edge[timed]
+            since[a, name] = start
+            times.append(start[k])
+    io_t = np.unique(np.concatenate(times))
+    return io_t, {a: {name: run.refs[name][_latest(since[a, name], io_t)]
+                      for name in run.refs} for a, run in runs.items()}
+
+
+def io_sends_on_change(io_time_s: np.ndarray, sample_time_s: np.ndarray) -> bool:
+    """Whether the I/O module's frames time the switches' changes: it sends on change of
+    state, so less often than the drives are sampled. A module sending at every sample
+    (cyclic, synchronous) says nothing finer than the samples."""
+    if len(io_time_s) < 2 or len(sample_time_s) < 2:
+        return False
+    return bool(np.median(np.diff(io_time_s)) > 1.5 * np.median(np.diff(sample_time_s)))
+
+
+def edge_times(io_time_s: np.ndarray, io_state: np.ndarray, sample_time_s: np.ndarray,
+               state: np.ndarray) -> np.ndarray:
+    """Per sample, the time of the frame that brought the state the sample first shows (NaN
+    where the sample shows no change); ``state`` is ``io_state`` held at the samples."""
+    out = np.full(len(sample_time_s), np.nan)
+    f = np.flatnonzero(io_state[1:] != io_state[:-1]) + 1
+    k = np.searchsorted(sample_time_s, io_time_s[f], "left")
+    ok = k < len(sample_time_s)
+    out[k[ok]] = io_time_s[f[ok]]              # several in one sample: the last one counts
+    out[np.concatenate([[True], state[1:] == state[:-1]])] = np.nan
+    return out
 
 
 def _position_speed_mm_s(run: Run) -> np.ndarray:
@@ -60,9 +112,10 @@ def _check_refs(runs: Mapping[str, Run], cfg: Config) -> None:
 def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
     """Write the frames of every sample of every run (actuator -> run) to a BLF; atomic.
 
-    Per sample: the Sevcon TPDO1 of its actuator, the oil temperature (from the first run),
-    the I/O module's input bytes with every actuator's latest switch states, and the CiA 406
-    position frame where the position was sampled. Frame timestamps are time_s.
+    Per sample: the Sevcon TPDO1 of its actuator, the oil temperature (from the first run)
+    and the CiA 406 position frame where the position was sampled; frame timestamps are
+    time_s. The I/O module's input bytes, every actuator's switch states, as
+    :func:`io_frames` schedules them.
     """
     if not runs:
         raise MeasuredDataError(str(path), "no run to write")
@@ -70,13 +123,13 @@ def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
     codec = FrameCodec(cfg)
     actuators = list(runs)
     oil_actuator = actuators[0]
-    io_time_s = np.unique(np.concatenate([run.time_s for run in runs.values()]))
-    if io_time_s[0] < 0.0:
+    if min(float(run.time_s[0]) for run in runs.values()) < 0.0:
         raise MeasuredDataError(str(path), "time_s starts below 0 s; BLF holds times from 0 "
                                 "or wall-clock times")
+    io_time_s, io_states = io_frames(runs)
     # Python lists: cantools and can.Message work per frame, on plain floats.
-    held = {a: _latest(runs[a].time_s, io_time_s).tolist() for a in actuators}
-    refs = {a: {name: state.tolist() for name, state in runs[a].refs.items()} for a in actuators}
+    refs = {a: {name: state.tolist() for name, state in io_states[a].items()}
+            for a in actuators}
     columns = {a: (runs[a].torque_nm.tolist(), runs[a].speed_rpm.tolist(),
                    runs[a].position_mm.tolist(), _position_speed_mm_s(runs[a]).tolist())
                for a in actuators}
@@ -104,8 +157,7 @@ def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
         if k == _OIL:
             return codec.encode_oil_temp(oil_temp_c[i], t)
         if k == _IO:
-            return codec.encode_inputs({b: {name: state[held[b][i]]
-                                            for name, state in refs[b].items()}
+            return codec.encode_inputs({b: {name: state[i] for name, state in refs[b].items()}
                                         for b in actuators}, t)
         return codec.encode_position(actuator, position_mm[i], speed_mm_s[i], 0, t)
 
@@ -138,8 +190,9 @@ def read_can_log(path: str | Path, actuator: str, cfg: Config) -> Run:
     """One actuator's run from a CAN log, sampled at each of its Sevcon TPDO1 frames.
 
     Oil temperature and switch states are the latest before each sample (the first one for
-    samples before it); the position is that of a CiA 406 frame with the same timestamp,
-    NaN where there is none.
+    samples before it), with the times of the switches' changes where the I/O module sends
+    on change of state (:func:`io_sends_on_change`); the position is that of a CiA 406
+    frame with the same timestamp, NaN where there is none.
     """
     source = str(path)
     _require_can_unit(cfg, actuator)
@@ -190,14 +243,21 @@ def read_can_log(path: str | Path, actuator: str, cfg: Config) -> Run:
         same = time_s[at] == pos_time_s
         position_mm[at[same]] = pos_mm[same]
     refs: dict[str, np.ndarray] = {}
+    edges: dict[str, np.ndarray] = {}
     if inputs:
         inputs.sort(key=lambda item: item[0])
-        held = _latest(np.array([t for t, _ in inputs]), time_s)
+        io_time_s = np.array([t for t, _ in inputs])
+        held = _latest(io_time_s, time_s)
+        timed = io_sends_on_change(io_time_s, time_s)
         for name in cfg.unit(actuator).references_mm:
-            refs[name] = np.array([states[name] for _, states in inputs], dtype=np.uint8)[held]
+            io_state = np.array([states[name] for _, states in inputs], dtype=np.uint8)
+            refs[name] = io_state[held]
+            if timed:
+                edges[name] = edge_times(io_time_s, io_state, time_s, refs[name])
     return Run(time_s=time_s,
                speed_rpm=np.array([s["VelocityActual"] for _, s in streams[sevcon]], float),
                torque_nm=np.array([s["TorqueActual"] for _, s in streams[sevcon]], float),
                oil_temp_c=oil_temp_c[_latest(oil_time_s, time_s)],
                position_mm=position_mm, refs=refs,
-               comments=[f"CAN log {source}, actuator {actuator}"], source=source)
+               comments=[f"CAN log {source}, actuator {actuator}"], source=source,
+               ref_edge_s=edges)

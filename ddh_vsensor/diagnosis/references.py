@@ -102,20 +102,25 @@ def edge_events(cfg: Config, actuator: str, run: Run,
                 velocity_mm_s: np.ndarray) -> list[tuple[int, str, bool, float]]:
     """(sample, switch, rising, rod position mm) of every edge met in motion, in time order.
 
-    The state changes at the first sample past the switching position: on average half a
-    sample period after the rod crossed it, so the position there is the switching
-    position plus half a period of travel.
+    The state changes at the first sample past the switching position, so the position there
+    is the switching position plus the travel since the crossing: since the change's own
+    time where the log has it (:attr:`Run.ref_edge_s`), else half a sample period, the
+    crossing's mean time within it.
     """
     t = run.time_s
     out = []
     for sw in switches_from_config(cfg.unit(actuator)):
         if sw.name not in run.refs:
             continue
+        timed = run.ref_edge_s.get(sw.name)
         for _, c, rising in accepted_edges(t, run.refs[sw.name], cfg.estimator.debounce_s):
             v = float(velocity_mm_s[c])
             if c == 0 or abs(v) < DIRECTION_SPEED_MM_S:
                 continue                          # direction unknown: the edge says nothing
-            x = sw.switching_position_mm(rising, v > 0) + 0.5 * v * float(t[c] - t[c - 1])
+            since_s = 0.5 * float(t[c] - t[c - 1])
+            if timed is not None and t[c - 1] < timed[c] <= t[c]:
+                since_s = float(t[c] - timed[c])
+            x = sw.switching_position_mm(rising, v > 0) + v * since_s
             out.append((int(c), sw.name, bool(rising), x))
     out.sort()
     return out

@@ -178,14 +178,19 @@ def _extract(job: IngestJob) -> dict | _Extracted:
             events.append(e)
             switches = list(cfg.unit(actuator).references_mm)
             hall = np.zeros(len(run.time_s), np.uint8)
+            edge_s = np.full(len(run.time_s), np.nan)       # a switch's change, timed
             for i, sw in enumerate(switches):
                 if sw in run.refs:
                     hall |= run.refs[sw].astype(np.uint8) << i
+                if sw in run.ref_edge_s:
+                    timed = np.isfinite(run.ref_edge_s[sw])
+                    edge_s[timed] = run.ref_edge_s[sw][timed] - t_ref
             samples.append(pa.table({
                 "actuator": pa.DictionaryArray.from_arrays(
                     np.zeros(len(run.time_s), np.int32), [actuator]).cast(pa.string()),
                 "time_s": run.time_s - t_ref, "speed_rpm": run.speed_rpm,
-                "torque_nm": run.torque_nm, "oil_temp_c": run.oil_temp_c, "hall": hall}))
+                "torque_nm": run.torque_nm, "oil_temp_c": run.oil_temp_c, "hall": hall,
+                "hall_edge_s": edge_s}))
         duration = max(float(r.time_s[-1] - r.time_s[0]) for r in runs.values())
         n_events = sum(len(e) for e in events)
         n_holds = sum(len(h["time_s"]) for h in holds.values())
@@ -264,6 +269,12 @@ def run_of(store: Store, log_id: str, actuator: str, cfg: Config) -> Run:
                                         "hall")}
     switches = list(cfg.unit(actuator).references_mm)
     refs = {sw: ((col["hall"] >> i) & 1).astype(np.uint8) for i, sw in enumerate(switches)}
+    edges = {}
+    if "hall_edge_s" in t.column_names:             # (stores from before it have none)
+        edge_s = t["hall_edge_s"].to_numpy()
+        for sw, state in refs.items():
+            changed = np.concatenate([[False], state[1:] != state[:-1]])
+            edges[sw] = np.where(changed, edge_s, np.nan)
     return Run(time_s=col["time_s"], speed_rpm=col["speed_rpm"], torque_nm=col["torque_nm"],
                oil_temp_c=col["oil_temp_c"], position_mm=np.full(len(col["time_s"]), np.nan),
-               refs=refs, source=f"{log_id}:{actuator}")
+               refs=refs, source=f"{log_id}:{actuator}", ref_edge_s=edges)

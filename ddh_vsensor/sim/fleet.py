@@ -276,7 +276,7 @@ def simulate_fleet(cfg: Config, plan: FleetPlan, out_dir: str | Path,
             start = (START_DATE + dt.timedelta(days=day)).timestamp()
             hours = 1000.0 * (int(m.name[1:]) % 3) + HOURS_PER_DAY * day
             for run in per_unit.values():
-                run.time_s = run.time_s + start
+                run.shift_time(start)
             path = out / log_name(m.name, day, hours)
             write_blf_inputs(path, per_unit, cfg)            # no position frames
             written.append(path)

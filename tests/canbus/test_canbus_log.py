@@ -153,3 +153,50 @@ def test_hall_inputs_beyond_the_first_byte_round_trip(tmp_path: Path, machine: s
         lengths = {m.dlc for m in reader if m.arbitration_id == io_id}
     assert lengths == {max(b for u in cfg.can.units.values() for b in u.hall_bits.values())
                        // 8 + 1}
+
+
+def timed_run(actuator: str, seed: int) -> Run:
+    """make_run with its switches toggling in runs of 50 samples, each change timed at a
+    random instant of its sample's period."""
+    rng = np.random.default_rng(seed + 200)
+    n = 1500
+    refs = {name: np.repeat(rng.random(n // 50 + 1) < 0.5, 50)[:n]
+            for name in ("bottom", "mid", "top")}
+    run = dataclasses.replace(make_run(actuator, n=n, seed=seed), refs=refs)
+    edges = {}
+    for name, state in run.refs.items():
+        edge = np.full(len(state), np.nan)
+        k = np.flatnonzero(state[1:] != state[:-1]) + 1
+        edge[k] = run.time_s[k - 1] + rng.uniform(0.01, 1.0, len(k)) * np.diff(run.time_s)[k - 1]
+        edges[name] = edge
+    return dataclasses.replace(run, ref_edge_s=edges)
+
+
+@pytest.mark.parametrize("start_s", [0.0, 1.7e9])
+def test_switch_changes_timed_between_samples_survive_the_log(tmp_path: Path, cfg: Config,
+                                                              start_s: float) -> None:
+    """Timed changes go on the bus as an I/O module sending on change of state does (fewer
+    frames than samples, each change at its own time) and read back as the same times; a
+    run timed no finer than its samples (a CSV's) is written at every sample and reads back
+    untimed."""
+    runs = {a: timed_run(a, seed=i + 1) for i, a in enumerate(("boom", "bucket"))}
+    for run in runs.values():
+        run.shift_time(start_s)
+        assert sum(int(np.isfinite(e).sum()) for e in run.ref_edge_s.values()) >= 20
+    write_blf(tmp_path / "timed.blf", runs, cfg)
+    io_id = FrameCodec(cfg).ids["IO_MODULE_TPDO1"]
+    with can.BLFReader(tmp_path / "timed.blf") as reader:
+        n_io = sum(m.arbitration_id == io_id for m in reader)
+    assert n_io < len(runs["boom"].time_s) / 4
+    for actuator, run in runs.items():
+        read = read_can_log(tmp_path / "timed.blf", actuator, cfg)
+        assert_same_data(read, run, oil=runs["boom"])
+        assert set(read.ref_edge_s) == set(run.refs)
+        for name, edge in run.ref_edge_s.items():
+            np.testing.assert_array_equal(np.isnan(read.ref_edge_s[name]), np.isnan(edge))
+            np.testing.assert_allclose(read.ref_edge_s[name], edge, rtol=0, atol=TIME_S)
+    plain = {a: dataclasses.replace(run, ref_edge_s={}) for a, run in runs.items()}
+    write_blf(tmp_path / "rows.blf", plain, cfg)
+    read = read_can_log(tmp_path / "rows.blf", "boom", cfg)
+    assert_same_data(read, plain["boom"], oil=plain["boom"])
+    assert read.ref_edge_s == {}

@@ -14,7 +14,7 @@ from ddh_vsensor.canbus.fastblf import frames_to_runs, read_frames, write_blf_in
 from ddh_vsensor.canbus.log import read_can_log, write_blf
 from ddh_vsensor.config import Config
 
-from .test_canbus_log import switching_run
+from .test_canbus_log import switching_run, timed_run
 
 
 def _frames(path: Path) -> list[tuple[float, int, bytes]]:
@@ -52,3 +52,23 @@ def test_bulk_writer_writes_the_frames_of_the_frame_by_frame_writer(
     count = write_blf_inputs(tmp_path / "fast.blf", runs, cfg)
     slow, fast = _frames(tmp_path / "slow.blf"), _frames(tmp_path / "fast.blf")
     assert count == len(fast) and fast == slow
+
+
+def test_timed_switch_changes_read_and_write_as_frame_by_frame(tmp_path: Path,
+                                                               cfg: Config) -> None:
+    """An I/O module sending on change of state: both writers send the same frames, both
+    readers find the same change times."""
+    runs = {a: dataclasses.replace(timed_run(a, seed=i + 5),
+                                   position_mm=np.full(1500, np.nan))
+            for i, a in enumerate(("boom", "bucket"))}
+    write_blf(tmp_path / "slow.blf", runs, cfg)
+    count = write_blf_inputs(tmp_path / "fast.blf", runs, cfg)
+    assert _frames(tmp_path / "fast.blf") == _frames(tmp_path / "slow.blf")
+    assert count == len(_frames(tmp_path / "fast.blf"))
+    fast = frames_to_runs(read_frames(tmp_path / "fast.blf"), cfg, "fast")
+    for a, run in runs.items():
+        slow = read_can_log(tmp_path / "fast.blf", a, cfg)
+        assert set(fast[a].ref_edge_s) == set(slow.ref_edge_s) == set(run.refs)
+        for name, edge in slow.ref_edge_s.items():
+            np.testing.assert_array_equal(fast[a].ref_edge_s[name], edge)
+            assert np.isfinite(edge).sum() == np.isfinite(run.ref_edge_s[name]).sum() > 0
