@@ -78,6 +78,10 @@ def _nominal_tables(cfg: Config, actuator: str) -> UnitTables:
     return _TABLES[key][1]
 
 
+# Holds this close to an end of the stroke (mm, beyond the estimator's soft limit) are left out.
+END_HOLD_MARGIN_MM = 5.0
+
+
 def nominal_velocity_mm_s(cfg: Config, actuator: str, run: Run) -> np.ndarray:
     """The nominal model's velocity at each sample (position-free: direction and holds; the
     chamber model of `dynamic` mode meets no end stop while its position is unknown)."""
@@ -126,6 +130,26 @@ def edge_events(cfg: Config, actuator: str, run: Run,
     return out
 
 
+def _off_the_ends(cfg: Config, actuator: str, time_s: np.ndarray, velocity_mm_s: np.ndarray,
+                  edges: np.ndarray, edge_mm: np.ndarray,
+                  holds: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The holds not at an end of the stroke. There the end stop may be what holds the rod,
+    and the estimate, bounded at the stroke's ends, stops creeping into it whatever the
+    leakage: a log's leakage fit then found its best where the replay ran into the stop
+    (x4-6 for x1.1). Where a hold is, from the nominal travel since the edge before it."""
+    ucfg = cfg.unit(actuator)
+    margin = END_HOLD_MARGIN_MM + cfg.estimator.soft_limit_margin_mm
+    travel = np.concatenate([[0.0], np.cumsum(0.5 * (velocity_mm_s[1:] + velocity_mm_s[:-1])
+                                              * np.diff(time_s))])
+    out = []
+    for first, last in holds:
+        j = int(np.searchsorted(edges, first, "right")) - 1
+        x = edge_mm[j] + travel[first] - travel[edges[j]]
+        if margin <= x <= ucfg.stroke_mm - margin:
+            out.append((first, last))
+    return out
+
+
 def reference_run(cfg: Config, actuator: str, run: Run, *,
                   model_speeds: bool = True) -> ReferenceRun:
     """The run's usable edges and holds; MeasuredDataError when there are too few edges.
@@ -149,7 +173,8 @@ def reference_run(cfg: Config, actuator: str, run: Run, *,
                        speed_rpm=run.speed_rpm[cut].astype(float),
                        torque_nm=run.torque_nm[cut].astype(float),
                        oil_temp_c=run.oil_temp_c[cut].astype(float), position_mm=position)
-    ranges = find_holds(arun.time_s, arun.speed_rpm, velocity[cut], idx)
+    ranges = _off_the_ends(cfg, actuator, arun.time_s, velocity[cut], idx, edge_mm,
+                           find_holds(arun.time_s, arun.speed_rpm, velocity[cut], idx))
     unit = DDHUnit.from_config(cfg, actuator) if model_speeds else None
     holds = describe_holds(unit, arun.time_s, arun.speed_rpm,
                            arun.torque_nm, arun.oil_temp_c, ranges)
