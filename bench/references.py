@@ -57,7 +57,7 @@ def one_draw(args: tuple[int, str, bool, bool]) -> list[dict]:
         ext = [h[:r.n_increments] for h, r in zip(d.chosen.heldout, rr)]
         before = max(float(np.max(np.abs(e))) for e in inc)
         after = max(float(np.max(np.abs(e))) for e in ext) if d.cause not in (
-            "none", "unexplained") else before
+            "none", "unexplained", "ambiguous") else before
         started = time.perf_counter()
         p = diagnose(cfg, actuator, [prepare_run(r[actuator]) for r in runs]) \
             if position else None

@@ -76,7 +76,8 @@ class ReferenceDiagnosis:
 
     @property
     def chosen(self) -> CauseFit:
-        name = self.fits[0].cause.name if self.cause == "unexplained" else self.cause
+        name = {"unexplained": self.fits[0].cause.name, "ambiguous": "none"}.get(self.cause,
+                                                                              self.cause)
         return next(f for f in self.fits if f.cause.name == name)
 
 

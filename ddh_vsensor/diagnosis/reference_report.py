@@ -32,7 +32,7 @@ def _errors(inc: np.ndarray) -> dict[str, float]:
 
 
 def extension_of(diag: ReferenceDiagnosis, cfg_hash: str) -> Extension:
-    named = diag.cause not in ("none", "unexplained")
+    named = diag.cause not in ("none", "unexplained", "ambiguous")
     fit = diag.chosen if named else next(f for f in diag.fits if f.cause.name == "none")
     return Extension(cause=fit.cause.name, parameters=fit.parameters, actuator=diag.actuator,
                      config_hash=cfg_hash, mode=diag.mode, motor_inertia=fit.motor_inertia,
@@ -42,7 +42,7 @@ def extension_of(diag: ReferenceDiagnosis, cfg_hash: str) -> Extension:
 
 
 def report_data(diag: ReferenceDiagnosis, extension_file: Path) -> dict[str, Any]:
-    named = diag.cause not in ("none", "unexplained")
+    named = diag.cause not in ("none", "unexplained", "ambiguous")
     base_inc, _ = _split(diag, diag.baseline)
     ext_inc, _ = _split(diag, diag.chosen.heldout if named else diag.model)
     causes = []

@@ -138,5 +138,16 @@ def decide_single(fits: Sequence, target: Sequence[np.ndarray],
         return Decision("none", f"the best candidate, {best.cause.name}, fits "
                         f"{best.cause.parameter} = {best.value:.4g}, within what the model's "
                         f"own error can mimic (named from {bound(best.cause)})", before, before)
+    # rule 4, as the position analysis has it: a rival that leaves nearly as little
+    rivals = [f for f in fits[1:] if f.cause.name != "none" and f.score >= MIN_SCORE
+              and f.cause.resolved(f.value)
+              and rms(f.heldout, weights) ** 2 <= AMBIGUITY_RATIO * after ** 2]
+    if rivals:
+        first, second = best.cause.name, rivals[0].cause.name
+        return Decision("ambiguous", f"{first} and {second} explain the held-out error alike "
+                        f"(RMS {before:.2f} -> {after:.2f} / "
+                        f"{rms(rivals[0].heldout, weights):.2f} mm); what would separate "
+                        f"them: {separation(first, second)}", before, before,
+                        [(first, f.cause.name) for f in rivals])
     return Decision(best.cause.name, f"{best.cause.name} explains {share} of the held-out "
                     f"squared error (RMS {before:.2f} -> {after:.2f} mm)", before, after)
