@@ -112,3 +112,34 @@ def test_the_nominal_velocity_meets_no_made_up_end_stop(cfg):
             assert fast.any()
             still = int(np.sum(fast & (np.abs(v) <= 1.0)))
             assert still == 0, f"{actuator}: still in {still} samples of fast motor work"
+
+
+def test_holds_at_an_end_of_the_stroke_are_left_out(cfg):
+    """At an end the stop may hold the rod, and the estimate, bounded there, stops creeping
+    into it whatever the leakage (a fleet log's leakage fit went to x4 for x1.1): such holds
+    say nothing of the leakage. Where a hold is: the edge before it plus the travel since."""
+    from ddh_vsensor.diagnosis.references import _off_the_ends
+    t = np.arange(1000) * 0.01
+    v = np.zeros(1000)
+    v[270:300] = -1.0                               # 0.3 mm down before the second edge
+    holds = [(50, 250), (400, 600), (700, 900)]
+    edges, edge_mm = np.array([0, 300, 650]), np.array([847.0, 425.0, 3.0])
+    kept = _off_the_ends(cfg, "bucket", t, v, edges, edge_mm, holds)
+    assert kept == [(400, 600)]
+    edge_mm[0] = 840.0                              # 10 mm from the top: a hold like any
+    assert _off_the_ends(cfg, "bucket", t, v, edges, edge_mm, holds)[:2] == holds[:2]
+
+
+def test_two_causes_the_references_cannot_tell_apart_are_ambiguous(cfg):
+    """A bucket's oil reading 7 degC low and a leakage x1.24 change its references and holds
+    alike (both act on the leakage through the viscosity): the answer is ambiguous, with
+    what would separate them, not one of the two and no extension."""
+    from ddh_vsensor.diagnosis.reference_fit import diagnose_references
+    from ddh_vsensor.diagnosis.reference_report import extension_of
+    trial = draw_trial(5106, "oil_temp_offset")
+    rr = [reference_run(cfg, "bucket", r["bucket"]) for r in simulate_trial(cfg, trial)]
+    d = diagnose_references(cfg, "bucket", rr)
+    assert d.cause == "ambiguous", (trial.describe(), d.decision.reason)
+    assert ("pump_leakage", "oil_temp_offset") in d.decision.ambiguous
+    assert "oil temperature" in d.decision.reason
+    assert extension_of(d, cfg.physics_hash()).cause == "none"
