@@ -14,8 +14,11 @@ position-truth analysis's threshold).
 
 The expected position error of a parameter value is the largest change it makes to an
 edge-to-edge increment on the unit's recent work (median over the last three logs; linear
-beyond the grid). An alarm is raised when the best cause's trend (slope significant at
-:data:`SLOPE_T`, the cause scoring at least :data:`TREND_SCORE`) takes that error past the
+beyond the grid). The cause judged for an alarm is the best-scoring of those scoring at
+least :data:`TREND_SCORE` whose trend is significant (slope at :data:`SLOPE_T`; the line
+weighs each log by its interval and the day-to-day scatter, see :func:`_line`), else the
+best-scoring: a machine's constant deviation may explain more of its references than a
+young wear does. An alarm is raised when that cause's trend takes that error past the
 tolerance within the horizon (and no further ahead than the days the trend was fitted on:
 four days of logs say nothing of the fourteenth day after them), or when a named cause has
 it there already. A trend is caught
@@ -134,28 +137,45 @@ def _cross(g, s, i, j, level) -> float:
     return float(g[i] + (g[j] - g[i]) * (level - s[i]) / (s[j] - s[i]))
 
 
-def _line(t: np.ndarray, u: np.ndarray, w: np.ndarray | None = None
+def _line(t: np.ndarray, u: np.ndarray, var: np.ndarray | None = None
           ) -> tuple[float, float, float]:
-    """Weighted least-squares line u = a + b t: (a, b, standard error of b). Weights are
-    1 / interval width squared: a log with few edges says less about the parameter."""
-    w = np.ones(len(t)) if w is None else np.asarray(w, float)
-    if len(t) < 2 or np.ptp(t) == 0:
-        return float(np.average(u, weights=w)), 0.0, float("inf")
+    """Weighted least-squares line u = a + b t: (a, b, standard error of b).
+
+    Each log weighs 1 / (its own variance + the day-to-day variance): a log's interval says
+    how well its own references fix the parameter, not how far one day's work takes the fit
+    from the next (the day's moves, payload, oil); that scatter is estimated from the logs
+    themselves (DerSimonian-Laird, for a line), so no single tight log carries the trend.
+    The slope's error is then scaled by the weighted residuals (Knapp-Hartung)."""
+    n = len(t)
+    v = np.ones(n) if var is None else np.asarray(var, float)
+    if n < 2 or np.ptp(t) == 0:
+        return float(np.average(u, weights=1.0 / v)), 0.0, float("inf")
+    x = np.column_stack([np.ones(n), t])
+    if n > 2 and var is not None:
+        w = 1.0 / v
+        xtwx_inv = np.linalg.inv(x.T @ (w[:, None] * x))
+        res = u - x @ (xtwx_inv @ (x.T @ (w * u)))
+        q = float(np.sum(w * res ** 2))
+        trace = float(np.sum(w) - np.trace(xtwx_inv @ (x.T @ ((w ** 2)[:, None] * x))))
+        v = v + max(0.0, (q - (n - 2)) / trace)
+    w = 1.0 / v
     tm = float(np.average(t, weights=w))
     um = float(np.average(u, weights=w))
     sxx = float(np.sum(w * (t - tm) ** 2))
     b = float(np.sum(w * (t - tm) * (u - um))) / sxx
     a = um - b * tm
-    if len(t) < 3:
+    if n < 3:
         return a, b, float("inf")
     res = u - (a + b * t)
-    s2 = float(np.sum(w * res ** 2)) / (len(t) - 2)
+    s2 = float(np.sum(w * res ** 2)) / (n - 2)
     return a, b, float(np.sqrt(s2 / sxx))
 
 
-def _weights(fits: Sequence[LogFit]) -> np.ndarray:
+def _variances(fits: Sequence[LogFit]) -> np.ndarray:
+    """Each log's own variance of the parameter, from its 90 % interval."""
+    z = 2.0 * 1.6449
     width = np.array([max(f.hi_u - f.lo_u, 1e-6) for f in fits])
-    return 1.0 / width ** 2
+    return (width / z) ** 2
 
 
 def heldout_score(fits: Sequence[LogFit]) -> float:
@@ -163,14 +183,22 @@ def heldout_score(fits: Sequence[LogFit]) -> float:
     predicted by the trend of the other logs, less the trend's penalty."""
     t = np.array([f.time_s for f in fits]) / DAY_S
     u = np.array([f.u for f in fits])
-    w = _weights(fits)
+    var = _variances(fits)
     held = total = 0.0
     for j, f in enumerate(fits):
         others = np.arange(len(fits)) != j
-        a, b, _ = _line(t[others], u[others], w[others])
+        a, b, _ = _line(t[others], u[others], var[others])
         held += max(_interp(a + b * t[j], f.grid_u, f.loss), 0.0)
         total += f.loss_nominal
     return 1.0 - held / total - 2 * PENALTY_PER_PARAMETER if total > 0 else 0.0
+
+
+def _trend(window: Sequence[LogFit]) -> tuple[np.ndarray, np.ndarray, float, float, bool]:
+    """Days, parameters, the line's intercept and slope, and whether the slope counts."""
+    t = np.array([f.time_s for f in window]) / DAY_S
+    u = np.array([f.u for f in window])
+    a, b, se = _line(t, u, _variances(window))
+    return t, u, a, b, bool(abs(b) > SLOPE_T * se)
 
 
 def expected_error_mm(fits: Sequence[LogFit], u: float) -> float:
@@ -200,18 +228,20 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
             for cause, fits in by_cause.items():
                 scores[cause] = heldout_score(fits[max(0, i + 1 - WINDOW):i + 1])
         out.scores.append(scores)
-        best = max(scores, key=scores.get) if scores else None
-        if best is None or scores[best] < TREND_SCORE:
+        candidates = {c: _trend(by_cause[c][max(0, i + 1 - WINDOW):i + 1])
+                      for c, score in scores.items() if score >= TREND_SCORE}
+        if not candidates:
             out.named.append("none")
             out.error_now_mm.append(float("nan"))
             out.error_projected_mm.append(float("nan"))
             out.alarms.append(None)
             continue
+        # what wears is what changes: a cause that only explains a constant deviation (the
+        # machine's tolerances) well gives way to one that trends and explains some too
+        trend_causes = [c for c, tr in candidates.items() if tr[4]]
+        best = max(trend_causes or candidates, key=scores.get)
         window = by_cause[best][max(0, i + 1 - WINDOW):i + 1]
-        t = np.array([f.time_s for f in window]) / DAY_S
-        u = np.array([f.u for f in window])
-        a, b, se = _line(t, u, _weights(window))
-        trending = abs(b) > SLOPE_T * se
+        t, u, a, b, trending = candidates[best]
         u_now = a + b * t[-1] if trending else float(np.median(u[-3:]))
         named = scores[best] >= MIN_SCORE and ALL_CAUSES[best].resolved(from_u(best, u_now))
         out.named.append(best if named or trending else "none")

@@ -84,3 +84,60 @@ def test_no_cause_is_named_from_less_than_a_week_of_logs():
     assert all(a is None for a in tr.alarms[:week - 1])
     assert set(tr.named[:week - 1]) == {"none"}
     assert tr.alarms[week - 1] is not None
+
+
+def test_one_tight_log_off_the_trend_does_not_carry_it():
+    """A log's interval says how well its own references fix the parameter, not how far one
+    day's work takes the fit from the next: a confident log far off (a fleet's leakage fit
+    x4 for x1.1) must not pull the line through itself."""
+    from ddh_vsensor.fleet.trend import _line
+    t = np.arange(10.0)
+    u = 0.01 * t + np.random.default_rng(5).normal(0.0, 0.005, 10)
+    var = np.full(10, 0.005 ** 2)
+    u[5], var[5] = 1.0, 1e-8
+    _, b, se = _line(t, u, var)
+    assert abs(b - 0.01) < 0.02, b          # 0.017; weighted by the intervals alone 0.067
+    assert abs(b) < 4 * se                  # and no trend to speak of
+
+
+def two_cause_rows(u_wear, u_const, wear="time_offset", const="displacement", seed=0):
+    """Rows where a constant deviation (``const``, 6 mm per unit) and a wear (``wear``,
+    8 mm per unit) both show in the references; a third cause explains nothing."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for day, (uw, uc) in enumerate(zip(u_wear, u_const)):
+        uw, uc = uw + rng.normal(0.0, 0.002), uc + rng.normal(0.0, 0.002)
+        parts = {wear: (8.0, uw), const: (6.0, uc)}
+        sse_nominal = 20.0 * (1.0 + sum((m * v) ** 2 for m, v in parts.values()))
+        for c in (wear, const, "belt_slip"):
+            grid = np.asarray(GRIDS[c], float)
+            gu = np.log(grid) if c in ("pump_leakage", "displacement") else grid
+            if c in parts:
+                m, v = parts[c]
+                rest = sum((mm * vv) ** 2 for cc, (mm, vv) in parts.items() if cc != c)
+                sse = 20.0 * (1.0 + (m * (gu - v)) ** 2 + rest)
+                emax = m * np.abs(gu)
+            else:
+                sse, emax = np.full(len(grid), sse_nominal) + 5.0 * gu ** 2, np.abs(gu)
+            out.append({"cause": c, "grid": list(grid), "loss": list(sse),
+                        "emax_mm": list(emax), "n_obs": 20, "loss_nominal": sse_nominal,
+                        "max_increment_mm": 1.0, "time_s": T0 + day * DAY_S,
+                        "log_id": f"d{day}"})
+    return out
+
+
+def test_a_wear_is_alarmed_beside_a_constant_deviation_that_explains_more():
+    """What wears is what changes: a machine's constant displacement deviation explains more
+    of its references than a young time offset, yet the alarm is the offset's."""
+    days = np.arange(30.0)
+    u_wear = 0.025 * np.maximum(days - 3, 0)             # 8 mm per u: 3 mm on day 19
+    u_const = np.full(30, np.log(1.5))                   # 6 mm per u: 2.4 mm, constant
+    tr = unit_trend("M5", "bucket", two_cause_rows(u_wear, u_const), tolerance_mm=3.0,
+                    horizon_days=14.0)
+    crossing = float(np.argmax(8.0 * u_wear > 3.0))
+    first = tr.first_alarm
+    assert first is not None and first.cause == "time_offset"
+    day = int(round((first.time_s - T0) / DAY_S))
+    assert crossing - day >= 7                  # 5 when the best-scoring cause was judged
+    scores = tr.scores[day]
+    assert scores["displacement"] > scores["time_offset"] >= 0.05     # the case in point
