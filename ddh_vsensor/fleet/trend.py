@@ -59,6 +59,7 @@ class LogFit:
     emax_mm: np.ndarray
     loss_nominal: float
     max_increment_mm: float
+    censored: bool = False      # best at a grid end: the parameter is there or beyond
 
 
 @dataclass
@@ -128,9 +129,13 @@ def log_fit(cause: str, row: dict) -> LogFit:
     lo_k, hi_k = int(inside.min()), int(inside.max())
     lo = g[lo_k] if lo_k == 0 else _cross(g, loss, lo_k - 1, lo_k, limit)
     hi = g[hi_k] if hi_k == len(g) - 1 else _cross(g, loss, hi_k, hi_k + 1, limit)
+    # best at a grid end that is no bound of the parameter: it lies there or beyond
+    neutral = ALL_CAUSES[cause].neutral
+    censored = k in (0, len(g) - 1) and (
+        neutral is None or not np.isclose(g[k], float(to_u(cause, neutral))))
     return LogFit(float(row["time_s"]), row["log_id"], u, float(min(lo, u)), float(max(hi, u)),
                   g, loss, np.asarray(row["emax_mm"], float), float(row["loss_nominal"]),
-                  float(row["max_increment_mm"]))
+                  float(row["max_increment_mm"]), censored)
 
 
 def _cross(g, s, i, j, level) -> float:
@@ -146,8 +151,12 @@ def _line(t: np.ndarray, u: np.ndarray, var: np.ndarray | None = None
     from the next (the day's moves, payload, oil); that scatter is estimated from the logs
     themselves (DerSimonian-Laird, for a line), so no single tight log carries the trend.
     The slope's error is then scaled by the weighted residuals (Knapp-Hartung)."""
+    v = np.ones(len(t)) if var is None else np.asarray(var, float)
+    known = np.isfinite(v)                  # a censored log has no place on the line
+    if not known.any():
+        return float(np.median(u)), 0.0, float("inf")
+    t, u, v = t[known], u[known], v[known]
     n = len(t)
-    v = np.ones(n) if var is None else np.asarray(var, float)
     if n < 2 or np.ptp(t) == 0:
         return float(np.average(u, weights=1.0 / v)), 0.0, float("inf")
     x = np.column_stack([np.ones(n), t])
@@ -172,9 +181,10 @@ def _line(t: np.ndarray, u: np.ndarray, var: np.ndarray | None = None
 
 
 def _variances(fits: Sequence[LogFit]) -> np.ndarray:
-    """Each log's own variance of the parameter, from its 90 % interval."""
+    """Each log's own variance of the parameter, from its 90 % interval (infinite where
+    the fit is censored by the grid)."""
     z = 2.0 * 1.6449
-    width = np.array([max(f.hi_u - f.lo_u, 1e-6) for f in fits])
+    width = np.array([np.inf if f.censored else max(f.hi_u - f.lo_u, 1e-6) for f in fits])
     return (width / z) ** 2
 
 

@@ -141,3 +141,20 @@ def test_a_wear_is_alarmed_beside_a_constant_deviation_that_explains_more():
     assert crossing - day >= 7                  # 5 when the best-scoring cause was judged
     scores = tr.scores[day]
     assert scores["displacement"] > scores["time_offset"] >= 0.05     # the case in point
+
+
+def test_a_fit_at_a_grid_end_has_no_place_on_the_line():
+    """A log whose best is the grid's end says the parameter is there or beyond, not where:
+    it is left off the trend (a leakage read x0.40 on a wearing bucket held its alarm
+    back ten days); the end of a parameter's range (no slip) is a value like any other."""
+    from ddh_vsensor.fleet.trend import _line, _variances, log_fit
+    r = rows(np.log(np.full(3, 0.3)))               # below the leakage grid's x0.4
+    leak = log_fit("pump_leakage", next(x for x in r if x["cause"] == "pump_leakage"))
+    assert leak.censored and np.isinf(_variances([leak])[0])
+    slip = rows(np.zeros(3), cause="belt_slip", others=())[0]
+    assert not log_fit("belt_slip", slip).censored
+    t, u = np.arange(6.0), 0.1 * np.arange(6.0)
+    var = np.full(6, 1e-4)
+    u[2], var[2] = -5.0, np.inf
+    _, b, _ = _line(t, u, var)
+    assert abs(b - 0.1) < 1e-9
