@@ -37,7 +37,7 @@ def _estimate(cfg, tables, actuator, run, mode, references):
     est = Estimator(cfg, actuator, tables[actuator], mode=mode, references=references,
                     initial_position_mm=float(run.position_mm[0]))
     return est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c,
-                   run.refs if references else None)
+                   run.refs if references else None, run.ref_edge_s if references else None)
 
 
 MODES = ("dynamic", "full", "paper")
@@ -145,15 +145,17 @@ def nominal_and_drift(cfg, tables, figures: dict[str, object], cycles: int) -> N
             r = long[actuator]
             period = r.time_s[-1] / cycles
             cycle = np.minimum((r.time_s / period).astype(int), cycles - 1)
-            for refs in (False, True):
+            # references: their changes timed by the I/O module (a CAN log), or by the rows
+            for refs, timed in ((False, False), (True, True), (True, False)):
                 est = Estimator(cfg, actuator, tables[actuator], mode=mode, references=refs,
                                 initial_position_mm=float(r.position_mm[0]))
                 res = est.run(r.time_s, r.speed_rpm, r.torque_nm, r.oil_temp_c,
-                              r.refs if refs else None)
+                              r.refs if refs else None, r.ref_edge_s if timed else None)
                 err = res.position_mm - r.position_mm
                 per_cycle = np.array([np.nanmax(np.abs(err[cycle == c]))
                                       for c in range(cycles)])
-                tag = f"{mode}_{actuator}_{cycles}cycles_{'refs' if refs else 'norefs'}"
+                kind = "norefs" if not refs else "refs" if timed else "refs_rows"
+                tag = f"{mode}_{actuator}_{cycles}cycles_{kind}"
                 figures[f"{tag}_max_abs_error_mm"] = round(float(np.nanmax(np.abs(err))), 3)
                 figures[f"{tag}_first10_max_mm"] = round(float(per_cycle[:10].max()), 3)
                 figures[f"{tag}_last10_max_mm"] = round(float(per_cycle[-10:].max()), 3)
@@ -164,7 +166,7 @@ def nominal_and_drift(cfg, tables, figures: dict[str, object], cycles: int) -> N
                     figures[f"{mode}_{actuator}_drift_per_cycle_norefs_mm"] = round(
                         float(drift), 4)
                 else:
-                    figures[f"{mode}_{actuator}_gains_after_{cycles}_cycles"] = [
+                    figures[f"{mode}_{actuator}_gains_after_{cycles}_cycles_{kind}"] = [
                         round(float(g), 5) for g in est.gain.gain]
 
 

@@ -52,7 +52,8 @@ def test_three_lines_estimate_a_run(run_dir: Path, unit: str, name: str) -> None
     known = np.isfinite(run.position_mm)
     assert np.max(np.abs(res.position_mm[known] - run.position_mm[known])) <= MAX_ERROR_MM
     same = est.__class__.from_config(cfg, unit, initial_position_mm=float(run.position_mm[0]))
-    columns = same.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+    columns = same.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs,
+                       run.ref_edge_s)
     assert np.array_equal(columns.position_mm, res.position_mm)
 
 

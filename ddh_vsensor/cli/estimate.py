@@ -59,7 +59,8 @@ def estimate_run(args: argparse.Namespace, cfg: Config, run: Run, actuator: str)
     est = (Estimator(cfg, actuator, tables, **options) if extension is None
            else extension.estimator(cfg, tables, **options))
     refs = None if args.no_references else run.refs
-    return est, est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, refs)
+    return est, est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, refs,
+                        None if args.no_references else run.ref_edge_s)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -80,6 +80,7 @@ class _Snapshot:
     v: float
     s_up: float
     s_down: float
+    after: float = 0.5  # share of dx after the crossing (its time within the sample unknown)
 
 
 @dataclass
@@ -219,10 +220,11 @@ class Estimator:
         after = (s_now[0] - snap.s_up) + (s_now[1] - snap.s_down)
         v_cross = after / self.debounce_s if after != 0.0 and self.debounce_s > 0.0 else snap.v
         p = sw.edge_position_mm(rising, v_cross, snap.x)
-        # The switch changed state somewhere within the edge sample's travel dx, at any moment
-        # alike: the estimate at the crossing is, on average, x - dx/2 (at speed, dx is
-        # millimetres: taking x itself would bias every edge met in motion by half of it).
-        error = snap.x - 0.5 * snap.dx - p
+        # The switch changed state somewhere within the edge sample's travel dx: where the
+        # I/O module timed the change, after that share of it; else at any moment alike, so
+        # the estimate at the crossing is, on average, x - dx/2 (at speed, dx is millimetres:
+        # taking x itself would bias every edge met in motion by half of it).
+        error = snap.x - snap.after * snap.dx - p
         # Within +-dx/2 the error is no evidence against the model, and learning from it
         # only fits sampling noise. An estimate that was not referenced (cold start, restore)
         # carries an unknown offset, not the model's travel error: its first edge only sets
@@ -245,31 +247,35 @@ class Estimator:
             index, snap.index, sw.name, rising, p, error, adapted, k)
 
     def _edge_snapshot(self, index: int, x: float, dx: float, v: float, t_s: float,
-                       dt: float, since_s: float | None) -> _Snapshot:
+                       dt: float, since_s: float | None, timed: bool = False) -> _Snapshot:
         """The estimate at an edge seen in this sample (``t_s``, ``dt`` after the one before).
         A state that holds since before the previous sample changed whole samples ago: their
         travel (at this sample's velocity, up to :data:`LATE_EDGE_MAX_S`; later than that, the
         edge is taken here) is taken out, as if the edge had been seen in the first sample
         after it."""
         on = self._on
-        lag_s = 0.0
+        lag_s, after = 0.0, 0.5
         if since_s is not None and dt > 0.0:
             lag_s = math.floor((t_s - since_s) / dt) * dt
+            if timed and 0.0 <= t_s - since_s <= LATE_EDGE_MAX_S:
+                after = min(max((t_s - since_s - lag_s) / dt, 0.0), 1.0)
         if not 0.0 < lag_s <= LATE_EDGE_MAX_S:
-            return _Snapshot(index, x, dx, v, on.s_up, on.s_down)
+            return _Snapshot(index, x, dx, v, on.s_up, on.s_down, after)
         back = v * lag_s                                   # raw travel since the edge
         gain = self.gain._up if back > 0.0 else self.gain._down
         return _Snapshot(index, x - gain * back, dx, v, on.s_up - max(back, 0.0),
-                         on.s_down - min(back, 0.0))
+                         on.s_down - min(back, 0.0), after)
 
     # --- online face -----------------------------------------------------------------------
 
     def step(self, t_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float,
-             refs: Mapping[str, bool] | None = None, refs_since_s: float | None = None) -> Step:
+             refs: Mapping[str, bool] | None = None, refs_since_s: float | None = None,
+             refs_timed: bool = False) -> Step:
         """One sample in, position out. ``refs`` holds the Hall switch states by name, and
         ``refs_since_s`` (when known) the time since which they hold: before the previous
         sample (the I/O frame read late, e.g. from another bus), an edge in them is taken
-        back to that time (:meth:`_edge_snapshot`).
+        back to that time (:meth:`_edge_snapshot`); ``refs_timed``: that time is the
+        change's own, finer than the samples (an I/O module sending on change of state).
 
         Runs per Sevcon frame: plain floats and locals throughout; :meth:`_clip`,
         :meth:`.DirectionalGain.scale`, :meth:`state_flags` and :attr:`uncertainty_mm` are
@@ -320,7 +326,7 @@ class Estimator:
                 if deb.candidate_since_s is not None and not waiting or (
                         edge is not None and edge[0] == index):
                     on.snapshots[i] = self._edge_snapshot(index, x, x - before, v, t_s, dt,
-                                                          refs_since_s)
+                                                          refs_since_s, refs_timed)
                 if edge is not None:
                     accepted = accepted or []
                     accepted.append((sw, edge[1], on.snapshots[i]))
@@ -349,13 +355,16 @@ class Estimator:
 
     def run(self, time_s: ArrayLike | Run, speed_rpm: ArrayLike | None = None,
             torque_nm: ArrayLike | None = None, oil_temp_c: ArrayLike | None = None,
-            refs: Mapping[str, ArrayLike] | None = None) -> RunEstimate:
+            refs: Mapping[str, ArrayLike] | None = None,
+            ref_edge_s: Mapping[str, ArrayLike] | None = None) -> RunEstimate:
         """A whole run at once, from this (fresh) estimator's state; equal to feeding
         :meth:`step` sample by sample. Takes the columns, or a measured :class:`Run` whole
-        (its switch states included)."""
+        (its switch states and their changes' times included); ``ref_edge_s`` as
+        :attr:`.Run.ref_edge_s`."""
         if isinstance(time_s, Run):
             run = time_s
-            return self.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+            return self.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs,
+                            run.ref_edge_s)
         if speed_rpm is None or torque_nm is None or oil_temp_c is None:
             raise TypeError("run() takes a Run, or time_s, speed_rpm, torque_nm and oil_temp_c")
         if self._on.t is not None:
@@ -406,8 +415,13 @@ class Estimator:
         for order, sw in enumerate(self.switches):
             if refs is None or sw.name not in refs:
                 continue
+            timed = None if ref_edge_s is None or sw.name not in ref_edge_s else \
+                np.asarray(ref_edge_s[sw.name], dtype=float)
             for k, c, rising in accepted_edges(t, np.asarray(refs[sw.name]), self.debounce_s):
-                events.append((k, order, c, rising, sw))
+                after = 0.5
+                if timed is not None and c > 0 and t[c - 1] < timed[c] <= t[c]:
+                    after = float((t[c] - timed[c]) / (t[c] - t[c - 1]))
+                events.append((k, order, c, rising, sw, after))
         events.sort(key=lambda e: (e[0], e[1]))
 
         x = np.empty(n)
@@ -418,7 +432,7 @@ class Estimator:
         log: list[ReferenceEvent] = []
         i, start = 0, self.position_mm
         x_start = start
-        for k, _, c, rising, sw in events + [(n - 1, -1, -1, False, None)]:
+        for k, _, c, rising, sw, after in events + [(n - 1, -1, -1, False, None, 0.5)]:
             if k >= i:
                 if dynamic is not None:
                     advance(i, k + 1)
@@ -437,7 +451,7 @@ class Estimator:
             x_c = pre_correction.get(c, float(x[c]))
             x_before = float(x[c - 1]) if c > 0 else x_start
             snap = _Snapshot(c, x_c, x_c - x_before, float(v[c]), float(s_up[c]),
-                             float(s_down[c]))
+                             float(s_down[c]), after)
             x[k], event = self._reference(sw, rising, snap, float(x[k]),
                                          (float(s_up[k]), float(s_down[k])), k)
             if dynamic is not None:

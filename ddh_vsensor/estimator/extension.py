@@ -383,7 +383,8 @@ class ExtendedEstimator:
     # --- offline -------------------------------------------------------------------------
 
     def run(self, time_s: ArrayLike, speed_rpm: ArrayLike, torque_nm: ArrayLike,
-            oil_temp_c: ArrayLike, refs: Mapping[str, ArrayLike] | None = None) -> RunEstimate:
+            oil_temp_c: ArrayLike, refs: Mapping[str, ArrayLike] | None = None,
+            ref_edge_s: Mapping[str, ArrayLike] | None = None) -> RunEstimate:
         ext = self.extension
         t = np.asarray(time_s, dtype=float)
         n, pumps_n, tau, temp = corrected_inputs(
@@ -391,7 +392,7 @@ class ExtendedEstimator:
             np.asarray(torque_nm, dtype=float), np.asarray(oil_temp_c, dtype=float))
         referenced = self.estimator.referenced
         start = self.estimator.position_mm
-        res = self.estimator.run(t, pumps_n, tau, temp, refs)
+        res = self.estimator.run(t, pumps_n, tau, temp, refs, ref_edge_s)
         if (not self._air and ext.residual is None) or len(t) == 0:
             return res
         correction = np.zeros(len(t))
@@ -424,19 +425,22 @@ class ExtendedEstimator:
     # --- online --------------------------------------------------------------------------
 
     def step(self, t_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float,
-             refs: Mapping[str, bool] | None = None) -> Step:
+             refs: Mapping[str, bool] | None = None, refs_since_s: float | None = None,
+             refs_timed: bool = False) -> Step:
+        """As :meth:`.Estimator.step`, on the corrected inputs."""
         ext, p = self.extension, self._params
         t_off = p.get("time_offset_s", 0.0)
         if t_off < 0.0:
             speed_rpm, torque_nm = self._delay(t_s, -t_off, (speed_rpm, torque_nm))
         elif t_off > 0.0 and refs is not None:
             refs = self._delay(t_s, t_off, refs)
+            refs_since_s = None if refs_since_s is None else refs_since_s + t_off
         tau = (torque_nm - p.get("torque_offset_nm", 0.0)) / p.get("torque_gain", 1.0)
         temp = oil_temp_c - p.get("oil_temp_offset_c", 0.0)
         slip = p.get("slip_percent_per_100nm", 0.0)
         pumps_n = float(speed_rpm * max(1.0 - slip * 1e-4 * abs(tau), 0.0)) if slip \
             else speed_rpm
-        step = self.estimator.step(t_s, pumps_n, tau, temp, refs)
+        step = self.estimator.step(t_s, pumps_n, tau, temp, refs, refs_since_s, refs_timed)
         x = step.position_mm
         if t_off > 0.0:
             x += t_off * step.velocity_mm_s

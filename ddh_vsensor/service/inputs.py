@@ -40,6 +40,7 @@ FLOOD_BURST = 50
 # Hall states by time: the I/O module's last state changes kept, and how far apart the I/O
 # and Sevcon frame clocks may be for a lookup by time to mean anything.
 IO_CHANGES_KEPT = 32
+IO_MODE_MIN_SAMPLES = 100     # Sevcon frames per unit before the I/O module's mode is judged
 IO_CLOCK_MATCH_S = 1.0
 
 
@@ -299,6 +300,14 @@ class Inputs:
         self.io_t_s = t_s
         self.counts["io"] += 1
         return True
+
+    @property
+    def io_sends_on_change(self) -> bool:
+        """Whether the I/O module's frames time the switches' changes finer than the samples
+        (:func:`.canbus.log.io_sends_on_change`): it has sent fewer than half as many frames
+        as each unit's drive, over at least :data:`IO_MODE_MIN_SAMPLES` of theirs."""
+        received = min((u.received for u in self.units.values()), default=0)
+        return received >= IO_MODE_MIN_SAMPLES and 2 * self.counts["io"] < received
 
     def refs(self, actuator: str, t_s: float | None = None) -> dict[str, bool] | None:
         """Hall switch states of a unit (None before the first I/O frame): at frame time

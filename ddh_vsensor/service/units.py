@@ -197,7 +197,7 @@ class Unit:
         was_referenced = est.referenced
         refs = self.inputs.refs(self.actuator, sample.t_s)
         step = est.step(sample.t_s, sample.speed_rpm, sample.torque_nm, oil, refs,
-                        self.inputs.refs_since_s)
+                        self.inputs.refs_since_s, self.inputs.io_sends_on_change)
         self.last_step = step
         self.last_frame_t, self.last_rx_s = sample.t_s, now
         self.last_wall_offset_s, self.last_wall_offset_err_s = wall_offset_s, offset_err_s

@@ -64,3 +64,24 @@ def test_hall_states_at_a_frame_time_are_those_of_the_io_frame_before_it(cfg) ->
     # the I/O clock went back: what was kept before it no longer answers
     assert inputs.io(codec.encode_inputs({"boom": {"mid": 1}}, 0.5), 0.0)
     assert inputs.refs("boom", 0.4)["mid"] is True
+
+
+def test_an_io_module_sending_on_change_is_told_from_one_sending_every_sample(cfg) -> None:
+    """Only frames sent on change of state time a switch's change finer than the samples:
+    judged once each drive has sent IO_MODE_MIN_SAMPLES frames (100 Hz drives here; the
+    module every 100 ms, or at every sample)."""
+    from ddh_vsensor.service.inputs import IO_MODE_MIN_SAMPLES
+    codec = FrameCodec(cfg)
+    for every in (10, 1):
+        inputs = Inputs(cfg, codec)
+        verdicts = []
+        for k in range(1, 2 * IO_MODE_MIN_SAMPLES):
+            t = k * 0.01
+            if k % every == 0:
+                inputs.io(codec.encode_inputs({"boom": {"mid": k // 50 % 2}}, t), t)
+            for a in cfg.unit_names:
+                assert inputs.sevcon(a, codec.encode_sevcon(a, 10.0, 100.0, t), t) is not None
+            verdicts.append(inputs.io_sends_on_change)
+        assert not any(verdicts[:IO_MODE_MIN_SAMPLES - 1])
+        later = verdicts[IO_MODE_MIN_SAMPLES:]
+        assert later == [every == 10] * len(later)
