@@ -15,17 +15,25 @@ def rows(true_u_per_day, cause="pump_leakage", others=("displacement", "time_off
          noise=0.02, seed=0, mm_per_u=8.0):
     """Per day and cause a row as :mod:`ddh_vsensor.fleet.analysis` writes it: squared error
     of 20 observations around the day's true parameter (log scale for factors)."""
+    return mixed_rows({cause: (mm_per_u, true_u_per_day)}, others, noise, seed)
+
+
+def mixed_rows(shown, others, noise, seed):
+    """Rows where each cause of ``shown`` (cause -> (mm per unit, true parameter per day))
+    shows in the references and the ``others`` explain nothing."""
     rng = np.random.default_rng(seed)
     out = []
-    for day, u_true in enumerate(true_u_per_day):
-        u_obs = u_true + rng.normal(0.0, noise)
-        sse_nominal = 20.0 * (1.0 + (mm_per_u * u_obs) ** 2)
-        for c in (cause, *others):
+    for day in range(len(next(iter(shown.values()))[1])):
+        obs = {c: (m, u[day] + rng.normal(0.0, noise)) for c, (m, u) in shown.items()}
+        sse_nominal = 20.0 * (1.0 + sum((m * v) ** 2 for m, v in obs.values()))
+        for c in (*shown, *others):
             grid = np.asarray(GRIDS[c], float)
             gu = np.log(grid) if c in ("pump_leakage", "displacement") else grid
-            if c == cause:
-                sse = 20.0 * (1.0 + (mm_per_u * (gu - u_obs)) ** 2)
-                emax = mm_per_u * np.abs(gu)
+            if c in obs:
+                m, v = obs[c]
+                rest = sum((mm * vv) ** 2 for cc, (mm, vv) in obs.items() if cc != c)
+                sse = 20.0 * (1.0 + (m * (gu - v)) ** 2 + rest)
+                emax = m * np.abs(gu)
             else:                               # explains nothing
                 sse = np.full(len(grid), sse_nominal) + 5.0 * gu ** 2
                 emax = np.abs(gu)
@@ -100,40 +108,15 @@ def test_one_tight_log_off_the_trend_does_not_carry_it():
     assert abs(b) < 4 * se                  # and no trend to speak of
 
 
-def two_cause_rows(u_wear, u_const, wear="time_offset", const="displacement", seed=0):
-    """Rows where a constant deviation (``const``, 6 mm per unit) and a wear (``wear``,
-    8 mm per unit) both show in the references; a third cause explains nothing."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for day, (uw, uc) in enumerate(zip(u_wear, u_const)):
-        uw, uc = uw + rng.normal(0.0, 0.002), uc + rng.normal(0.0, 0.002)
-        parts = {wear: (8.0, uw), const: (6.0, uc)}
-        sse_nominal = 20.0 * (1.0 + sum((m * v) ** 2 for m, v in parts.values()))
-        for c in (wear, const, "belt_slip"):
-            grid = np.asarray(GRIDS[c], float)
-            gu = np.log(grid) if c in ("pump_leakage", "displacement") else grid
-            if c in parts:
-                m, v = parts[c]
-                rest = sum((mm * vv) ** 2 for cc, (mm, vv) in parts.items() if cc != c)
-                sse = 20.0 * (1.0 + (m * (gu - v)) ** 2 + rest)
-                emax = m * np.abs(gu)
-            else:
-                sse, emax = np.full(len(grid), sse_nominal) + 5.0 * gu ** 2, np.abs(gu)
-            out.append({"cause": c, "grid": list(grid), "loss": list(sse),
-                        "emax_mm": list(emax), "n_obs": 20, "loss_nominal": sse_nominal,
-                        "max_increment_mm": 1.0, "time_s": T0 + day * DAY_S,
-                        "log_id": f"d{day}"})
-    return out
-
-
 def test_a_wear_is_alarmed_beside_a_constant_deviation_that_explains_more():
     """What wears is what changes: a machine's constant displacement deviation explains more
     of its references than a young time offset, yet the alarm is the offset's."""
     days = np.arange(30.0)
     u_wear = 0.025 * np.maximum(days - 3, 0)             # 8 mm per u: 3 mm on day 19
     u_const = np.full(30, np.log(1.5))                   # 6 mm per u: 2.4 mm, constant
-    tr = unit_trend("M5", "bucket", two_cause_rows(u_wear, u_const), tolerance_mm=3.0,
-                    horizon_days=14.0)
+    shown = {"time_offset": (8.0, u_wear), "displacement": (6.0, u_const)}
+    tr = unit_trend("M5", "bucket", mixed_rows(shown, ("belt_slip",), 0.002, 0),
+                    tolerance_mm=3.0, horizon_days=14.0)
     crossing = float(np.argmax(8.0 * u_wear > 3.0))
     first = tr.first_alarm
     assert first is not None and first.cause == "time_offset"
