@@ -75,9 +75,13 @@ class Run:
                                  f"{t[k[bad][0]]!r} s is not within its sample's period")
 
     def shift_time(self, offset_s: float) -> None:
-        """Move the run in time (e.g. onto the wall clock), its switches' edge times along."""
+        """Move the run in time (e.g. onto the wall clock), its switches' edge times along
+        (kept within their samples' periods where the coarser float of a larger time would
+        round one onto the sample before)."""
         self.time_s = self.time_s + offset_s
-        self.ref_edge_s = {name: t + offset_s for name, t in self.ref_edge_s.items()}
+        after = np.nextafter(np.concatenate([[-np.inf], self.time_s[:-1]]), np.inf)
+        self.ref_edge_s = {name: np.clip(t + offset_s, after, self.time_s)
+                           for name, t in self.ref_edge_s.items()}
 
 
 # --- reading --------------------------------------------------------------------------------

@@ -107,3 +107,22 @@ def test_run_columns_must_agree_in_length() -> None:
     with pytest.raises(ValueError, match="differ in length"):
         Run(time_s=[0.0, 1.0], speed_rpm=[0.0], torque_nm=[0.0, 0.0], oil_temp_c=[1.0, 1.0],
             position_mm=[np.nan, np.nan])
+
+
+def test_switch_edge_times_move_with_the_run_and_stay_in_their_samples() -> None:
+    """A change timed a nanosecond after the sample before it stays after it on the wall
+    clock, where a float resolves only ~0.2 us; a time outside its sample is refused."""
+    import dataclasses
+    t = np.arange(5) * 0.01
+    edge = np.full(5, np.nan)
+    edge[2] = t[1] + 1e-9
+    run = Run(time_s=t, speed_rpm=np.zeros(5), torque_nm=np.zeros(5),
+              oil_temp_c=np.zeros(5), position_mm=np.full(5, np.nan),
+              refs={"mid": np.array([0, 0, 1, 1, 1])}, ref_edge_s={"mid": edge})
+    run.shift_time(1.7e9)
+    assert run.time_s[1] < run.ref_edge_s["mid"][2] <= run.time_s[2]
+    dataclasses.replace(run)                             # still a valid run
+    bad = edge.copy()
+    bad[2] = t[2] + 0.001
+    with pytest.raises(ValueError, match="not within its sample's period"):
+        dataclasses.replace(run, time_s=t, ref_edge_s={"mid": bad})

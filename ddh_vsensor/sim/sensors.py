@@ -101,8 +101,9 @@ def hall_edge_times(time_s: np.ndarray, x_mm: np.ndarray, state: np.ndarray,
     target = side * np.where(on, window_mm, window_mm + hysteresis_mm)
     span = s1 - s0
     frac = np.divide(target - s0, span, out=np.ones(len(k)), where=span != 0.0)
-    frac = np.clip(frac, 1e-6, 1.0)
-    out[k] = time_s[k - 1] + frac * (time_s[k] - time_s[k - 1])
+    t = time_s[k - 1] + np.clip(frac, 0.0, 1.0) * (time_s[k] - time_s[k - 1])
+    # within the sample's period, after the sample before it, in floating point too
+    out[k] = np.clip(t, np.nextafter(time_s[k - 1], np.inf), time_s[k])
     return out
 
 
