@@ -121,11 +121,11 @@ def bus_sender(bus: can.BusABC) -> Callable[[can.Message], bool]:
 def machine_frames(cfg: Config, runs: Mapping[str, Run],
                    heartbeat_period_s: float | None = 0.1) -> Iterator[can.Message]:
     """The frames a machine with these runs would put on the bus for the service, one at a
-    time: per sample the oil temperature (from the first run), the I/O module's Hall inputs
-    (every unit's latest switch states) and the unit's Sevcon TPDO1, as ``write_blf``
-    orders them (no draw-wire position frames: those are the service's own IDs), plus,
-    optionally, the controllers' OPERATIONAL heartbeats; in log order, timestamps the
-    runs' times."""
+    time: per sample the oil temperature (from the first run) and the unit's Sevcon TPDO1,
+    the I/O module's Hall inputs (every unit's switch states) as it sends them
+    (:func:`.canbus.log.io_frames`), as ``write_blf`` orders them (no draw-wire position
+    frames: those are the service's own IDs), plus, optionally, the controllers'
+    OPERATIONAL heartbeats; in log order, timestamps the runs' times."""
     import heapq
 
     frames = _input_frames(cfg, runs)
@@ -140,6 +140,7 @@ def _input_frames(cfg: Config, runs: Mapping[str, Run]) -> Iterator[can.Message]
     import numpy as np
 
     from ..canbus.dbc import FrameCodec
+    from ..canbus.log import io_frames
     from ..measured import MeasuredDataError
     if not runs:
         raise MeasuredDataError("<runs>", "no run to send")
@@ -151,7 +152,7 @@ def _input_frames(cfg: Config, runs: Mapping[str, Run]) -> Iterator[can.Message]
     codec = FrameCodec(cfg)
     units = list(runs)
     oil_run = runs[units[0]]
-    io_time_s = np.unique(np.concatenate([run.time_s for run in runs.values()]))
+    io_time_s, io_states = io_frames(runs)
     # Rows (time, kind, unit index, sample), sorted by time, then kind (oil, I/O, Sevcon:
     # a sample's inputs before its Sevcon frame), then unit.
     parts = [(oil_run.time_s, 0, 0), (io_time_s, 1, 0)]
@@ -161,9 +162,7 @@ def _input_frames(cfg: Config, runs: Mapping[str, Run]) -> Iterator[can.Message]
     unit_index = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])
     sample = np.concatenate([np.arange(len(p[0])) for p in parts])
     order = np.lexsort((unit_index, kind, time_s))
-    held = {u: np.maximum(np.searchsorted(runs[u].time_s, io_time_s, "right") - 1, 0).tolist()
-            for u in units}
-    refs = {u: {name: state.tolist() for name, state in runs[u].refs.items()} for u in units}
+    refs = {u: {name: state.tolist() for name, state in io_states[u].items()} for u in units}
     columns = {u: (runs[u].torque_nm.tolist(), runs[u].speed_rpm.tolist()) for u in units}
     oil_temp_c = oil_run.oil_temp_c.tolist()
     for t, k, a, i in zip(time_s[order].tolist(), kind[order].tolist(),
@@ -171,8 +170,7 @@ def _input_frames(cfg: Config, runs: Mapping[str, Run]) -> Iterator[can.Message]
         if k == 0:
             yield codec.encode_oil_temp(oil_temp_c[i], t)
         elif k == 1:
-            yield codec.encode_inputs({u: {name: state[held[u][i]]
-                                           for name, state in refs[u].items()}
+            yield codec.encode_inputs({u: {name: state[i] for name, state in refs[u].items()}
                                        for u in units}, t)
         else:
             torque_nm, speed_rpm = columns[units[a]]
