@@ -142,8 +142,7 @@ def _cross(g, s, i, j, level) -> float:
     return float(g[i] + (g[j] - g[i]) * (level - s[i]) / (s[j] - s[i]))
 
 
-def _line(t: np.ndarray, u: np.ndarray, var: np.ndarray | None = None
-          ) -> tuple[float, float, float]:
+def _line(t: np.ndarray, u: np.ndarray, var: np.ndarray) -> tuple[float, float, float]:
     """Weighted least-squares line u = a + b t: (a, b, standard error of b).
 
     Each log weighs 1 / (its own variance + the day-to-day variance): a log's interval says
@@ -151,7 +150,7 @@ def _line(t: np.ndarray, u: np.ndarray, var: np.ndarray | None = None
     from the next (the day's moves, payload, oil); that scatter is estimated from the logs
     themselves (DerSimonian-Laird, for a line), so no single tight log carries the trend.
     The slope's error is then scaled by the weighted residuals (Knapp-Hartung)."""
-    v = np.ones(len(t)) if var is None else np.asarray(var, float)
+    v = np.asarray(var, float)
     known = np.isfinite(v)                  # a censored log has no place on the line
     if not known.any():
         return float(np.median(u)), 0.0, float("inf")
@@ -160,7 +159,7 @@ def _line(t: np.ndarray, u: np.ndarray, var: np.ndarray | None = None
     if n < 2 or np.ptp(t) == 0:
         return float(np.average(u, weights=1.0 / v)), 0.0, float("inf")
     x = np.column_stack([np.ones(n), t])
-    if n > 2 and var is not None:
+    if n > 2:
         w = 1.0 / v
         xtwx_inv = np.linalg.inv(x.T @ (w[:, None] * x))
         res = u - x @ (xtwx_inv @ (x.T @ (w * u)))
