@@ -78,7 +78,7 @@ def edge_times(io_time_s: np.ndarray, io_state: np.ndarray, sample_time_s: np.nd
     f = np.flatnonzero(io_state[1:] != io_state[:-1]) + 1
     k = np.searchsorted(sample_time_s, io_time_s[f], "left")
     ok = k < len(sample_time_s)
-    out[k[ok]] = io_time_s[f[ok]]              # several in one sample: the last one counts
+    np.fmax.at(out, k[ok], io_time_s[f[ok]])   # several in one sample: the last one counts
     out[np.concatenate([[True], state[1:] == state[:-1]])] = np.nan
     return out
 
