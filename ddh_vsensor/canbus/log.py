@@ -73,13 +73,20 @@ def io_sends_on_change(io_time_s: np.ndarray, sample_time_s: np.ndarray) -> bool
 def edge_times(io_time_s: np.ndarray, io_state: np.ndarray, sample_time_s: np.ndarray,
                state: np.ndarray) -> np.ndarray:
     """Per sample, the time of the frame that brought the state the sample first shows (NaN
-    where the sample shows no change); ``state`` is ``io_state`` held at the samples."""
+    where the sample shows no change); ``state`` is ``io_state`` held at the samples. All NaN
+    where every change came at a sample's own time (within 1 % of its period): a module, or
+    a logger, that stamps its changes with the samples' times times them no finer."""
     out = np.full(len(sample_time_s), np.nan)
     f = np.flatnonzero(io_state[1:] != io_state[:-1]) + 1
     k = np.searchsorted(sample_time_s, io_time_s[f], "left")
     ok = k < len(sample_time_s)
     np.fmax.at(out, k[ok], io_time_s[f[ok]])   # several in one sample: the last one counts
     out[np.concatenate([[True], state[1:] == state[:-1]])] = np.nan
+    timed = np.flatnonzero(np.isfinite(out))
+    if len(timed) and len(sample_time_s) > 1:
+        tolerance_s = 0.01 * float(np.median(np.diff(sample_time_s)))
+        if np.all(sample_time_s[timed] - out[timed] <= tolerance_s):
+            out[:] = np.nan
     return out
 
 

@@ -200,3 +200,22 @@ def test_switch_changes_timed_between_samples_survive_the_log(tmp_path: Path, cf
     read = read_can_log(tmp_path / "rows.blf", "boom", cfg)
     assert_same_data(read, plain["boom"], oil=plain["boom"])
     assert read.ref_edge_s == {}
+
+
+def test_changes_stamped_with_the_samples_times_are_not_taken_as_timed(tmp_path: Path,
+                                                                       cfg: Config) -> None:
+    """An I/O module sending on change whose frames carry the samples' own times (a logger
+    or a simulator that stamps them so) says nothing finer than the samples: read untimed,
+    or every edge would be taken half a sample's travel off."""
+    runs = {a: timed_run(a, seed=i + 7) for i, a in enumerate(("boom", "bucket"))}
+    for run in runs.values():
+        for name, edge in run.ref_edge_s.items():
+            k = np.flatnonzero(np.isfinite(edge))
+            edge[k] = run.time_s[k]                        # stamped at the sample
+    write_blf(tmp_path / "stamped.blf", runs, cfg)
+    io_id = FrameCodec(cfg).ids["IO_MODULE_TPDO1"]
+    with can.BLFReader(tmp_path / "stamped.blf") as reader:
+        assert sum(m.arbitration_id == io_id for m in reader) < len(runs["boom"].time_s) / 4
+    read = read_can_log(tmp_path / "stamped.blf", "boom", cfg)
+    assert_same_data(read, runs["boom"], oil=runs["boom"])
+    assert all(np.isnan(e).all() for e in read.ref_edge_s.values())
