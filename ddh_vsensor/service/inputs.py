@@ -41,6 +41,7 @@ FLOOD_BURST = 50
 # and Sevcon frame clocks may be for a lookup by time to mean anything.
 IO_CHANGES_KEPT = 32
 IO_MODE_MIN_SAMPLES = 100     # Sevcon frames per unit before the I/O module's mode is judged
+SAMPLE_STAMP_S = 1e-4         # an I/O change this close before a drive sample: stamped with it
 IO_CLOCK_MATCH_S = 1.0
 
 
@@ -187,6 +188,10 @@ class Inputs:
         self._io_changes_t: list[float] = []
         self._io_changes: list[bytes] = []
         self.refs_since_s: float | None = None    # see refs()
+        # whether a change of the I/O module's inputs came between two drive samples, not
+        # stamped with a sample's own time (see io_sends_on_change)
+        self._io_change_between_samples = False
+        self._io_change_unjudged_t: float | None = None   # the newest change, until a sample
         self._refs_cache: dict[str, tuple[bytes, dict[str, bool]]] = {}
 
     # --- checks shared by all inputs ---------------------------------------------------
@@ -256,6 +261,11 @@ class Inputs:
                     if last is not None and t < last:
                         self._check_time(msg, f"{actuator} Sevcon")
                     self._last_t[frame_id] = t
+                    change_t = self._io_change_unjudged_t
+                    if change_t is not None and t >= change_t - SAMPLE_STAMP_S:
+                        self._io_change_unjudged_t = None
+                        if t - change_t > SAMPLE_STAMP_S:
+                            self._io_change_between_samples = True
                     return SevconSample(t, float(speed), float(torque))
                 self.log.warning(f"range-{frame_id}", "%s Sevcon frame out of range "
                                  "rejected: %.0f rpm, %.2f N*m (plausible: |speed| <= "
@@ -293,6 +303,8 @@ class Inputs:
             self._io_changes_t.clear()            # its clock went back: earlier times are void
             self._io_changes.clear()
         if not self._io_changes or data != self._io_changes[-1]:
+            if self._io_changes and not self._io_change_between_samples:
+                self._io_change_unjudged_t = t_s
             self._io_changes_t.append(t_s)
             self._io_changes.append(data)
             if len(self._io_changes) > IO_CHANGES_KEPT:
@@ -305,9 +317,12 @@ class Inputs:
     def io_sends_on_change(self) -> bool:
         """Whether the I/O module's frames time the switches' changes finer than the samples
         (:func:`.canbus.log.io_sends_on_change`): it has sent fewer than half as many frames
-        as each unit's drive, over at least :data:`IO_MODE_MIN_SAMPLES` of theirs."""
+        as each unit's drive, over at least :data:`IO_MODE_MIN_SAMPLES` of theirs, and a
+        change of its inputs has come between two samples (changes stamped with the samples'
+        own times, as a replayed log may have them, say nothing finer)."""
         received = min((u.received for u in self.units.values()), default=0)
-        return received >= IO_MODE_MIN_SAMPLES and 2 * self.counts["io"] < received
+        return (self._io_change_between_samples and received >= IO_MODE_MIN_SAMPLES
+                and 2 * self.counts["io"] < received)
 
     def refs(self, actuator: str, t_s: float | None = None) -> dict[str, bool] | None:
         """Hall switch states of a unit (None before the first I/O frame): at frame time

@@ -72,16 +72,21 @@ def test_an_io_module_sending_on_change_is_told_from_one_sending_every_sample(cf
     module every 100 ms, or at every sample)."""
     from ddh_vsensor.service.inputs import IO_MODE_MIN_SAMPLES
     codec = FrameCodec(cfg)
-    for every in (10, 1):
+    # (frames every n samples, a change's time after the sample before it): on change and
+    # between samples; at every sample; on change but stamped with the samples' own times
+    for every, change_s, timed in ((10, 0.0063, True), (1, 0.0063, False), (10, 0.01, False)):
         inputs = Inputs(cfg, codec)
         verdicts = []
         for k in range(1, 2 * IO_MODE_MIN_SAMPLES):
             t = k * 0.01
             if k % every == 0:
                 inputs.io(codec.encode_inputs({"boom": {"mid": k // 50 % 2}}, t), t)
+            if k % 50 == 49:                                  # a change before sample k + 1
+                t_c = t + change_s
+                inputs.io(codec.encode_inputs({"boom": {"mid": (k + 1) // 50 % 2}}, t_c), t_c)
             for a in cfg.unit_names:
                 assert inputs.sevcon(a, codec.encode_sevcon(a, 10.0, 100.0, t), t) is not None
             verdicts.append(inputs.io_sends_on_change)
         assert not any(verdicts[:IO_MODE_MIN_SAMPLES - 1])
         later = verdicts[IO_MODE_MIN_SAMPLES:]
-        assert later == [every == 10] * len(later)
+        assert later == [timed] * len(later), (every, change_s)
