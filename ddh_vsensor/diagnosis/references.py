@@ -19,7 +19,8 @@ import numpy as np
 
 from ..config import Config
 from ..estimator.estimator import Estimator
-from ..estimator.references import DIRECTION_SPEED_MM_S, accepted_edges, switches_from_config
+from ..estimator.references import (DIRECTION_SPEED_MM_S, accepted_edges,
+                                    share_after_crossing, switches_from_config)
 from ..measured import MeasuredDataError, Run
 from ..physics.unit import DDHUnit
 from ..tables.build import build_unit_tables
@@ -121,9 +122,7 @@ def edge_events(cfg: Config, actuator: str, run: Run,
             v = float(velocity_mm_s[c])
             if c == 0 or abs(v) < DIRECTION_SPEED_MM_S:
                 continue                          # direction unknown: the edge says nothing
-            since_s = 0.5 * float(t[c] - t[c - 1])
-            if timed is not None and t[c - 1] < timed[c] <= t[c]:
-                since_s = float(t[c] - timed[c])
+            since_s = share_after_crossing(t, timed, c) * float(t[c] - t[c - 1])
             x = sw.switching_position_mm(rising, v > 0) + v * since_s
             out.append((int(c), sw.name, bool(rising), x))
     out.sort()

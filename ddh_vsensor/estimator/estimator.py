@@ -27,7 +27,8 @@ from .bounded import bounded_cumsum
 from .dynamic import DynamicModel
 from .model import Mode, VelocityModel
 from .flags import Flags
-from .references import Debouncer, Switch, accepted_edges, switches_from_config
+from .references import (Debouncer, Switch, accepted_edges, share_after_crossing,
+                         switches_from_config)
 from .state import EstimatorState
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
@@ -141,7 +142,6 @@ class Estimator:
                                      * cfg.unit(actuator).motor.torque_limit_nm)
                         if self.mode == "dynamic" else None)
         self.u_base = self.u_ref
-        self._referenced = True
         # False with no start position, after a restore or a provisional preset
         self.referenced = initial_position_mm is not None
         self.travel_mm = 0.0
@@ -418,10 +418,7 @@ class Estimator:
             timed = None if ref_edge_s is None or sw.name not in ref_edge_s else \
                 np.asarray(ref_edge_s[sw.name], dtype=float)
             for k, c, rising in accepted_edges(t, np.asarray(refs[sw.name]), self.debounce_s):
-                after = 0.5
-                if timed is not None and c > 0 and t[c - 1] < timed[c] <= t[c]:
-                    after = float((t[c] - timed[c]) / (t[c] - t[c - 1]))
-                events.append((k, order, c, rising, sw, after))
+                events.append((k, order, c, rising, sw, share_after_crossing(t, timed, c)))
         events.sort(key=lambda e: (e[0], e[1]))
 
         x = np.empty(n)

@@ -39,6 +39,16 @@ class Switch:
         return up if abs(up - estimate_mm) <= abs(down - estimate_mm) else down
 
 
+def share_after_crossing(time_s: np.ndarray, edge_s: np.ndarray | None, index: int) -> float:
+    """The share of edge sample ``index``'s period after the switch changed: from the
+    change's own time where ``edge_s`` (:attr:`.Run.ref_edge_s`) has it within that period,
+    else 0.5 (the crossing at any moment alike)."""
+    if edge_s is None or index == 0:
+        return 0.5
+    t0, t1, te = time_s[index - 1], time_s[index], edge_s[index]
+    return float((t1 - te) / (t1 - t0)) if t0 < te <= t1 else 0.5
+
+
 def switches_from_config(unit: UnitConfig) -> tuple[Switch, ...]:
     return tuple(Switch(name, pos, unit.reference_window_mm, unit.reference_hysteresis_mm)
                  for name, pos in unit.references_mm.items())
