@@ -11,11 +11,14 @@
 enum {
     P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
     P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S, P_TORQUE_STEP,
-    P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
+    P_WINDOW_S, P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
 };
+/* The torque balance's window: the last RING samples' mean motor torques and the speeds
+ * before them (a ring from S_RING, S_RING_AT the next slot, S_RING_COUNT those filled). */
+#define RING 32
 enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
-       S_LOAD_F, S_SIZE };
+       S_LOAD_F, S_RING_AT, S_RING_COUNT, S_RING, S_SIZE = S_RING + 2 * RING };
 
 /* The drive samples its speed on an even cadence; the stamps' differences jitter around it.
  * The rotor's acceleration is the speed difference over that cadence (a filtered step), not
@@ -105,7 +108,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         if (S[S_STARTED] == 0.0 || h > 0.0) {
             settle(P, S, n, tau, mu);
             S[S_N] = n; S[S_TAU] = tau; S[S_STARTED] = 1.0; S[S_HF] = 0.0;
-            S[S_PUMP_TAU] = tau;
+            S[S_PUMP_TAU] = tau; S[S_RING_AT] = 0.0; S[S_RING_COUNT] = 0.0;
         }
         return S[S_V];
     }
@@ -115,12 +118,28 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     int known = x == x;
     double xv = !known ? 0.5 * stroke : x < 0.0 ? 0.0 : x > stroke ? stroke : x;
     /* The speed's backward difference is the rotor's mean acceleration over the step: it
-     * pairs with the step's mean motor torque. */
+     * pairs with the step's mean motor torque. The speed comes in whole rpm, so over a
+     * millisecond its difference reads J x 1 rpm / 1 ms of inertia torque (3 N m on the
+     * loader's bucket) that is quantisation, and the valves keep what that noise pushes
+     * into a pressure: the balance is taken over the last samples spanning the window
+     * (P_WINDOW_S, the drive cadence the rules were measured at), one sample when they are
+     * that slow already. */
     double hf = S[S_HF];
     double hn = hf > 0.0 && fabs(h - hf) < 0.75 * hf ? hf : h;
     S[S_HF] = hf > 0.0 ? hf + HF_GAIN * (h - hf) : h;
-    double inertia = P[P_INERTIA] * (n - S[S_N]) / hn;
-    double torque = 0.5 * (tau + S[S_TAU]) - inertia;
+    int at = (int)S[S_RING_AT], count = (int)S[S_RING_COUNT];
+    int m = (int)(P[P_WINDOW_S] / hn + 0.5);
+    m = m < 1 ? 1 : m > RING ? RING : m;
+    m = m > count + 1 ? count + 1 : m;
+    double earlier = 0.0, n_first = S[S_N];
+    for (int i = 1; i < m; i++) {
+        int slot = (at - i + RING) % RING;
+        earlier += S[S_RING + slot];
+        n_first = S[S_RING + RING + slot];
+    }
+    double inertia = P[P_INERTIA] * (n - n_first) / (hn * m);
+    double mean = 0.5 * (tau + S[S_TAU]);
+    double torque = (earlier + mean) / m - inertia;
     /* A torque step within the sample (the drive reaching its speed limit, the PID reversing
      * off an end stop) has an unknown shape: the step's mean lies somewhere between the two
      * ends, and the endpoints' mean read as pump torque is a wrong pressure that a one-way
@@ -128,10 +147,16 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * (the pressures) changes smoothly, so the mean is the value in that range nearest the
      * last step's. */
     if (fabs(tau - S[S_TAU]) > P[P_TORQUE_STEP]) {
-        double lo = fmin(tau, S[S_TAU]) - inertia, hi = fmax(tau, S[S_TAU]) - inertia;
+        double lo = (earlier + fmin(tau, S[S_TAU])) / m - inertia;
+        double hi = (earlier + fmax(tau, S[S_TAU])) / m - inertia;
         double last = S[S_PUMP_TAU];
         torque = last < lo ? lo : last > hi ? hi : last;
+        mean = (torque + inertia) * m - earlier;
     }
+    S[S_RING + at] = mean;
+    S[S_RING + RING + at] = S[S_N];
+    S[S_RING_AT] = (at + 1) % RING;
+    S[S_RING_COUNT] = count < RING ? count + 1 : RING;
     S[S_PUMP_TAU] = torque;
     double ga = P[P_LEAK_A] / mu, gb = P[P_LEAK_B] / mu;
     double ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h);

@@ -34,7 +34,10 @@ loaded with ctypes): the online face calls it per sample, the offline face runs 
 function over a whole log, so both share one arithmetic. The rotor's acceleration is the speed
 difference over the drive's filtered cadence, not over each stamp difference: the drive
 samples evenly, its frames' stamps jitter, and a jittered h read as inertia torque turns into
-pressure a one-way valve does not give back (README: jittered receive stamps). Where the install had no C compiler
+pressure a one-way valve does not give back (README: jittered receive stamps). For the same
+reason the torque balance spans the last samples within ``window_s`` (the speed comes in whole
+rpm: over 1 ms one rpm reads as newton-metres); at the drive's 100 Hz that is the one sample
+(README: fast sampling). Where the install had no C compiler
 the same step runs in Python (:func:`_py_step`), slower but equal.
 """
 
@@ -58,10 +61,12 @@ _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valv
 # indices of the parameter and state vectors (the P_* / S_* enums of _chambers.c)
 (P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
  P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S,
- P_TORQUE_STEP) = range(17)
-P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 17, 21, 25, 29, 33, 45, 57
+ P_TORQUE_STEP, P_WINDOW_S) = range(18)
+P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 18, 22, 26, 30, 34, 46, 58
 (S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
- S_LOAD_F, S_SIZE) = range(15)
+ S_LOAD_F, S_RING_AT, S_RING_COUNT, S_RING) = range(17)
+RING = 32                                            # RING of _chambers.c
+S_SIZE = S_RING + 2 * RING
 HF_GAIN = 0.05                                       # HF_GAIN of _chambers.c
 
 
@@ -94,7 +99,7 @@ def library() -> ctypes.CDLL | None:
 
 
 def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float,
-               torque_step_nm: float = math.inf) -> np.ndarray:
+               torque_step_nm: float = math.inf, window_s: float = 0.0) -> np.ndarray:
     """The step's parameter vector for one unit (SI units, speeds in motor rpm)."""
     a, b = unit.a, unit.b
     p = np.zeros(P_SIZE)
@@ -111,6 +116,7 @@ def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
     p[P_BLEND_S] = blend_s
     p[P_MAX_GAP_S] = max_gap_s
     p[P_TORQUE_STEP] = torque_step_nm
+    p[P_WINDOW_S] = window_s
     for side, g, ge, k in ((a, P_G_A, P_GE_A, P_K_A), (b, P_G_B, P_GE_B, P_K_B)):
         g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
         g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
@@ -126,14 +132,17 @@ class DynamicModel:
 
     def __init__(self, unit: DDHUnit, position_mm: float, *, inertia: bool = True,
                  blend_s: float = 0.0, max_gap_s: float = math.inf,
-                 torque_step_nm: float = math.inf, use_compiled: bool = True) -> None:
+                 torque_step_nm: float = math.inf, window_s: float = 0.0,
+                 use_compiled: bool = True) -> None:
         if not blend_s >= 0.0:
             raise ValueError(f"blend time constant must be >= 0 s, got {blend_s!r}")
+        if not window_s >= 0.0:
+            raise ValueError(f"torque balance window must be >= 0 s, got {window_s!r}")
         if not torque_step_nm > 0.0:
             raise ValueError(f"torque step must be > 0 N·m, got {torque_step_nm!r}")
         self.oil: Oil = unit.oil
         self.params = parameters(unit, inertia=inertia, blend_s=blend_s, max_gap_s=max_gap_s,
-                                 torque_step_nm=torque_step_nm)
+                                 torque_step_nm=torque_step_nm, window_s=window_s)
         self.state = np.zeros(S_SIZE)
         self.state[S_X] = position_mm * 1e-3
         self.state[S_LOAD_F] = math.nan                 # no load seen moving yet
@@ -261,6 +270,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             S[S_RA] = S[S_SA] = ra
             S[S_RB] = S[S_SB] = rb
             S[S_N], S[S_TAU], S[S_STARTED], S[S_HF], S[S_PUMP_TAU] = n, tau, 1.0, 0.0, tau
+            S[S_RING_AT] = S[S_RING_COUNT] = 0.0
         return float(S[S_V])
     pa, pb, x, stroke = float(S[S_PA]), float(S[S_PB]), float(S[S_X]), P[P_STROKE]
     known = x == x                                      # NaN: position unknown
@@ -268,11 +278,23 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     hf = float(S[S_HF])
     hn = hf if hf > 0.0 and abs(h - hf) < 0.75 * hf else h
     S[S_HF] = hf + HF_GAIN * (h - hf) if hf > 0.0 else h
-    inertia = P[P_INERTIA] * (n - S[S_N]) / hn
-    torque = 0.5 * (tau + S[S_TAU]) - inertia
+    at, count = int(S[S_RING_AT]), int(S[S_RING_COUNT])
+    m = min(max(int(P[P_WINDOW_S] / hn + 0.5), 1), RING, count + 1)
+    earlier, n_first = 0.0, float(S[S_N])
+    for i in range(1, m):
+        slot = (at - i) % RING
+        earlier += S[S_RING + slot]
+        n_first = float(S[S_RING + RING + slot])
+    inertia = P[P_INERTIA] * (n - n_first) / (hn * m)
+    mean = 0.5 * (tau + S[S_TAU])
+    torque = (earlier + mean) / m - inertia
     if abs(tau - S[S_TAU]) > P[P_TORQUE_STEP]:
-        lo, hi = min(tau, S[S_TAU]) - inertia, max(tau, S[S_TAU]) - inertia
+        lo = (earlier + min(tau, S[S_TAU])) / m - inertia
+        hi = (earlier + max(tau, S[S_TAU])) / m - inertia
         torque = min(max(float(S[S_PUMP_TAU]), lo), hi)
+        mean = (torque + inertia) * m - earlier
+    S[S_RING + at], S[S_RING + RING + at] = mean, S[S_N]
+    S[S_RING_AT], S[S_RING_COUNT] = (at + 1) % RING, min(count + 1, RING)
     S[S_PUMP_TAU] = torque
     ga, gb = P[P_LEAK_A] / mu, P[P_LEAK_B] / mu
     ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h)
