@@ -14,16 +14,28 @@ enum {
     P_WINDOW_S, P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
 };
-/* The torque balance's window: the last RING samples' mean motor torques and the speeds
- * before them (a ring from S_RING, S_RING_AT the next slot, S_RING_COUNT those filled). */
+#define HF_LEARN 20
+
+/* The torque balance's window: the last RING samples' mean motor torques, the speeds
+ * before them and their lengths (a ring from S_RING, S_RING_AT the next slot, S_RING_COUNT
+ * those filled). */
 #define RING 32
 enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
-       S_LOAD_F, S_RING_AT, S_RING_COUNT, S_RING, S_SIZE = S_RING + 2 * RING };
+       S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING,
+       S_LEARN = S_RING + 3 * RING, S_SIZE = S_LEARN + HF_LEARN };
 
-/* The drive samples its speed on an even cadence; the stamps' differences jitter around it.
- * The rotor's acceleration is the speed difference over that cadence (a filtered step), not
- * over each jittered step, unless the step is clearly another (a frame lost). */
+/* The drive samples on an even cadence; the frames' receive stamps come late by a varying
+ * delay. The step is taken over the drive's periods, not the stamps' difference: a short
+ * difference is a late frame followed by a prompt one, and one rpm over it read as inertia
+ * torque (100 N m at 1 kHz); a long one is a frame lost or a late one. They are told apart
+ * at LOST_AT periods, where delays varying by less than half a period leave no doubt; where
+ * they vary more (the steps' mean deviation S_HF_DEV, a third of the delays' range) a lost
+ * frame is only counted beyond the longest late step, 1 + JITTER_SPAN x the deviation. The
+ * cadence is the median step of the first HF_LEARN steps (S_LEARN), then filtered (HF_GAIN)
+ * per period: lost frames do not lengthen it. */
 #define HF_GAIN 0.05
+#define LOST_AT 1.5
+#define JITTER_SPAN 3.6
 
 int chambers_sizes(int which) { return which == 0 ? P_SIZE : S_SIZE; }
 
@@ -89,6 +101,29 @@ static void still(const double *P, int g, int ge, double relief, double f, doubl
 
 static int direction(double n) { return n > 0.0 ? 2 : n < 0.0 ? 0 : 1; }
 
+/* This step's length in the drive's periods (see HF_GAIN). */
+static double drive_step(double *S, double h)
+{
+    double hf = S[S_HF], dev = S[S_HF_DEV];
+    int count = (int)S[S_HF_COUNT];
+    if (count < HF_LEARN) {
+        double *learnt = S + S_LEARN;       /* sorted */
+        int i = count;
+        for (; i > 0 && learnt[i - 1] > h; i--)
+            learnt[i] = learnt[i - 1];
+        learnt[i] = h;
+        S[S_HF] = 0.5 * (learnt[count / 2] + learnt[(count + 1) / 2]);
+        S[S_HF_COUNT] = count + 1;
+        return count > 0 ? S[S_HF] : h;
+    }
+    double lost_at = fmax(LOST_AT, 1.0 + JITTER_SPAN * dev);
+    double periods = h < lost_at * hf ? 1.0 : floor(h / hf + 0.5);
+    if (periods == 1.0)
+        S[S_HF_DEV] = dev + HF_GAIN * (fabs(h - hf) / hf - dev);
+    S[S_HF] = hf + HF_GAIN * (h / periods - hf);
+    return periods * hf;
+}
+
 /* The steady state at this speed and (pump) torque: the step with no compliance. */
 static void settle(const double *P, double *S, double n, double torque, double mu)
 {
@@ -108,6 +143,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         if (S[S_STARTED] == 0.0 || h > 0.0) {
             settle(P, S, n, tau, mu);
             S[S_N] = n; S[S_TAU] = tau; S[S_STARTED] = 1.0; S[S_HF] = 0.0;
+            S[S_HF_COUNT] = 0.0; S[S_HF_DEV] = 0.0;
             S[S_PUMP_TAU] = tau; S[S_RING_AT] = 0.0; S[S_RING_COUNT] = 0.0;
         }
         return S[S_V];
@@ -124,22 +160,24 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * into a pressure: the balance is taken over the last samples spanning the window
      * (P_WINDOW_S, the drive cadence the rules were measured at), one sample when they are
      * that slow already. */
-    double hf = S[S_HF];
-    double hn = hf > 0.0 && fabs(h - hf) < 0.75 * hf ? hf : h;
-    S[S_HF] = hf > 0.0 ? hf + HF_GAIN * (h - hf) : h;
+    double hn = drive_step(S, h);
+    /* the window: this step and the ones before it while each brings its span nearer */
     int at = (int)S[S_RING_AT], count = (int)S[S_RING_COUNT];
-    int m = (int)(P[P_WINDOW_S] / hn + 0.5);
-    m = m < 1 ? 1 : m > RING ? RING : m;
-    m = m > count + 1 ? count + 1 : m;
-    double earlier = 0.0, n_first = S[S_N];
-    for (int i = 1; i < m; i++) {
+    double span = hn, earlier = 0.0, n_first = S[S_N];
+    for (int i = 1; i <= count && i < RING; i++) {
         int slot = (at - i + RING) % RING;
-        earlier += S[S_RING + slot];
+        double d = S[S_RING + 2 * RING + slot];
+        if (!(span + 0.5 * d < P[P_WINDOW_S]))
+            break;
+        span += d;
+        earlier += S[S_RING + slot] * d;
         n_first = S[S_RING + RING + slot];
     }
-    double inertia = P[P_INERTIA] * (n - n_first) / (hn * m);
+    earlier /= span;
+    double w = hn / span;                   /* 1 for a window of one sample */
+    double inertia = P[P_INERTIA] * (n - n_first) / span;
     double mean = 0.5 * (tau + S[S_TAU]);
-    double torque = (earlier + mean) / m - inertia;
+    double torque = earlier + w * mean - inertia;
     /* A torque step within the sample (the drive reaching its speed limit, the PID reversing
      * off an end stop) has an unknown shape: the step's mean lies somewhere between the two
      * ends, and the endpoints' mean read as pump torque is a wrong pressure that a one-way
@@ -147,20 +185,21 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * (the pressures) changes smoothly, so the mean is the value in that range nearest the
      * last step's. */
     if (fabs(tau - S[S_TAU]) > P[P_TORQUE_STEP]) {
-        double lo = (earlier + fmin(tau, S[S_TAU])) / m - inertia;
-        double hi = (earlier + fmax(tau, S[S_TAU])) / m - inertia;
+        double lo = earlier + w * fmin(tau, S[S_TAU]) - inertia;
+        double hi = earlier + w * fmax(tau, S[S_TAU]) - inertia;
         double last = S[S_PUMP_TAU];
         torque = last < lo ? lo : last > hi ? hi : last;
-        mean = (torque + inertia) * m - earlier;
+        mean = (torque + inertia - earlier) / w;
     }
     S[S_RING + at] = mean;
     S[S_RING + RING + at] = S[S_N];
+    S[S_RING + 2 * RING + at] = hn;
     S[S_RING_AT] = (at + 1) % RING;
     S[S_RING_COUNT] = count < RING ? count + 1 : RING;
     S[S_PUMP_TAU] = torque;
     double ga = P[P_LEAK_A] / mu, gb = P[P_LEAK_B] / mu;
-    double ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h);
-    double cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h);
+    double ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * hn);
+    double cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * hn);
     double fa = P[P_Q_A] * n + ca * pa, fb = P[P_Q_B] * n + cb * pb;
     double da = ca + ga, db = cb + gb;
     /* pumping or motoring: over the step, as the mean torque (a reversal within the step
@@ -187,7 +226,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         double qa, qb, qv;
         solve(P, P[P_Q_A] * n, P[P_Q_B] * n, ga, gb, torque, d, &sa, &sb, &qa, &qb, &qv);
         S[S_SA] = sa; S[S_SB] = sb;
-        double ka = ca * h / P[P_BLEND_S], kb = cb * h / P[P_BLEND_S];
+        double ka = ca * hn / P[P_BLEND_S], kb = cb * hn / P[P_BLEND_S];
         fa += ka * qa; fb += kb * qb; da += ka; db += kb;
     }
     double load = S[S_LOAD_F];

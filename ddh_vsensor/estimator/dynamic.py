@@ -31,10 +31,11 @@ last one.
 
 The step is compiled C (``_chambers.c``, built with the package as an optional extension and
 loaded with ctypes): the online face calls it per sample, the offline face runs the same
-function over a whole log, so both share one arithmetic. The rotor's acceleration is the speed
-difference over the drive's filtered cadence, not over each stamp difference: the drive
-samples evenly, its frames' stamps jitter, and a jittered h read as inertia torque turns into
-pressure a one-way valve does not give back (README: jittered receive stamps). For the same
+function over a whole log, so both share one arithmetic. The step is counted in the drive's
+periods (its learnt cadence; a frame lost is two), not taken from each stamp difference: the
+drive samples evenly, its frames' stamps jitter, and a jittered h read as inertia torque turns
+into pressure a one-way valve does not give back (README: jittered receive stamps, lost and
+late frames). For the same
 reason the torque balance spans the last samples within ``window_s`` (the speed comes in whole
 rpm: over 1 ms one rpm reads as newton-metres); at the drive's 100 Hz that is the one sample
 (README: fast sampling). Where the install had no C compiler
@@ -64,10 +65,11 @@ _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valv
  P_TORQUE_STEP, P_WINDOW_S) = range(18)
 P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 18, 22, 26, 30, 34, 46, 58
 (S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
- S_LOAD_F, S_RING_AT, S_RING_COUNT, S_RING) = range(17)
-RING = 32                                            # RING of _chambers.c
-S_SIZE = S_RING + 2 * RING
-HF_GAIN = 0.05                                       # HF_GAIN of _chambers.c
+ S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING) = range(19)
+RING, HF_LEARN = 32, 20                              # as in _chambers.c
+S_LEARN = S_RING + 3 * RING
+S_SIZE = S_LEARN + HF_LEARN
+HF_GAIN, LOST_AT, JITTER_SPAN = 0.05, 1.5, 3.6       # as in _chambers.c
 
 
 def _library() -> ctypes.CDLL | None:
@@ -254,6 +256,22 @@ def _still(P, g: int, ge: int, relief: float, f: float, d: float) -> tuple[float
     return p, i
 
 
+def _drive_step(S: np.ndarray, h: float) -> float:
+    hf, count, dev = float(S[S_HF]), int(S[S_HF_COUNT]), float(S[S_HF_DEV])
+    if count < HF_LEARN:
+        learnt = sorted([*S[S_LEARN:S_LEARN + count], h])
+        S[S_LEARN:S_LEARN + count + 1] = learnt
+        S[S_HF] = 0.5 * (learnt[count // 2] + learnt[(count + 1) // 2])
+        S[S_HF_COUNT] = count + 1
+        return float(S[S_HF]) if count > 0 else h
+    lost_at = max(LOST_AT, 1.0 + JITTER_SPAN * dev)
+    periods = 1.0 if h < lost_at * hf else float(math.floor(h / hf + 0.5))
+    if periods == 1.0:
+        S[S_HF_DEV] = dev + HF_GAIN * (abs(h - hf) / hf - dev)
+    S[S_HF] = hf + HF_GAIN * (h / periods - hf)
+    return periods * hf
+
+
 def _direction(n: float) -> int:
     return 2 if n > 0.0 else 0 if n < 0.0 else 1
 
@@ -270,35 +288,38 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             S[S_RA] = S[S_SA] = ra
             S[S_RB] = S[S_SB] = rb
             S[S_N], S[S_TAU], S[S_STARTED], S[S_HF], S[S_PUMP_TAU] = n, tau, 1.0, 0.0, tau
-            S[S_RING_AT] = S[S_RING_COUNT] = 0.0
+            S[S_RING_AT] = S[S_RING_COUNT] = S[S_HF_COUNT] = S[S_HF_DEV] = 0.0
         return float(S[S_V])
     pa, pb, x, stroke = float(S[S_PA]), float(S[S_PB]), float(S[S_X]), P[P_STROKE]
     known = x == x                                      # NaN: position unknown
     xv = min(max(x, 0.0), stroke) if known else 0.5 * stroke
-    hf = float(S[S_HF])
-    hn = hf if hf > 0.0 and abs(h - hf) < 0.75 * hf else h
-    S[S_HF] = hf + HF_GAIN * (h - hf) if hf > 0.0 else h
+    hn = _drive_step(S, h)
     at, count = int(S[S_RING_AT]), int(S[S_RING_COUNT])
-    m = min(max(int(P[P_WINDOW_S] / hn + 0.5), 1), RING, count + 1)
-    earlier, n_first = 0.0, float(S[S_N])
-    for i in range(1, m):
+    span, earlier, n_first = hn, 0.0, float(S[S_N])
+    for i in range(1, min(count, RING - 1) + 1):
         slot = (at - i) % RING
-        earlier += S[S_RING + slot]
+        d = float(S[S_RING + 2 * RING + slot])
+        if not span + 0.5 * d < P[P_WINDOW_S]:
+            break
+        span += d
+        earlier += S[S_RING + slot] * d
         n_first = float(S[S_RING + RING + slot])
-    inertia = P[P_INERTIA] * (n - n_first) / (hn * m)
+    earlier /= span
+    w = hn / span
+    inertia = P[P_INERTIA] * (n - n_first) / span
     mean = 0.5 * (tau + S[S_TAU])
-    torque = (earlier + mean) / m - inertia
+    torque = earlier + w * mean - inertia
     if abs(tau - S[S_TAU]) > P[P_TORQUE_STEP]:
-        lo = (earlier + min(tau, S[S_TAU])) / m - inertia
-        hi = (earlier + max(tau, S[S_TAU])) / m - inertia
+        lo = earlier + w * min(tau, S[S_TAU]) - inertia
+        hi = earlier + w * max(tau, S[S_TAU]) - inertia
         torque = min(max(float(S[S_PUMP_TAU]), lo), hi)
-        mean = (torque + inertia) * m - earlier
-    S[S_RING + at], S[S_RING + RING + at] = mean, S[S_N]
+        mean = (torque + inertia - earlier) / w
+    S[S_RING + at], S[S_RING + RING + at], S[S_RING + 2 * RING + at] = mean, S[S_N], hn
     S[S_RING_AT], S[S_RING_COUNT] = (at + 1) % RING, min(count + 1, RING)
     S[S_PUMP_TAU] = torque
     ga, gb = P[P_LEAK_A] / mu, P[P_LEAK_B] / mu
-    ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * h)
-    cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * h)
+    ca = (P[P_DEAD_A] + P[P_AREA_A] * xv) / (P[P_BETA] * hn)
+    cb = (P[P_DEAD_B] + P[P_AREA_B] * (stroke - xv)) / (P[P_BETA] * hn)
     fa, fb = P[P_Q_A] * n + ca * pa, P[P_Q_B] * n + cb * pb
     da, db = ca + ga, cb + gb
     d = _direction(n + S[S_N])
@@ -314,7 +335,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         qa, qb, _, sa, sb = _solve(P, P[P_Q_A] * n, P[P_Q_B] * n, ga, gb, torque, d,
                                    int(S[S_SA]), int(S[S_SB]))
         S[S_SA], S[S_SB] = sa, sb
-        ka, kb = ca * h / P[P_BLEND_S], cb * h / P[P_BLEND_S]
+        ka, kb = ca * hn / P[P_BLEND_S], cb * hn / P[P_BLEND_S]
         fa += ka * qa
         fb += kb * qb
         da += ka
