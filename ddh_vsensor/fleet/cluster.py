@@ -18,7 +18,9 @@ DEFAULT_WORKERS = 2
 @contextmanager
 def dask_client(scheduler: str | None = None, workers: int = DEFAULT_WORKERS) -> Iterator[Any]:
     """A Dask client: to ``scheduler`` (``tcp://host:port``) or to a LocalCluster of
-    ``workers`` single-threaded processes bound to 127.0.0.1, without dashboard."""
+    ``workers`` single-threaded processes bound to 127.0.0.1, without dashboard. The
+    scheduler's HTTP server (health, metrics) is served anyway, on 8787 unless told: a free
+    port of 127.0.0.1, so that two clusters on one host do not contend for it."""
     import logging
 
     from dask.distributed import Client, LocalCluster
@@ -36,7 +38,9 @@ def dask_client(scheduler: str | None = None, workers: int = DEFAULT_WORKERS) ->
     if not 1 <= workers <= 64:
         raise UserError(f"--workers {workers}: 1..64")
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
+                           host="127.0.0.1", dashboard_address=None,
+                           scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                           silence_logs=logging.ERROR)
     client = Client(cluster)
     try:
         yield client

@@ -85,3 +85,16 @@ def test_scheduler_and_two_workers_equal_the_local_run(scheduler, local_store, f
     strip = [{k: v for k, v in u.items() if k != "extension_file"} for u in report["units"]]
     assert strip == [{k: v for k, v in u.items() if k != "extension_file"}
                      for u in local_report["units"]]
+
+
+def test_two_local_clusters_at_once_serve_on_their_own_ports_of_127_0_0_1():
+    """Every port the embedded cluster listens on is 127.0.0.1's, the scheduler's HTTP
+    server's included (8787 by default, which a second cluster would find taken)."""
+    from ddh_vsensor.fleet.cluster import dask_client
+    with dask_client(None, 1) as one, dask_client(None, 1) as two:
+        infos = [c.scheduler_info() for c in (one, two)]
+    ports = [info["services"]["dashboard"] for info in infos]
+    assert 8787 not in ports and ports[0] != ports[1]
+    for info in infos:
+        assert info["address"].startswith("tcp://127.0.0.1:")
+        assert all(w.startswith("tcp://127.0.0.1:") for w in info["workers"])
