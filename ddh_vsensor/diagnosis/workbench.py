@@ -211,7 +211,8 @@ class Workbench:
             for (leak, disp), members in units.items():
                 unit = self.scaled_unit({"leakage_factor": leak, "displacement_factor": disp})
                 tracks = track_chambers(unit, [rows[m] for m in members],
-                                        max_gap_s=self.cfg.estimator.max_gap_s)
+                                        max_gap_s=self.cfg.estimator.max_gap_s,
+                                        window_s=self.cfg.estimator.dynamic_window_s)
                 for m, tr in zip(members, tracks):
                     j, i, scale = where[m]
                     out[j][i] = scale * tr.position_mm
@@ -240,7 +241,8 @@ class Workbench:
         if todo:
             rows = [ChamberRow(r.time_s, r.speed_rpm, r.torque_nm, r.oil_temp_c,
                                r.initial_position_mm, x) for x in todo for r in self.runs]
-            tracks = track_chambers(self.unit, rows, max_gap_s=self.cfg.estimator.max_gap_s)
+            tracks = track_chambers(self.unit, rows, max_gap_s=self.cfg.estimator.max_gap_s,
+                                    window_s=self.cfg.estimator.dynamic_window_s)
             k = len(self.runs)
             for j, x in enumerate(todo):
                 self._chamber_cache[x] = [tr.position_mm for tr in tracks[j * k:(j + 1) * k]]

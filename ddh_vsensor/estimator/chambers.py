@@ -29,7 +29,7 @@ import ctypes
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -241,10 +241,47 @@ class ChamberModel:
         self.regime_b = np.where(live, rb, self.regime_b)
 
 
+def window_pump_torque(time_s: np.ndarray, speed_rpm: np.ndarray, torque_nm: np.ndarray,
+                       inertia_nm_s_per_rpm: float, window_s: float) -> np.ndarray:
+    """Per sample, the mean motor torque less J*d(omega)/dt over the last samples spanning
+    ``window_s`` (the dynamic mode's window, README: fast sampling): the speed comes in
+    whole rpm, which over one fast sample reads as newton-metres of inertia torque."""
+    t = np.asarray(time_s, dtype=float)
+    n = np.asarray(speed_rpm, dtype=float)
+    tau = np.asarray(torque_nm, dtype=float)
+    m = max(1, int(round(window_s / float(np.median(np.diff(t))))))
+    k = np.arange(len(t))
+    j = np.maximum(k - m, 0)
+    area = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(t))])
+    span = t - t[j]
+    safe = np.where(span > 0.0, span, 1.0)
+    return np.where(span > 0.0, (area - area[j]) / safe - inertia_nm_s_per_rpm * (n - n[j]) / safe,
+                    tau)
+
+
+def _faster_than(time_s: np.ndarray, window_s: float) -> bool:
+    return len(time_s) > 1 and 1.5 * float(np.median(np.diff(time_s))) < window_s
+
+
 def track_chambers(unit: DDHUnit, rows: Sequence[ChamberRow], inertia: bool = True,
-                   max_gap_s: float = math.inf) -> list[ChamberTrack]:
-    """Integrate every row; ``inertia`` subtracts the motor's J*d(omega)/dt from its torque.
+                   max_gap_s: float = math.inf, window_s: float = 0.0) -> list[ChamberTrack]:
+    """Integrate every row; ``inertia`` subtracts the motor's J*d(omega)/dt from its torque,
+    over ``window_s`` (:func:`window_pump_torque`) where a row is sampled faster than that.
     Over a gap longer than ``max_gap_s`` the position is not advanced (as the estimator)."""
+    fast = [i for i, r in enumerate(rows) if inertia and _faster_than(r.time_s, window_s)]
+    if fast:
+        j = unit.motor.inertia_kg_m2 * RPM_RAD_S
+        windowed = [replace(rows[i], torque_nm=window_pump_torque(
+            rows[i].time_s, rows[i].speed_rpm, rows[i].torque_nm, j, window_s)) for i in fast]
+        slow = [i for i in range(len(rows)) if i not in set(fast)]
+        out: list[ChamberTrack | None] = [None] * len(rows)
+        for i, tr in zip(fast, track_chambers(unit, windowed, False, max_gap_s)):
+            out[i] = tr
+        if slow:
+            for i, tr in zip(slow, track_chambers(unit, [rows[i] for i in slow], True,
+                                                  max_gap_s)):
+                out[i] = tr
+        return out  # type: ignore[return-value]
     lengths = [len(r.time_s) for r in rows]
     firsts = [np.array([r.time_s[0], r.speed_rpm[0], r.torque_nm[0], r.oil_temp_c[0]])
               if len(r.time_s) else np.zeros(4) for r in rows]
