@@ -35,17 +35,3 @@ def bounded_cumsum(x_start: float, dx: np.ndarray, lower: float,
             break
         i, start = end, x[end - 1]
     return x, (x <= lower) | (x >= upper)
-
-
-def bounded_cumsum_between(x_start: float, dx: np.ndarray, lower: np.ndarray,
-                           upper: np.ndarray) -> np.ndarray:
-    """:func:`bounded_cumsum` with limits that change from sample to sample (a Hall switch
-    that is on holds the estimate within its window): one pass per stretch of equal limits."""
-    n = len(dx)
-    x = np.empty(n)
-    change = np.flatnonzero((lower[1:] != lower[:-1]) | (upper[1:] != upper[:-1])) + 1
-    start = x_start
-    for a, b in zip(np.concatenate([[0], change]), np.concatenate([change, [n]])):
-        x[a:b], _ = bounded_cumsum(start, dx[a:b], float(lower[a]), float(upper[a]))
-        start = float(x[b - 1])
-    return x

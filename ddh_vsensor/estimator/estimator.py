@@ -23,7 +23,7 @@ from ..measured import Run
 from ..physics.unit import DDHUnit
 from ..tables.lookup import UnitTables
 from .adaptation import DirectionalGain
-from .bounded import bounded_cumsum_between
+from .bounded import bounded_cumsum
 from .dynamic import DynamicModel
 from .model import Mode, VelocityModel
 from .flags import Flags
@@ -33,10 +33,6 @@ from .state import EstimatorState
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
 LATE_EDGE_MAX_S = 0.1       # an I/O frame read later than this: its edge is taken where seen
-# An estimate further than this outside the window of a switch that is on is held at that
-# distance: beyond the estimator's own error at the switches (<= 0.6 mm measured), so that a
-# pass at speed, where the estimate is a fraction of a millimetre off, is left to the edges
-LEVEL_MARGIN_MM = 1.0
 # The flags as plain ints for the per-sample path (IntFlag arithmetic costs a microsecond)
 _NOT_REFERENCED, _ADAPTING, _AT_SOFT_LIMIT, _STALE_INPUT, _TABLE_CLAMPED = (
     int(f) for f in (Flags.NOT_REFERENCED, Flags.ADAPTING, Flags.AT_SOFT_LIMIT,
@@ -154,13 +150,6 @@ class Estimator:
         self.s_ref = (0.0, 0.0)         # raw travel sums at the last reference's edge
         self._on = _Online(debouncers=[Debouncer(self.debounce_s) for _ in self.switches],
                            snapshots=[None] * len(self.switches))
-        # While a switch is on (accepted, and still on), the rod is within its window and
-        # hysteresis: the estimate is held within LEVEL_MARGIN_MM of there, whatever the motor
-        # does (a rod stuck on its end stop while the pumps' flow goes elsewhere, an effect no
-        # model has, must not read as travel)
-        reach = [sw.window_mm + sw.hysteresis_mm + LEVEL_MARGIN_MM for sw in self.switches]
-        self._on_bounds = [(sw.position_mm - r, sw.position_mm + r)
-                           for sw, r in zip(self.switches, reach)]
 
     @classmethod
     def from_config(cls, cfg: Config | None, unit: str, *,
@@ -318,12 +307,7 @@ class Estimator:
         dx = dx_raw * (gain._up if dx_raw > 0.0 else gain._down)
         before = self.position_mm
         lower, upper = self.lower_mm, self.upper_mm
-        lo, hi = lower, upper
-        if refs:
-            for deb, sw, (on_lo, on_hi) in zip(on.debouncers, self.switches, self._on_bounds):
-                if deb.state and refs.get(sw.name):
-                    lo, hi = max(lo, on_lo), min(hi, on_hi)
-        x = min(max(before + dx, lo), hi) if lo <= hi else min(max(before + dx, lower), upper)
+        x = min(max(before + dx, lower), upper)
         self.position_mm = x
         self.travel_mm += abs(dx)
         if dx_raw > 0.0:
@@ -429,29 +413,13 @@ class Estimator:
             integrate(0, n)
 
         events = []
-        lo_k, hi_k = np.full(n, self.lower_mm), np.full(n, self.upper_mm)
         for order, sw in enumerate(self.switches):
             if refs is None or sw.name not in refs:
                 continue
             timed = None if ref_edge_s is None or sw.name not in ref_edge_s else \
                 np.asarray(ref_edge_s[sw.name], dtype=float)
-            raw = np.asarray(refs[sw.name])
-            edges = accepted_edges(t, raw, self.debounce_s)
-            for k, c, rising in edges:
+            for k, c, rising in accepted_edges(t, np.asarray(refs[sw.name]), self.debounce_s):
                 events.append((k, order, c, rising, sw, share_after_crossing(t, timed, c)))
-            # the accepted state after each sample bounds the next one while it is still on
-            # (as step() does)
-            on = np.zeros(n, dtype=bool)
-            state, since = bool(raw[0]) if n else False, 0
-            for k, _, rising in edges + [(n, -1, False)]:
-                on[since + 1:k + 1] = state
-                state, since = rising, k
-            on &= raw.astype(bool)
-            on_lo, on_hi = self._on_bounds[order]
-            lo_k = np.where(on, np.maximum(lo_k, on_lo), lo_k)
-            hi_k = np.where(on, np.minimum(hi_k, on_hi), hi_k)
-        apart = lo_k > hi_k                     # contradicting switches: the soft limits only
-        lo_k[apart], hi_k[apart] = self.lower_mm, self.upper_mm
         events.sort(key=lambda e: (e[0], e[1]))
 
         x = np.empty(n)
@@ -467,7 +435,7 @@ class Estimator:
                 if dynamic is not None:
                     advance(i, k + 1)
                 dx = self.gain.scale_many(dx_raw[i:k + 1])
-                x[i:k + 1] = bounded_cumsum_between(start, dx, lo_k[i:k + 1], hi_k[i:k + 1])
+                x[i:k + 1], _ = bounded_cumsum(start, dx, self.lower_mm, self.upper_mm)
                 travel = self.travel_mm + np.cumsum(np.abs(dx))
                 hold = self.hold_s + np.cumsum(hold_dt[i:k + 1])
                 u[i:k + 1] = self.u_base + self.per_travel * travel + self.hold_rate * hold

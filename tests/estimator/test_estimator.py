@@ -4,8 +4,8 @@ the tables are that steady state; `dynamic` is tested on simulated runs)."""
 import numpy as np
 import pytest
 
-from ddh_vsensor.estimator.bounded import bounded_cumsum, bounded_cumsum_between
-from ddh_vsensor.estimator.estimator import LEVEL_MARGIN_MM, Estimator
+from ddh_vsensor.estimator.bounded import bounded_cumsum
+from ddh_vsensor.estimator.estimator import Estimator
 from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.state import EstimatorState
 from ddh_vsensor.physics.steady import holding_speed, steady_state
@@ -187,46 +187,3 @@ def test_the_direction_of_crossing_is_the_travel_after_the_edge(cfg, unit_tables
     snap = _Snapshot(index=10, x=158.0, dx=0.01, v=+18.0, s_up=5.0, s_down=-3.0)
     x, event = est._reference(mid, True, snap, 157.86, (5.0, -3.14), 12)   # 0.14 mm down
     assert event.switch_position_mm == pytest.approx(mid.switching_position_mm(True, False))
-
-
-def test_bounded_cumsum_between_equals_the_clipped_loop():
-    rng = np.random.default_rng(1)
-    for _ in range(50):
-        dx = rng.normal(0.3 * rng.normal(), 1.0, 2000)
-        lower = np.repeat(np.where(rng.random(20) < 0.5, 0.0, 40.0), 100)
-        upper = lower + np.where(lower > 0.0, 10.0, 100.0)
-        x0 = rng.uniform(0, 100)
-        ref, p = [], x0
-        for d, lo, hi in zip(dx, lower, upper):
-            p = min(max(p + d, lo), hi)
-            ref.append(p)
-        assert np.max(np.abs(np.array(ref) - bounded_cumsum_between(x0, dx, lower, upper))) < 1e-9
-
-
-@pytest.mark.parametrize("mode", ["full", "dynamic"])
-def test_a_switch_that_is_on_holds_the_estimate_near_its_window(cfg, unit_tables, mode):
-    """The bucket's motor turns at 2000 rpm for 5 s while its middle switch stays on (the rod
-    stuck, the flow going elsewhere: no model has that effect): the estimate stays within the
-    window, hysteresis and LEVEL_MARGIN_MM of the switch (unbound it runs hundreds of mm);
-    once the switch is off the motor's travel counts again. Both faces agree."""
-    unit = cfg.unit("bucket")
-    mid = unit.references_mm["mid"]
-    reach = unit.reference_window_mm + unit.reference_hysteresis_mm + LEVEL_MARGIN_MM
-    t = np.arange(0.0, 8.0, 0.01)
-    speed, torque, oil = np.full_like(t, 2000.0), np.full_like(t, 10.0), np.full_like(t, 40.0)
-    on = (t < 5.0).astype(np.uint8)
-    refs = {"bottom": np.zeros_like(on), "mid": on, "top": np.zeros_like(on)}
-    off = Estimator(cfg, "bucket", unit_tables["bucket"], mode=mode, initial_position_mm=mid)
-    res = off.run(t, speed, torque, oil, refs)
-    held = t < 5.0
-    assert np.all(np.abs(res.position_mm[held] - mid) <= reach + 1e-9)
-    assert res.position_mm[held].max() == pytest.approx(mid + reach)
-    assert res.position_mm[-1] > mid + reach + 100.0             # free again, moving up
-    free = Estimator(cfg, "bucket", unit_tables["bucket"], mode=mode, references=False,
-                     initial_position_mm=mid).run(t, speed, torque, oil)
-    assert free.position_mm[np.flatnonzero(held)[-1]] > mid + 100.0
-    online = Estimator(cfg, "bucket", unit_tables["bucket"], mode=mode, initial_position_mm=mid)
-    steps = [online.step(t[k], speed[k], torque[k], oil[k], {n: bool(a[k]) for n, a in
-                                                            refs.items()})
-             for k in range(len(t))]
-    assert np.max(np.abs(np.array([s.position_mm for s in steps]) - res.position_mm)) < 1e-6
