@@ -14,7 +14,7 @@ enum {
     P_WINDOW_S, P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
 };
-#define HF_LEARN 20
+#define HF_LEARN 20         /* steps the drive's cadence is first learnt from (see HF_GAIN) */
 
 /* The torque balance's window: the last RING samples' mean motor torques, the speeds
  * before them and their lengths (a ring from S_RING, S_RING_AT the next slot, S_RING_COUNT

@@ -257,6 +257,7 @@ def _still(P, g: int, ge: int, relief: float, f: float, d: float) -> tuple[float
 
 
 def _drive_step(S: np.ndarray, h: float) -> float:
+    """``drive_step`` of _chambers.c: the step's length in the drive's periods."""
     hf, count, dev = float(S[S_HF]), int(S[S_HF_COUNT]), float(S[S_HF_DEV])
     if count < HF_LEARN:
         learnt = sorted([*S[S_LEARN:S_LEARN + count], h])
