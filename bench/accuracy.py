@@ -16,6 +16,7 @@ Run: python bench/accuracy.py [--cycles 50] [--skip-sweep | --sweep-only] [--swe
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -73,17 +74,42 @@ def check_specs(cfg, temp_c: float) -> list[RunSpec]:
     return specs
 
 
+RATES_TEMPS_C = (-10.0, 27.0, 80.0)
+
+
+def rates_specs(cfg, temp_c: float) -> list[RunSpec]:
+    """The fast-sampling set (README: fast sampling; run with --rate-hz): the paper cycle at
+    speeds 1/3/4 with 1040/500/0 kg, dig-dump at 4 (0 kg) and 3 (1040 kg), three 60 s random
+    cycles with 30 % of the moves into an end stop and 0/400/1040 kg."""
+    specs = [RunSpec(speed=s, payload_kg=p, oil_temp_c=temp_c)
+             for s, p in ((1, 1040.0), (3, 500.0), (4, 0.0))]
+    specs += [RunSpec(cycle=dig_dump_cycle(cfg, s), payload_kg=p, oil_temp_c=temp_c)
+              for s, p in ((4, 0.0), (3, 1040.0))]
+    seed = 1000 + int(temp_c) * 7
+    specs += [RunSpec(cycle=random_cycle(cfg, seed + i, end_stop_share=0.3), payload_kg=p,
+                      oil_temp_c=temp_c, seed=i) for i, p in enumerate((0.0, 400.0, 1040.0))]
+    return specs
+
+
 # run set -> (figure prefix, temperatures, runs at one temperature)
 SWEEPS = {"main": ("sweep", SWEEP_TEMPS_C, sweep_specs),
-          "check": ("check", CHECK_TEMPS_C, check_specs)}
+          "check": ("check", CHECK_TEMPS_C, check_specs),
+          "rates": ("rates", RATES_TEMPS_C, rates_specs)}
 
 
-def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "main") -> None:
+def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "main",
+                      rate_hz: float | None = None) -> None:
     rows = []
     prefix, temps, make = SWEEPS[which]
+    if rate_hz is not None:
+        prefix = f"{prefix}_{rate_hz:g}Hz"
     for temp in temps:
         t0 = time.perf_counter()
         specs = make(cfg, temp)
+        if rate_hz is not None:
+            specs = [dataclasses.replace(s, sensors=dataclasses.replace(s.sensors,
+                                                                         rate_hz=rate_hz))
+                     for s in specs]
         runs = simulate_campaign(cfg, specs)
         print(f"{temp:g} degC: simulated {len(specs)} runs in {time.perf_counter() - t0:.0f} s",
               flush=True)
@@ -178,14 +204,24 @@ def main() -> None:
                         help="the temperature sweep's run set (check: the second set)")
     parser.add_argument("--sweep-only", action="store_true",
                         help="skip the 27 degC table and the multi-cycle runs")
+    parser.add_argument("--rate-hz", type=float, default=None,
+                        help="the sweep's drive and sensor sampling (default: the "
+                             "simulator's 100 Hz)")
+    parser.add_argument("--window-s", type=float, default=None,
+                        help="estimator.dynamic_window_s for this run (0: per sample)")
     args = parser.parse_args()
+    if args.rate_hz is not None and not 1.0 <= args.rate_hz <= 1000.0:
+        parser.error("--rate-hz: 1..1000 (the simulator steps at 1 ms)")
     cfg = load_config(None)
+    if args.window_s is not None:
+        cfg = dataclasses.replace(cfg, estimator=dataclasses.replace(
+            cfg.estimator, dynamic_window_s=args.window_s))
     tables = {a: build_unit_tables(cfg, a) for a in cfg.unit_names}
     figures: dict[str, object] = {}
     if not args.sweep_only:
         nominal_and_drift(cfg, tables, figures, args.cycles)
     if not args.skip_sweep:
-        temperature_sweep(cfg, tables, figures, args.sweep)
+        temperature_sweep(cfg, tables, figures, args.sweep, args.rate_hz)
     publish("accuracy", figures)
 
 
