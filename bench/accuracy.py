@@ -20,6 +20,7 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -46,6 +47,7 @@ SWEEP_TEMPS_C = (-10.0, 0.0, 10.0, 27.0, 50.0, 80.0)
 SWEEP_SEED = 201
 CHECK_TEMPS_C = (-5.0, 5.0, 20.0, 40.0, 65.0, 75.0)
 CHECK_SEED = 401
+STAMPS_SEED = 77
 
 
 def sweep_specs(cfg, temp_c: float) -> list[RunSpec]:
@@ -97,12 +99,43 @@ SWEEPS = {"main": ("sweep", SWEEP_TEMPS_C, sweep_specs),
           "rates": ("rates", RATES_TEMPS_C, rates_specs)}
 
 
+@dataclasses.dataclass(frozen=True)
+class Stamps:
+    """How the frames reach the estimator: a share of them lost, each late by a uniform
+    delay up to ``late_s`` and jittered by a uniform +-``jitter_s`` (seeded per run)."""
+
+    lost: float = 0.0
+    late_s: float = 0.0
+    jitter_s: float = 0.0
+
+    @property
+    def tag(self) -> str:
+        return "".join(f"_{k}{v:g}" for k, v in (("lost", self.lost), ("late", self.late_s),
+                                                  ("jitter", self.jitter_s)) if v)
+
+    def apply(self, run, index: int) -> SimpleNamespace:
+        rng = np.random.default_rng([STAMPS_SEED, index])
+        n = len(run.time_s)
+        keep = rng.random(n) >= self.lost
+        keep[0] = True
+        t = run.time_s + rng.uniform(0.0, self.late_s, n) + rng.uniform(-self.jitter_s,
+                                                                          self.jitter_s, n)
+        if np.any(np.diff(t[keep]) <= 0.0):
+            raise SystemExit("the stamps go backwards: keep --late-s and twice --jitter-s "
+                             "below one sample period")
+        return SimpleNamespace(time_s=t[keep], **{k: getattr(run, k)[keep] for k in (
+            "speed_rpm", "torque_nm", "oil_temp_c", "position_mm")})
+
+
 def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "main",
-                      rate_hz: float | None = None) -> None:
+                      rate_hz: float | None = None, stamps: Stamps = Stamps(),
+                      temps_c: tuple[float, ...] | None = None) -> None:
     rows = []
     prefix, temps, make = SWEEPS[which]
+    temps = temps_c or temps
     if rate_hz is not None:
         prefix = f"{prefix}_{rate_hz:g}Hz"
+    prefix += stamps.tag
     for temp in temps:
         t0 = time.perf_counter()
         specs = make(cfg, temp)
@@ -116,8 +149,8 @@ def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "mai
         for mode in MODES:
             for actuator in cfg.unit_names:
                 worst, worst_run, sq, count = 0.0, "", 0.0, 0
-                for spec, run in zip(specs, runs):
-                    r = run[actuator]
+                for i, (spec, run) in enumerate(zip(specs, runs)):
+                    r = stamps.apply(run[actuator], i) if stamps != Stamps() else run[actuator]
                     err = (_estimate(cfg, tables, actuator, r, mode, False).position_mm
                            - r.position_mm)
                     err = err[np.isfinite(err)]
@@ -209,7 +242,19 @@ def main() -> None:
                              "simulator's 100 Hz)")
     parser.add_argument("--window-s", type=float, default=None,
                         help="estimator.dynamic_window_s for this run (0: per sample)")
+    parser.add_argument("--lost", type=float, default=0.0,
+                        help="share of the frames lost before the estimator (0..0.5)")
+    parser.add_argument("--late-s", type=float, default=0.0,
+                        help="frames late by a uniform delay up to this (s)")
+    parser.add_argument("--jitter-s", type=float, default=0.0,
+                        help="frames' stamps jittered by a uniform +-this (s)")
+    parser.add_argument("--temps", type=float, nargs="+", default=None, metavar="DEGC",
+                        help="only these of the set's oil temperatures")
     args = parser.parse_args()
+    if not (0.0 <= args.lost <= 0.5 and args.late_s >= 0.0 and args.jitter_s >= 0.0):
+        parser.error("--lost 0..0.5, --late-s and --jitter-s >= 0")
+    if args.temps and not set(args.temps) <= set(SWEEPS[args.sweep][1]):
+        parser.error(f"--temps: the {args.sweep} set has {SWEEPS[args.sweep][1]}")
     if args.rate_hz is not None and not 1.0 <= args.rate_hz <= 1000.0:
         parser.error("--rate-hz: 1..1000 (the simulator steps at 1 ms)")
     cfg = load_config(None)
@@ -221,7 +266,9 @@ def main() -> None:
     if not args.sweep_only:
         nominal_and_drift(cfg, tables, figures, args.cycles)
     if not args.skip_sweep:
-        temperature_sweep(cfg, tables, figures, args.sweep, args.rate_hz)
+        temperature_sweep(cfg, tables, figures, args.sweep, args.rate_hz,
+                          Stamps(args.lost, args.late_s, args.jitter_s),
+                          tuple(args.temps) if args.temps else None)
     publish("accuracy", figures)
 
 
