@@ -268,18 +268,18 @@ def track_chambers(unit: DDHUnit, rows: Sequence[ChamberRow], inertia: bool = Tr
     """Integrate every row; ``inertia`` subtracts the motor's J*d(omega)/dt from its torque,
     over ``window_s`` (:func:`window_pump_torque`) where a row is sampled faster than that.
     Over a gap longer than ``max_gap_s`` the position is not advanced (as the estimator)."""
-    fast = [i for i, r in enumerate(rows) if inertia and _faster_than(r.time_s, window_s)]
-    if fast:
+    fast = [inertia and _faster_than(r.time_s, window_s) for r in rows]
+    if any(fast):
+        # the fast rows with their inertia taken off over the window, the others as they are
         j = unit.motor.inertia_kg_m2 * RPM_RAD_S
-        windowed = [replace(rows[i], torque_nm=window_pump_torque(
-            rows[i].time_s, rows[i].speed_rpm, rows[i].torque_nm, j, window_s)) for i in fast]
-        slow = [i for i in range(len(rows)) if i not in set(fast)]
         out: list[ChamberTrack | None] = [None] * len(rows)
-        for i, tr in zip(fast, track_chambers(unit, windowed, False, max_gap_s)):
-            out[i] = tr
-        if slow:
-            for i, tr in zip(slow, track_chambers(unit, [rows[i] for i in slow], True,
-                                                  max_gap_s)):
+        for windowed in (True, False):
+            picked = [i for i, f in enumerate(fast) if f == windowed]
+            group = [replace(rows[i], torque_nm=window_pump_torque(
+                rows[i].time_s, rows[i].speed_rpm, rows[i].torque_nm, j, window_s))
+                if windowed else rows[i] for i in picked]
+            for i, tr in zip(picked, track_chambers(unit, group, not windowed, max_gap_s)
+                             if group else ()):
                 out[i] = tr
         return out  # type: ignore[return-value]
     lengths = [len(r.time_s) for r in rows]
