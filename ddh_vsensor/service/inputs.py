@@ -187,6 +187,8 @@ class Inputs:
         # the I/O module's state changes (frame time, data), oldest first; the last is now
         self._io_changes_t: list[float] = []
         self._io_changes: list[bytes] = []
+        self._io_changes_total = 0                # changes appended ever: a change's number
+        self._io_served: dict[str, int] = {}      # per unit, the newest change number given
         self.refs_since_s: float | None = None    # see refs()
         # whether a change of the I/O module's inputs came between two drive samples, not
         # stamped with a sample's own time (see io_sends_on_change)
@@ -307,6 +309,7 @@ class Inputs:
                 self._io_change_unjudged_t = t_s
             self._io_changes_t.append(t_s)
             self._io_changes.append(data)
+            self._io_changes_total += 1
             if len(self._io_changes) > IO_CHANGES_KEPT:
                 del self._io_changes_t[0], self._io_changes[0]
         self.io_t_s = t_s
@@ -331,13 +334,23 @@ class Inputs:
         unit's controller, and two buses are read one after the other: an I/O frame can be
         handled before Sevcon frames older than it, and a Hall edge applied to them would be
         taken early by that much travel. So a Sevcon sample gets the state of the last I/O
-        frame not younger than itself (frame clocks alike, within ``IO_CLOCK_MATCH_S``).
-        :attr:`refs_since_s` is then the frame time since which the returned states hold."""
+        frame not younger than itself (frame clocks alike, within ``IO_CLOCK_MATCH_S``), but
+        never a change older than one the unit was given at a frame time: its samples come in
+        time order, so an older sample is a frame clock that stepped back, which the I/O
+        module's frames, sent on change of state, may not show for up to their event timer;
+        the changes before the step, looked up at the new clock's times, would be edges that
+        never happened. :attr:`refs_since_s` is then the frame time since which the returned
+        states hold."""
         if not self._io_changes:
             return None
-        k = -1
-        if t_s is not None and t_s < self.io_t_s and self.io_t_s - t_s < IO_CLOCK_MATCH_S:
-            k = max(bisect.bisect_right(self._io_changes_t, t_s) - 1, 0)
+        kept = len(self._io_changes)
+        k = kept - 1
+        if t_s is not None:
+            if t_s < self.io_t_s and self.io_t_s - t_s < IO_CLOCK_MATCH_S:
+                k = max(bisect.bisect_right(self._io_changes_t, t_s) - 1, 0)
+            first = self._io_changes_total - kept           # the number of change 0
+            k = max(k, self._io_served.get(actuator, first) - first)
+            self._io_served[actuator] = first + k
         data, self.refs_since_s = self._io_changes[k], self._io_changes_t[k]
         cached = self._refs_cache.get(actuator)
         if cached is None or cached[0] != data:

@@ -52,18 +52,45 @@ def test_hall_states_at_a_frame_time_are_those_of_the_io_frame_before_it(cfg) ->
     """A sample gets the state of the last I/O frame not younger than itself; before the
     first kept change, the oldest; with the clocks far apart (another epoch), the latest."""
     codec = FrameCodec(cfg)
-    inputs = Inputs(cfg, codec)
-    for t, mid in ((1.0, 1), (1.1, 1), (1.5, 0), (1.6, 0)):
-        assert inputs.io(codec.encode_inputs({"boom": {"mid": mid}}, t), 0.0)
+
+    def inputs_with_changes() -> Inputs:
+        inputs = Inputs(cfg, codec)
+        for t, mid in ((1.0, 1), (1.1, 1), (1.5, 0), (1.6, 0)):
+            assert inputs.io(codec.encode_inputs({"boom": {"mid": mid}}, t), 0.0)
+        return inputs
+
+    inputs = inputs_with_changes()
+    assert inputs.refs("boom", 0.9)["mid"] is True
     assert inputs.refs("boom", 1.2)["mid"] is True
     assert inputs.refs("boom", 1.5)["mid"] is False
-    assert inputs.refs("boom", 0.9)["mid"] is True
     assert inputs.refs("boom", 2.0)["mid"] is False
-    assert inputs.refs("boom", 1.6 - 5.0)["mid"] is False
     assert inputs.refs("boom")["mid"] is False
+    assert inputs_with_changes().refs("boom", 1.6 - 5.0)["mid"] is False
     # the I/O clock went back: what was kept before it no longer answers
+    inputs = inputs_with_changes()
     assert inputs.io(codec.encode_inputs({"boom": {"mid": 1}}, 0.5), 0.0)
     assert inputs.refs("boom", 0.4)["mid"] is True
+
+
+def test_a_drive_clock_stepping_back_does_not_bring_back_older_hall_states(cfg) -> None:
+    """The drive's frame clock steps back 0.8 s while the I/O module, sending on change
+    of state, has not sent since: looked up at the new clock's time, the kept changes would
+    give the switch state of 0.8 s ago, an edge the rod never made (the fault campaign's
+    references taken 20 mm off). A unit's states never go back to an older change; each
+    unit keeps its own."""
+    codec = FrameCodec(cfg)
+    inputs = Inputs(cfg, codec)
+    for t, mid in ((1.0, 1), (1.5, 0), (1.6, 0)):
+        assert inputs.io(codec.encode_inputs({"boom": {"mid": mid}}, t), 0.0)
+    assert inputs.refs("boom", 1.55)["mid"] is False
+    assert inputs.refs("boom", 1.55 - 0.8)["mid"] is False
+    assert inputs.refs("boom", 1.56 - 0.8)["mid"] is False
+    assert inputs.refs("bucket", 1.2) == {"bottom": False, "mid": False, "top": False}
+    # another unit's samples are behind this one's: its own lookup by time still holds
+    assert inputs.io(codec.encode_inputs({"boom": {"mid": 1}}, 1.7), 0.0)
+    assert inputs.refs("boom", 1.65)["mid"] is False
+    assert inputs.refs("boom", 1.75)["mid"] is True
+    assert inputs.refs("boom", 1.65)["mid"] is True
 
 
 def test_an_io_module_sending_on_change_is_told_from_one_sending_every_sample(cfg) -> None:
