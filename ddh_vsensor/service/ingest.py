@@ -3,7 +3,7 @@ across the machine's buses), in arrival order, in bounded slices.
 
 Sevcon TPDO -> that unit's estimator step with the frame's own timestamp; oil and I/O frames
 -> latest values; NMT -> the canopen network of the bus it came on (a broadcast reaches that
-bus's nodes only); SDO requests and consumed heartbeats -> the network that serves them, each
+bus's nodes only); SYNC -> that bus's nodes' synchronous TPDOs; SDO requests and consumed heartbeats -> the network that serves them, each
 canopen COB-ID through its own rate limiter; frames on the emulated nodes' own IDs -> counted
 as ID clashes; anything else counted as unknown. A batch is handled at once when nothing is
 waiting and it is small (the common case, a few frames per wake), else queued for the
@@ -27,6 +27,7 @@ import can
 from ..config import DEFAULT_BUS, FaultsConfig
 from .inputs import Inputs, RateLimitedLog, RateLimiter
 from .network import ServiceNetwork
+from .node import SYNC_COB_ID
 from .units import Unit
 
 log = logging.getLogger(__name__)
@@ -39,8 +40,9 @@ BACKLOG_DROP_S = 0.9
 # canopen traffic per COB-ID (NMT, SDO requests, consumed heartbeats): rate and burst. An NMT
 # master sends a handful of commands, an SDO client one request per response, a controller
 # one heartbeat per 100 ms or slower; beyond that a frame is dropped and counted.
-CANOPEN_RATE_HZ = {"nmt": 20.0, "sdo": 500.0, "heartbeat": 50.0}
-CANOPEN_BURST = {"nmt": 10, "sdo": 100, "heartbeat": 10}
+# A SYNC producer sends one per communication cycle, 1 ms at the fastest.
+CANOPEN_RATE_HZ = {"nmt": 20.0, "sdo": 500.0, "heartbeat": 50.0, "sync": 2000.0}
+CANOPEN_BURST = {"nmt": 10, "sdo": 100, "heartbeat": 10, "sync": 10}
 LSS_ID = 0x7E5                   # not served
 
 
@@ -50,9 +52,10 @@ class Ingest:
     def __init__(self, inputs: Inputs, units: Mapping[str, Unit],
                  networks: Mapping[str, ServiceNetwork],
                  on_sevcon: Callable[[Unit, can.Message, float], None],
-                 faults: FaultsConfig) -> None:
+                 faults: FaultsConfig,
+                 on_sync: Callable[[str], None] = lambda bus: None) -> None:
         self.inputs, self.units, self.networks = inputs, units, networks
-        self.on_sevcon = on_sevcon
+        self.on_sevcon, self.on_sync = on_sevcon, on_sync
         self.backlog_max_frames = faults.backlog_max_frames
         self._log = RateLimitedLog(log, faults.log_interval_s)
         self.routes = self._build_routes()
@@ -74,6 +77,7 @@ class Ingest:
             for can_id in network.subscribers:
                 routes.setdefault(can_id, ("canopen", network))
         routes[0] = ("nmt", None)                        # to the network of its bus
+        routes[SYNC_COB_ID] = ("sync", None)
         for unit in self.units.values():
             assert unit.node is not None
             for kind, can_id in unit.node.cob_ids.items():
@@ -162,6 +166,9 @@ class Ingest:
             if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus):
                 return
             target.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        elif kind == "sync":
+            if not msg.is_remote_frame and self._canopen_allowed(msg, now, bus):
+                self.on_sync(bus)
         elif kind == "nmt":
             if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus):
                 return
@@ -180,7 +187,8 @@ class Ingest:
         can_id = msg.arbitration_id
         limiter = self._canopen_limiters.get((bus, can_id))
         if limiter is None:
-            kind = "nmt" if can_id == 0 else "sdo" if 0x600 <= can_id < 0x680 else "heartbeat"
+            kind = "nmt" if can_id == 0 else "sync" if can_id == SYNC_COB_ID else \
+                "sdo" if 0x600 <= can_id < 0x680 else "heartbeat"
             limiter = RateLimiter(CANOPEN_RATE_HZ[kind], CANOPEN_BURST[kind])
             self._canopen_limiters[(bus, can_id)] = limiter
         if limiter.take(now):

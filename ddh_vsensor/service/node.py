@@ -20,8 +20,9 @@ EDS shipped in the package, behaving as CiA 301 / CiA 406 describe for a generic
 
 canopen's own timers (``PdoMap.start``, the NMT heartbeat task) run in threads on the bus and
 would keep a hung service looking alive; here the service's tick sends everything, so a
-heartbeat on the bus means the service loop is running. ``LocalNode`` TPDOs ignore SYNC, and
-so does this node (transmission type 254: event timer only).
+heartbeat on the bus means the service loop is running. ``LocalNode`` TPDOs ignore SYNC: a
+TPDO a master made synchronous goes out from :meth:`SensorNode.on_sync`, which the service
+calls for every SYNC (COB-ID 0x1005, the pre-defined 0x80) on the node's bus.
 """
 
 from __future__ import annotations
@@ -43,10 +44,12 @@ from .objects import (ABORT_MAX_BELOW_MIN, ABORT_VALUE_RANGE, ABORT_VALUE_TOO_HI
                       INT16, INT32, LIVE_OBJECTS, PDO_INVALID, SPEED_STEP_MM_S, UINT24_MAX,
                       UNCERTAINTY_STEP_MM, WARNING_CLAMPED, WARNING_NO_REFERENCE,
                       WARNING_SOFT_LIMIT, Published, clamp, value_of)
-from .pdo import Getter, Packer, PdoConfig
+from .pdo import SYNC_TYPE_MAX, Getter, Packer, PdoConfig
 from .sdo_gate import SdoGate
 
 log = logging.getLogger(__name__)
+
+SYNC_COB_ID = 0x80              # the pre-defined SYNC COB-ID the service routes to on_sync
 
 class SensorNode:
     """The emulated sensor of one cylinder."""
@@ -246,11 +249,13 @@ class SensorNode:
                           min(self._next[1], self._tick + diag))
 
     def due(self, tick_index: int) -> bool:
-        """Whether :meth:`publish` at this tick sends the position (TPDO1)."""
-        return self.operational and tick_index >= self._next[0]
+        """Whether :meth:`publish` at this tick sends the position (TPDO1 on its timer)."""
+        return self.operational and tick_index >= self._next[0] and \
+            self.tpdo1.trans_type > SYNC_TYPE_MAX
 
     def publish(self, p: Published, tick_index: int) -> int:
-        """TPDO1 (and TPDO2) if due at this tick; frames sent (none unless OPERATIONAL)."""
+        """TPDO1 (and TPDO2) if due at this tick and not synchronous; frames sent (none
+        unless OPERATIONAL)."""
         self._tick = tick_index
         if not self.operational:
             return 0
@@ -258,15 +263,47 @@ class SensorNode:
         if tick_index < next_pos:
             return 0
         every_pos, every_diag = self._every
-        self.encode(p)
-        self.tpdo1.transmit()
-        sent = 1
+        sent = 0
+        if self.tpdo1.trans_type > SYNC_TYPE_MAX:
+            self.encode(p)
+            self.tpdo1.transmit()
+            sent += 1
         if tick_index >= next_diag:
-            self.encode_diag(p)
-            self.tpdo2.transmit()
-            sent = 2
+            if self.tpdo2.trans_type > SYNC_TYPE_MAX:
+                self.encode_diag(p)
+                self.tpdo2.transmit()
+                sent += 1
             next_diag = tick_index + every_diag
         self._next = (tick_index + every_pos, next_diag)
+        return sent
+
+    def on_sync(self) -> int:
+        """A SYNC: the synchronous TPDOs that are due go out now with the estimate as it
+        stands (every frame received before the SYNC integrated): type n at every n-th
+        SYNC, type 0 when its data changed since it last went out. Frames sent (none unless
+        OPERATIONAL)."""
+        if not self.operational:
+            return 0
+        sent = 0
+        p: Published | None = None
+        pdos = self.pdos
+        for pdo in (self.tpdo1, self.tpdo2):
+            every = pdo.trans_type
+            if every > SYNC_TYPE_MAX or not pdo.enabled:
+                continue
+            if every:
+                counted = pdos.syncs_counted.get(pdo, 0) + 1
+                pdos.syncs_counted[pdo] = counted if counted < every else 0
+                if counted < every:
+                    continue
+            p = p or self.live()
+            self._encode(pdo, p)
+            if every == 0:
+                if pdos.sync_sent.get(pdo) == pdo.data:
+                    continue
+                pdos.sync_sent[pdo] = bytes(pdo.data)
+            pdo.transmit()
+            sent += 1
         return sent
 
     # --- SDO -------------------------------------------------------------------------------
@@ -330,6 +367,11 @@ class SensorNode:
             self.on_preset(position_mm)
             self.presets += 1
             log.info("%s: position preset to %.3f mm over SDO", self.actuator, position_mm)
+        elif index == 0x1005:
+            # consumed only: the pre-defined 11-bit ID, no SYNC produced (bit 30), bit 31
+            # is don't care (CiA 301)
+            if value_of(data) & ~PDO_INVALID != SYNC_COB_ID:
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
         elif index in (0x1800, 0x1801) and subindex == 5:
             ms = struct.unpack("<H", bytes(data))[0]
             lo, hi = self.event_timer_bounds_ms

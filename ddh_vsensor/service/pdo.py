@@ -1,8 +1,10 @@
 """The emulated sensor's TPDO configuration as a master may write it (CiA 301): disable and
 enable a TPDO (COB-ID bit 31), remap it (disable, sub 0 = 0, entries, sub 0 = n, enable) with
-any mappable object, set the transmission type 254/255. Everything else is refused with its
-abort code: the COB-IDs stay the pre-defined ones the service routes and the DBC describes
-(no RTR, bit 30 set), no SYNC, inhibit time 0. The event timers (sub 5) are the node's.
+any mappable object, set the transmission type: 254/255 on the event timer, 1..240 every n-th
+SYNC, 0 at a SYNC after its data changed (:meth:`.SensorNode.on_sync`). Everything else is
+refused with its abort code: the COB-IDs stay the pre-defined ones the service routes and
+the DBC describes (no RTR, bit 30 set), no RTR-only or reserved types (241..253), inhibit
+time 0. The event timers (sub 5) are the node's.
 
 A TPDO's data is packed every tick: canopen encodes each mapped variable through its object
 dictionary (tens of microseconds per frame), so each mapping is compiled once into
@@ -25,6 +27,7 @@ from .objects import (ABORT_MAP_LENGTH, ABORT_NOT_MAPPABLE, ABORT_UNSUPPORTED_AC
 log = logging.getLogger(__name__)
 
 PDO_MAX_BITS = 64
+SYNC_TYPE_MAX = 240             # transmission types 0..240 are synchronous (CiA 301)
 DUMMY_INDEX_END = 0x20          # indices below are the data type dummies: mapped, never written
 
 # A mapped object's value for what a node publishes (None: not known here, canopen's way).
@@ -78,6 +81,10 @@ class PdoConfig:
         self.written: set[canopen.pdo.PdoMap] = set()   # configured over SDO since boot
         # compiled mappings (None: canopen encodes it); dropped whenever a mapping changes
         self.packers: dict[canopen.pdo.PdoMap, Packer | None] = {}
+        # synchronous TPDOs: SYNCs counted since the last sent (types 1..240), the data
+        # last sent at a SYNC (type 0)
+        self.syncs_counted: dict[canopen.pdo.PdoMap, int] = {}
+        self.sync_sent: dict[canopen.pdo.PdoMap, bytes] = {}
 
     def restore(self) -> None:
         """After the object dictionary's defaults came back: every TPDO a master changed
@@ -92,6 +99,8 @@ class PdoConfig:
         pdo.enabled = not raw(self.node, com, 1) & PDO_INVALID
         pdo.trans_type = raw(self.node, com, 2)
         self.packers.pop(pdo, None)
+        self.syncs_counted.pop(pdo, None)
+        self.sync_sent.pop(pdo, None)
         pdo.clear()
         for sub in range(1, raw(self.node, mapping, 0) + 1):
             entry = raw(self.node, mapping, sub)
@@ -127,9 +136,10 @@ class PdoConfig:
             if subindex == 1:
                 self.write_cob_id(pdo, value)
             elif subindex == 2:
-                if value not in (254, 255):     # no SYNC: event timer only
-                    raise SdoAbortedError(ABORT_VALUE_RANGE)
+                if not (value <= SYNC_TYPE_MAX or value in (254, 255)):
+                    raise SdoAbortedError(ABORT_VALUE_RANGE)    # RTR-only or reserved
                 pdo.trans_type = value
+                self.syncs_counted.pop(pdo, None)
             elif subindex == 3 and value != 0:  # no inhibit time: the event timer paces
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
         elif index in (0x1A00, 0x1A01):

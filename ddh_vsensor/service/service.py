@@ -123,7 +123,7 @@ class Service:
         self.states = StateStore(cfg, self.options.state_dir)
         self.states.restore(self.units)
         self.ingest = Ingest(self.inputs, self.units, self.networks, self._on_sevcon,
-                             self.faults)
+                             self.faults, self._on_sync)
         link_kwargs = {"opener": opener} if opener is not None else {}
         filters = exact_filters(self.ingest.routes)
         self.links: dict[str, BusLink] = {}
@@ -228,6 +228,14 @@ class Service:
                 self.latency_s.append(time.time() - msg.timestamp)
             if self._held and unit.actuator in self._held:
                 self._publish_held(unit)
+
+    def _on_sync(self, bus: str) -> None:
+        """A SYNC on ``bus``: its nodes send the TPDOs a master made synchronous."""
+        network = self.networks[bus]
+        for unit in self.units.values():
+            assert unit.node is not None
+            if unit.node.network is network:
+                self.frames_published += unit.node.on_sync()
 
     def stale(self, unit: Unit, now: float | None = None) -> tuple[bool, str]:
         return unit.stale(self.clock() if now is None else now)

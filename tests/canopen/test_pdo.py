@@ -1,5 +1,6 @@
 """PDOs as a master sees them: configuration read back over SDO, frames decoded by the
-master's own PDO map, remapping by the CiA 301 procedure, refusals with their abort codes."""
+master's own PDO map, remapping by the CiA 301 procedure, refusals with their abort codes
+(synchronous TPDOs: test_sync.py)."""
 
 from __future__ import annotations
 
@@ -83,7 +84,9 @@ def test_pdo_writes_outside_the_supported_set_are_refused(cfg, bus) -> None:
     for cob_id in (0x4000_0000 | 0x1C0, 0x1B1, valid | 0x2000_0000):
         assert _abort(lambda c=cob_id: sdo[0x1800][1].__setattr__("raw", c)) == \
             ABORT_VALUE_RANGE
-    assert _abort(lambda: sdo[0x1800][2].__setattr__("raw", 1)) == ABORT_VALUE_RANGE  # SYNC
+    for trans_type in (241, 252, 253):                # reserved, RTR only
+        assert _abort(lambda t=trans_type: sdo[0x1800][2].__setattr__("raw", t)) == \
+            ABORT_VALUE_RANGE
     assert _abort(lambda: sdo[0x1800][3].__setattr__("raw", 10)) == ABORT_VALUE_RANGE
     sdo[0x1800][2].raw = 255                          # event-driven, profile: accepted
     sdo[0x1800][1].raw = valid | 0x8000_0000          # disable
