@@ -51,6 +51,7 @@ def unit_object_dictionary(cfg: Config, unit: str) -> ObjectDictionary:
     _set_default(od[0x6501], step_nm)
     _set_default(od[0x650A][3], round(cfg.unit(unit).stroke_mm / step_mm))
     _set_default(od[0x1800][5], max(1, round(cfg.can.event_timer_ms)))
+    _set_default(od[0x6200], od[0x1800][5].default)       # CiA 406: the same timer
     emcy = 0x80 + node_id | (0 if cfg.can.emcy_enabled else COB_ID_INVALID)
     _set_default(od[0x1014], emcy, node_id)
     od.comments = "\n".join([

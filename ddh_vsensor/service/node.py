@@ -14,6 +14,8 @@ EDS shipped in the package, behaving as CiA 301 / CiA 406 describe for a generic
   reset node everything; the estimate itself is the process value and is kept. PDOs go out
   only while OPERATIONAL.
 - Heartbeat producer 0x1017 (EDS default 1000 ms).
+- CiA 406 cyclic timer 0x6200: TPDO1's event timer (0x1800 sub 5) by the profile's name,
+  which masters written for encoders set; reading and writing either is the same.
 - SDO server: reads return the live values; writing the preset 0x6010 sub 1 (in measuring
   steps) sets the estimate, refused with abort 0609 0030 outside the stroke; event timers and
   the heartbeat time may be written too.
@@ -50,6 +52,7 @@ from .sdo_gate import SdoGate
 log = logging.getLogger(__name__)
 
 SYNC_COB_ID = 0x80              # the pre-defined SYNC COB-ID the service routes to on_sync
+CYCLIC_TIMER = 0x6200           # CiA 406 cyclic timer (ms): TPDO1's event timer by another name
 
 class SensorNode:
     """The emulated sensor of one cylinder."""
@@ -311,6 +314,8 @@ class SensorNode:
     def _on_read(self, index: int, subindex: int, od: object) -> int | None:
         if index in (0x6501, 0x650A):
             return self._value(index, subindex, None)
+        if index == CYCLIC_TIMER:
+            return struct.unpack("<H", self.node.get_data(0x1800, 5))[0]
         if index not in LIVE_OBJECTS or subindex != (1 if index in CHANNEL_ARRAYS else 0):
             return None
         return self._value(index, subindex, self.live())
@@ -372,13 +377,16 @@ class SensorNode:
             # is don't care (CiA 301)
             if value_of(data) & ~PDO_INVALID != SYNC_COB_ID:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
-        elif index in (0x1800, 0x1801) and subindex == 5:
+        elif index in (0x1800, 0x1801) and subindex == 5 or index == CYCLIC_TIMER:
             ms = struct.unpack("<H", bytes(data))[0]
             lo, hi = self.event_timer_bounds_ms
             if ms < lo or ms > hi:           # 0: this node only sends on a timer
                 log.warning("%s: TPDO%d event timer %d ms refused: outside %g..%g ms",
-                            self.actuator, 1 if index == 0x1800 else 2, ms, lo, hi)
+                            self.actuator, 2 if index == 0x1801 else 1, ms, lo, hi)
                 raise SdoAbortedError(ABORT_VALUE_TOO_LOW if ms < lo else ABORT_VALUE_TOO_HIGH)
+            if index == CYCLIC_TIMER:       # CiA 406's name for TPDO1's event timer
+                index = 0x1800
+                self.node.data_store.setdefault(index, {})[5] = bytes(data)
             if index == 0x1800:
                 self.event_timer_ms = float(ms)
             else:

@@ -10,7 +10,7 @@ import pytest
 
 from ddh_vsensor.service.objects import (ABORT_COMMAND, ABORT_LENGTH_TOO_HIGH,
                                          ABORT_MAX_BELOW_MIN, ABORT_READ_ONLY,
-                                         ABORT_VALUE_RANGE)
+                                         ABORT_VALUE_RANGE, ABORT_VALUE_TOO_LOW)
 
 from .conftest import wait_for
 
@@ -93,3 +93,23 @@ def test_cia406_objects(cfg, bus) -> None:
     with pytest.raises(canopen.SdoAbortedError) as exc:
         node.sdo[0x6400][1].raw = 0                                # read only
     assert exc.value.code == ABORT_READ_ONLY
+
+
+def test_the_cia406_cyclic_timer_is_tpdo1s_event_timer(cfg, bus) -> None:
+    """A master written for encoders sets the cycle through 0x6200: TPDO1 then goes out at
+    that period (counted against the other node's TPDO1 at 10 ms), and 0x1800 sub 5 says so;
+    either object written, both read the same; outside the bounds, refused."""
+    service, master = bus
+    sdo = master.nodes["boom"].sdo
+    assert sdo[0x6200].raw == sdo[0x1800][5].raw == cfg.can.event_timer_ms
+    sdo[0x6200].raw = 40
+    assert sdo[0x1800][5].raw == 40
+    mark = master.frames.mark()
+    master.frames.wait_count(mark, 0x1B2, 41, "the bucket's TPDO1 at 10 ms")
+    assert 9 <= len(master.frames.since(mark, 0x1B1)) <= 11          # 400 ms at 40 ms
+    sdo[0x1800][5].raw = 20
+    assert sdo[0x6200].raw == 20
+    with pytest.raises(canopen.SdoAbortedError) as exc:
+        sdo[0x6200].raw = 0
+    assert exc.value.code == ABORT_VALUE_TOO_LOW
+    assert sdo[0x6200].raw == 20
