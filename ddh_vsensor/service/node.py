@@ -280,6 +280,12 @@ class SensorNode:
         self._next = (tick_index + every_pos, next_diag)
         return sent
 
+    @property
+    def synchronous(self) -> bool:
+        """Whether a valid TPDO goes out on SYNC."""
+        return any(pdo.enabled and pdo.trans_type <= SYNC_TYPE_MAX
+                   for pdo in (self.tpdo1, self.tpdo2))
+
     def on_sync(self) -> int:
         """A SYNC: the synchronous TPDOs that are due go out now with the estimate as it
         stands (every frame received before the SYNC integrated): type n at every n-th

@@ -230,12 +230,23 @@ class Service:
                 self._publish_held(unit)
 
     def _on_sync(self, bus: str) -> None:
-        """A SYNC on ``bus``: its nodes send the TPDOs a master made synchronous."""
+        """A SYNC on ``bus``: its nodes send the TPDOs a master made synchronous. While one
+        does, the bus is read as frames come (no coalescing: a SYNC is answered at once, not
+        up to a reading period later)."""
         network = self.networks[bus]
         for unit in self.units.values():
             assert unit.node is not None
             if unit.node.network is network:
                 self.frames_published += unit.node.on_sync()
+        link = self.links[bus]
+        prompt = bool(self._held) or self._synchronous_on(bus)
+        if link.prompt != prompt:
+            link.read_promptly(prompt)
+
+    def _synchronous_on(self, bus: str) -> bool:
+        network = self.networks[bus]
+        return any(u.node is not None and u.node.network is network and u.node.synchronous
+                   for u in self.units.values())
 
     def stale(self, unit: Unit, now: float | None = None) -> tuple[bool, str]:
         return unit.stale(self.clock() if now is None else now)
@@ -456,8 +467,8 @@ class Service:
         if self._release is not None:
             self._release.cancel()
             self._release = None
-        for link in self.links.values():
-            link.read_promptly(False)
+        for name, link in self.links.items():
+            link.read_promptly(self._synchronous_on(name))
 
     def _housekeeping(self, tick: Tick) -> None:
         try:

@@ -275,3 +275,25 @@ def test_an_overdue_frame_is_not_waited_for(held) -> None:
     held.tick()
     assert "boom" not in held.service._held                        # noqa: SLF001
 
+
+
+def test_a_synchronous_tpdo_is_sent_on_sync_and_its_bus_read_as_frames_come(held) -> None:
+    """A master makes the boom's TPDO1 synchronous (type 1): each SYNC sends it at once with
+    the position as it stands, and the bus is read as frames come (a reading period later
+    would answer the SYNC up to 5 ms late); back on its timer, reading coalesces again."""
+    import can
+    service, boom = held.service, held.boom
+    link = service.links["default"]
+    sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False,
+                       timestamp=held.d.wall_s)
+    held.frames(20, 0.0)
+    boom.node.node.set_data(0x1800, 2, bytes([1]), check_writable=True)
+    assert boom.node.synchronous and not boom.node.due(service._tick_index + 10)  # noqa: SLF001
+    for _ in range(3):
+        published = service.frames_published
+        held.d.send(sync, held.d.now)
+        assert service.frames_published == published + 1
+        assert link.prompt
+    boom.node.node.set_data(0x1800, 2, bytes([254]), check_writable=True)
+    held.d.send(sync, held.d.now)
+    assert not boom.node.synchronous and not link.prompt
