@@ -3,9 +3,10 @@ across the machine's buses), in arrival order, in bounded slices.
 
 Sevcon TPDO -> that unit's estimator step with the frame's own timestamp; oil and I/O frames
 -> latest values; NMT -> the canopen network of the bus it came on (a broadcast reaches that
-bus's nodes only); SYNC -> that bus's nodes' synchronous TPDOs; SDO requests and consumed heartbeats -> the network that serves them, each
-canopen COB-ID through its own rate limiter; frames on the emulated nodes' own IDs -> counted
-as ID clashes; anything else counted as unknown. A batch is handled at once when nothing is
+bus's nodes only); SYNC -> that bus's nodes' synchronous TPDOs; SDO requests and consumed
+heartbeats -> the network that serves them, each canopen COB-ID through its own rate
+limiter; frames on the emulated nodes' own IDs -> counted as ID clashes; anything else
+counted as unknown. A batch is handled at once when nothing is
 waiting and it is small (the common case, a few frames per wake), else queued for the
 dispatcher task, which works through the queue yielding between slices so that a flood never
 holds up the ticks. The backlog is capped (``faults.backlog_max_frames``, and no batch older
@@ -52,8 +53,7 @@ class Ingest:
     def __init__(self, inputs: Inputs, units: Mapping[str, Unit],
                  networks: Mapping[str, ServiceNetwork],
                  on_sevcon: Callable[[Unit, can.Message, float], None],
-                 faults: FaultsConfig,
-                 on_sync: Callable[[str], None] = lambda bus: None) -> None:
+                 on_sync: Callable[[str], None], faults: FaultsConfig) -> None:
         self.inputs, self.units, self.networks = inputs, units, networks
         self.on_sevcon, self.on_sync = on_sevcon, on_sync
         self.backlog_max_frames = faults.backlog_max_frames

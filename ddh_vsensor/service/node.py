@@ -54,6 +54,7 @@ log = logging.getLogger(__name__)
 SYNC_COB_ID = 0x80              # the pre-defined SYNC COB-ID the service routes to on_sync
 CYCLIC_TIMER = 0x6200           # CiA 406 cyclic timer (ms): TPDO1's event timer by another name
 
+
 class SensorNode:
     """The emulated sensor of one cylinder."""
 

@@ -123,7 +123,7 @@ class Service:
         self.states = StateStore(cfg, self.options.state_dir)
         self.states.restore(self.units)
         self.ingest = Ingest(self.inputs, self.units, self.networks, self._on_sevcon,
-                             self.faults, self._on_sync)
+                             self._on_sync, self.faults)
         link_kwargs = {"opener": opener} if opener is not None else {}
         filters = exact_filters(self.ingest.routes)
         self.links: dict[str, BusLink] = {}
