@@ -370,6 +370,13 @@ class Inputs:
                          "(%d so far, latest 0x%03X)", self.counts["unknown"], msg.arbitration_id)
 
     def clash(self, msg: can.Message) -> None:
+        if msg.is_remote_frame:             # a request for our frame, not another sender
+            self.counts["remote_requests"] += 1
+            self.log.warning(f"rtr-{msg.arbitration_id}", "remote request on 0x%03X not "
+                             "served: the emulated sensors answer no RTR (TPDOs go out on "
+                             "their timer or on SYNC; node guarding: no, heartbeat 0x1017)",
+                             msg.arbitration_id)
+            return
         self.counts["id_clash"] += 1
         self.log.warning(f"clash-{msg.arbitration_id}", "another node transmits on 0x%03X, an "
                          "ID of an emulated sensor: is the old sensor still connected, or a "
