@@ -4,8 +4,9 @@ While a load is held the rod stands still, yet the motor turns: it feeds what th
 leak. The model predicts that holding speed (``physics.steady.holding_speed``: pressure from
 the measured torque, viscosity from the oil temperature); a pump leaking more than modelled
 needs a faster one. In the estimate the same mismatch shows as creep: the model's velocity at
-the measured speed and torque is not zero. The fit uses the creep (mm over a hold, truth 0);
-the store keeps both speeds for people to read.
+the measured speed and torque is not zero. The fit uses the creep (truth 0, weighted as the
+rod is only held within what the loop holding it and the whole-rpm speed allow:
+:data:`.references.HOLD_WEIGHT_S`); the store keeps both speeds for people to read.
 
 A hold is found from the motor signals and the nominal estimate only: the estimated speed
 below :data:`HOLD_MAX_MM_S` and the motor speed below :data:`HOLD_MAX_RPM`, for at least
