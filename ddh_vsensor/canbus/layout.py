@@ -32,6 +32,7 @@ VERSION = "ddh-vsensor 2"
 OIL_TEMP = "OIL_TEMP_TPDO1"
 IO_MODULE = "IO_MODULE_TPDO1"
 NMT_COMMAND = "NMT_COMMAND"
+SYNC = "SYNC"
 # kind -> (message name pattern, CANopen function code, which node ID: Sevcon or sensor)
 _PER_UNIT = {
     "sevcon": ("SEVCON_{}_TPDO1", 0x180, "sevcon"),
@@ -122,7 +123,7 @@ def message_name(kind: str, unit: str) -> str:
 def all_message_names(units: Sequence[str]) -> list[str]:
     """Every message of a machine with these units."""
     return [message_name(kind, u) for u in units for kind in _PER_UNIT] + [
-        OIL_TEMP, IO_MODULE, NMT_COMMAND]
+        OIL_TEMP, IO_MODULE, NMT_COMMAND, SYNC]
 
 
 def sevcon_node(unit: str) -> str:
@@ -353,7 +354,7 @@ def _comments(cfg: Config) -> tuple[str, dict[str, str]]:
         DAEMON: f"The ddh-vsensor daemon: reads the Sevcon, oil and I/O frames, emulates one "
                 f"CiA 406 linear position sensor per unit "
                 f"(node{'s' if len(sensor_ids) > 1 else ''} {_and_list(sensor_ids)}).",
-        NMT_MASTER: "The CANopen network master, if any (NMT commands).",
+        NMT_MASTER: "The CANopen network master, if any (NMT commands, SYNC).",
         SDO_CLIENT: "Any SDO client: a master or a configuration tool."})
     return text, nodes
 
@@ -366,6 +367,7 @@ def machine_database(cfg: Config) -> Database:
     """
     ids = _Ids(cfg)
     ids.owner[0x000] = NMT_COMMAND
+    ids.owner[0x080] = SYNC
     units = cfg.unit_names
     inputs = [_unit_input_messages(cfg, u, ids) for u in units]
     messages = [tpdo for tpdo, _ in inputs] + [hb for _, hb in inputs]
@@ -392,6 +394,12 @@ def machine_database(cfg: Config) -> Database:
                  receivers=[DAEMON])],
         "CiA 301 NMT command (COB-ID 0) from the network master; the sensor nodes act on the "
         "ones addressed to them or to all (node 0).", NMT_MASTER, "Spontaneous"))
+    messages.append(_message(
+        0x080, SYNC, 0, [],
+        "CiA 301 SYNC (COB-ID 0x1005 = 0x80) from the network master: the sensor nodes send "
+        "the TPDOs a master made synchronous (transmission type 0..240) on it, at the "
+        "master's communication cycle period (its configuration, not known here).", NMT_MASTER,
+        "Spontaneous"))
     timers_ms = _template_timers_ms()
     for unit in units:
         messages.extend(_sensor_messages(cfg, unit, ids, timers_ms))

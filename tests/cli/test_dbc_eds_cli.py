@@ -34,7 +34,7 @@ def test_dbc_of_the_reference_loader_is_the_shipped_file(tmp_path: Path, capsys)
     assert main(["dbc", "--config", str(REPO / "config" / "loader.yaml"), "--out",
                  str(out)]) == 0
     assert out.read_bytes() == (REPO / "dbc" / "ddh_vsensor.dbc").read_bytes()
-    assert "19 frames of 2 unit(s) (boom, bucket)" in capsys.readouterr().out
+    assert "20 frames of 2 unit(s) (boom, bucket)" in capsys.readouterr().out
 
 
 def test_dbc_of_another_machine(lift_tilt: Path, tmp_path: Path) -> None:
