@@ -7,7 +7,8 @@ estimate is mapped to the observations of :class:`.references.ReferenceRun` (a l
 so the same search, the same quadratic stencil and the same held-out score apply. Added here:
 a 90 % interval per parameter (jackknife over the leave-one-run-out fits) and the answer
 ``unexplained`` when no cause is named although the references err far beyond what the
-nominal model does on its own (:data:`UNEXPLAINED_RMS_MM`).
+nominal model does on its own (:data:`UNEXPLAINED_RMS_MM`), or when the named cause leaves
+them erring far beyond that (:data:`LEFT_RMS_MM`, :data:`LEFT_SHARE`).
 """
 
 from __future__ import annotations
@@ -30,6 +31,13 @@ Progress = Callable[[str, float], None]
 # RMS of the increments, mm, beyond which an error no cause explains is called unexplained.
 # Without any effect the nominal model's increments stay below ~1 mm RMS on the trials.
 UNEXPLAINED_RMS_MM = 2.5
+# A named cause must leave the references about as the nominal model errs on its own, plus
+# the edges' own sampling where their changes are not timed: with timed edges a catalogued
+# cause left at most 0.22 mm RMS held out (and 4 % of the error), effects the catalogue does
+# not have, named as a look-alike, 1.2-3.7 mm (33-56 %). Beyond both the answer is
+# unexplained, not the look-alike (README).
+LEFT_RMS_MM = 0.5
+LEFT_SHARE = 0.25
 INTERVAL = 0.90
 # Causes that live in the position sensor the references replace: without it they change
 # nothing the machine does, so there is nothing here to fit them to (a scale fitted to the
@@ -141,7 +149,17 @@ def diagnose_references(cfg: Config, actuator: str, rruns: Sequence[ReferenceRun
     report("decision", 1.0)
     fits.sort(key=lambda f: (-f.score, f.cause.name != "none"))
     decision = decide_single(fits, model, weights)
-    if decision.cause == "none" and decision.rms_before_mm > UNEXPLAINED_RMS_MM:
+    named = decision.cause not in ("none", "ambiguous")
+    before, after = decision.rms_before_mm, decision.rms_after_mm
+    sampling_mm2 = float(np.mean(np.concatenate([rr.increment_var_mm2() for rr in rruns])))
+    if named and after > np.hypot(LEFT_RMS_MM, np.sqrt(sampling_mm2)) and \
+            after > LEFT_SHARE * before:
+        decision = Decision("unexplained", f"{decision.cause} explains part of the references' "
+                            f"error (RMS {before:.2f} -> {after:.2f} mm held out) but leaves "
+                            f"{after / before:.0%} of it, beyond what the nominal model errs on "
+                            "its own: a cause the catalogue does not have, or more than one",
+                            before, before)
+    elif decision.cause == "none" and decision.rms_before_mm > UNEXPLAINED_RMS_MM:
         decision = Decision("unexplained", f"the references err by {decision.rms_before_mm:.2f}"
                             f" mm RMS from edge to edge, beyond the nominal model's own error "
                             f"({UNEXPLAINED_RMS_MM:g} mm), and no catalogued cause explains "

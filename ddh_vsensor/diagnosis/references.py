@@ -49,6 +49,9 @@ class ReferenceRun:
     switch: tuple[str, ...]
     rising: np.ndarray
     holds: tuple[Hold, ...]
+    # each edge position's variance (mm²): 0 where the switch's change is timed, else the
+    # rod's travel over the sample, uniform: (v dt)² / 12
+    edge_var_mm2: np.ndarray | None = None
 
     @property
     def name(self) -> str:
@@ -72,6 +75,11 @@ class ReferenceRun:
     @property
     def n_increments(self) -> int:
         return len(self.edges) - 1
+
+    def increment_var_mm2(self) -> np.ndarray:
+        """Each increment's variance from its two edges' positions alone."""
+        var = np.zeros(len(self.edges)) if self.edge_var_mm2 is None else self.edge_var_mm2
+        return var[1:] + var[:-1]
 
 
 _TABLES: dict[tuple[int, str], tuple[Config, UnitTables]] = {}
@@ -111,8 +119,9 @@ def _check(run: Run) -> None:
 
 
 def edge_events(cfg: Config, actuator: str, run: Run,
-                velocity_mm_s: np.ndarray) -> list[tuple[int, str, bool, float]]:
-    """(sample, switch, rising, rod position mm) of every edge met in motion, in time order.
+                velocity_mm_s: np.ndarray) -> list[tuple[int, str, bool, float, float]]:
+    """(sample, switch, rising, rod position mm, its variance mm²) of every edge met in
+    motion, in time order.
 
     The state changes at the first sample past the switching position, so the position there
     is the switching position plus the travel since the crossing: since the change's own
@@ -129,9 +138,12 @@ def edge_events(cfg: Config, actuator: str, run: Run,
             v = float(velocity_mm_s[c])
             if c == 0 or abs(v) < DIRECTION_SPEED_MM_S:
                 continue                          # direction unknown: the edge says nothing
-            since_s = share_after_crossing(t, timed, c) * float(t[c] - t[c - 1])
+            dt = float(t[c] - t[c - 1])
+            since_s = share_after_crossing(t, timed, c) * dt
             x = sw.switching_position_mm(rising, v > 0) + v * since_s
-            out.append((int(c), sw.name, bool(rising), x))
+            at_its_time = timed is not None and t[c - 1] < timed[c] <= t[c]
+            out.append((int(c), sw.name, bool(rising), x,
+                        0.0 if at_its_time else (v * dt) ** 2 / 12.0))
     out.sort()
     return out
 
@@ -185,4 +197,5 @@ def reference_run(cfg: Config, actuator: str, run: Run, *,
     holds = describe_holds(unit, arun.time_s, arun.speed_rpm,
                            arun.torque_nm, arun.oil_temp_c, ranges)
     return ReferenceRun(arun, idx, edge_mm, tuple(e[1] for e, k in zip(events, keep) if k),
-                        np.array([e[2] for e, k in zip(events, keep) if k]), tuple(holds))
+                        np.array([e[2] for e, k in zip(events, keep) if k]), tuple(holds),
+                        np.array([e[4] for e in events])[keep])
