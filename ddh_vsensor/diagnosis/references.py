@@ -51,7 +51,7 @@ class ReferenceRun:
     holds: tuple[Hold, ...]
     # each edge position's variance (mm²): 0 where the switch's change is timed, else the
     # rod's travel over the sample, uniform: (v dt)² / 12
-    edge_var_mm2: np.ndarray | None = None
+    edge_var_mm2: np.ndarray
 
     @property
     def name(self) -> str:
@@ -78,8 +78,7 @@ class ReferenceRun:
 
     def increment_var_mm2(self) -> np.ndarray:
         """Each increment's variance from its two edges' positions alone."""
-        var = np.zeros(len(self.edges)) if self.edge_var_mm2 is None else self.edge_var_mm2
-        return var[1:] + var[:-1]
+        return self.edge_var_mm2[1:] + self.edge_var_mm2[:-1]
 
 
 _TABLES: dict[tuple[int, str], tuple[Config, UnitTables]] = {}
