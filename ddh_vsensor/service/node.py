@@ -284,8 +284,9 @@ class SensorNode:
     @property
     def synchronous(self) -> bool:
         """Whether a valid TPDO goes out on SYNC."""
-        return any(pdo.enabled and pdo.trans_type <= SYNC_TYPE_MAX
-                   for pdo in (self.tpdo1, self.tpdo2))
+        tpdo1, tpdo2 = self.tpdo1, self.tpdo2
+        return (tpdo1.enabled and tpdo1.trans_type <= SYNC_TYPE_MAX) or \
+            (tpdo2.enabled and tpdo2.trans_type <= SYNC_TYPE_MAX)
 
     def on_sync(self) -> int:
         """A SYNC: the synchronous TPDOs that are due go out now with the estimate as it

@@ -120,6 +120,10 @@ class Service:
         self.units: dict[str, Unit] = {}
         for actuator in cfg.can.units:
             self.units[actuator] = self._unit(actuator, tables[actuator])
+        self._bus_nodes: dict[str, list[SensorNode]] = {name: [] for name in self.bus_names}
+        for actuator, unit in self.units.items():
+            assert unit.node is not None
+            self._bus_nodes[cfg.can.units[actuator].bus].append(unit.node)
         self.states = StateStore(cfg, self.options.state_dir)
         self.states.restore(self.units)
         self.ingest = Ingest(self.inputs, self.units, self.networks, self._on_sevcon,
@@ -233,20 +237,16 @@ class Service:
         """A SYNC on ``bus``: its nodes send the TPDOs a master made synchronous. While one
         does, the bus is read as frames come (no coalescing: a SYNC is answered at once, not
         up to a reading period later)."""
-        network = self.networks[bus]
-        for unit in self.units.values():
-            assert unit.node is not None
-            if unit.node.network is network:
-                self.frames_published += unit.node.on_sync()
+        prompt = bool(self._held)
+        for node in self._bus_nodes[bus]:
+            self.frames_published += node.on_sync()
+            prompt = prompt or node.synchronous
         link = self.links[bus]
-        prompt = bool(self._held) or self._synchronous_on(bus)
         if link.prompt != prompt:
             link.read_promptly(prompt)
 
     def _synchronous_on(self, bus: str) -> bool:
-        network = self.networks[bus]
-        return any(u.node is not None and u.node.network is network and u.node.synchronous
-                   for u in self.units.values())
+        return any(node.synchronous for node in self._bus_nodes[bus])
 
     def stale(self, unit: Unit, now: float | None = None) -> tuple[bool, str]:
         return unit.stale(self.clock() if now is None else now)

@@ -5,6 +5,7 @@ and a process preempted while it reads the two clocks sees no step. And which Ha
 
 from __future__ import annotations
 
+import can
 import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec
@@ -281,7 +282,6 @@ def test_a_synchronous_tpdo_is_sent_on_sync_and_its_bus_read_as_frames_come(held
     """A master makes the boom's TPDO1 synchronous (type 1): each SYNC sends it at once with
     the position as it stands, and the bus is read as frames come (a reading period later
     would answer the SYNC up to 5 ms late); back on its timer, reading coalesces again."""
-    import can
     service, boom = held.service, held.boom
     link = service.links["default"]
     sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False,
