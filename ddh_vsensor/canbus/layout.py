@@ -287,7 +287,9 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
         frame_id("sensor_heartbeat"), message_name("sensor_heartbeat", unit), 1,
         [_nmt_state("NMT state of the sensor node (CiA 301 heartbeat byte).")],
         f"Heartbeat of the emulated {unit} sensor (0x700 + node {node_id}), producer time "
-        f"0x1017 ({timers_ms['heartbeat']} ms); NmtState 0 is its boot-up message.",
+        f"0x1017 ({timers_ms['heartbeat']} ms); NmtState 0 is its boot-up message. Also the "
+        f"answer to a node guarding request (RTR on this ID): NmtState plus 128 every second "
+        f"answer (the toggle bit).",
         DAEMON, "Cyclic", timers_ms["heartbeat"])
     register = [_signal(f"Register{name}", 16 + bit, 1,
                         f"Error register 0x1001 bit {bit}: {text}.")
@@ -298,7 +300,8 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
     yield _message(
         frame_id("emcy"), message_name("emcy", unit), 8,
         [_signal("ErrorCode", 0, 16, "CiA 301 emergency error code; 0 = error reset (one fault "
-                 "cleared, the register shows what remains).",
+                 "cleared, the register shows what remains). 8130 with FlagConcerned 0: the "
+                 "node's life guarding event (guard requests stopped for 0x100C x 0x100D ms).",
                  choices={0: "ErrorReset", **dict(EMCY_CODES.values())}),
          *register,
          _signal("FlagConcerned", 24, 8, "The status flag (0x2002 bit) that was set or cleared; "

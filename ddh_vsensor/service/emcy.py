@@ -7,6 +7,9 @@ fault that appears enters the error field (newest first). An EMCY's manufacturer
 flag set or cleared (0: none), then the fault flags active after it. A fault that came and went
 while the inhibit time held its EMCY back is not announced, but the register the master was
 last told may have counted it: an error reset with no flag then brings it up to date.
+
+The node's own life guarding event (:mod:`.guarding`) is no flag of the estimate: it sends
+EMCY 8130 with no flag concerned and sets register bits 0 and 4, and its end an error reset.
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ _REGISTER_BITS = {
 EMCY_FAULTS: dict[int, tuple[int, int]] = {
     int(flag): (EMCY_CODES[flag][0], bits) for flag, bits in _REGISTER_BITS.items()}
 FAULT_FLAGS = sum(EMCY_FAULTS)
+LIFE_GUARD_CODE = 0x8130            # CiA 301: life guard error or heartbeat error
+LIFE_GUARD_REGISTER = 0x11          # generic and communication
 
 
 def error_register(flags: int) -> int:
@@ -62,15 +67,22 @@ class EmcyProducer:
         self.active = 0                     # fault flags in the error field already
         self.next_emcy_s = 0.0              # monotonic time the inhibit time ends
         self.errors: list[int] = []         # 0x1003: newest first
+        self.life_guard = False             # a life guarding event is on
+        self.told_life_guard = False        # ... as the master was last told
 
     def booted(self) -> None:
         """Active faults are reported again after every boot."""
         self.reported = self.told_register = 0
+        self.life_guard = self.told_life_guard = False
 
     def reset(self) -> None:
         """Error field cleared; active faults enter it again."""
         self.errors.clear()
         self.active = 0
+
+    def register(self, flags: int) -> int:
+        """The error register 0x1001: the fault flags' bits and the life guarding event's."""
+        return error_register(flags) | (LIFE_GUARD_REGISTER if self.life_guard else 0)
 
     def on_read(self, index: int, subindex: int, od: object) -> int | None:
         if index != 0x1003:
@@ -107,8 +119,13 @@ class EmcyProducer:
                     self.errors.insert(0, code | bit << 16)
                     del self.errors[ERROR_FIELD_SIZE:]
             self.active = faults
-        register = error_register(faults)
-        if faults == self.reported and register == self.told_register \
+        guard_changed = self.life_guard != self.told_life_guard
+        if guard_changed and self.life_guard and (not self.errors or
+                                                  self.errors[0] != LIFE_GUARD_CODE):
+            self.errors.insert(0, LIFE_GUARD_CODE)
+            del self.errors[ERROR_FIELD_SIZE:]
+        register = self.register(faults)
+        if faults == self.reported and register == self.told_register and not guard_changed \
                 or self.node.nmt.state in ("STOPPED", "INITIALISING"):
             return 0
         cob_id = value_of(self.node.get_data(0x1014, 0))
@@ -116,16 +133,21 @@ class EmcyProducer:
         if cob_id & PDO_INVALID or now_s < self.next_emcy_s:
             return 0
         inhibit_s = value_of(self.node.get_data(0x1015, 0)) * 1e-4     # 100 us units
-        changes = [(bit, code) for bit, (code, _) in EMCY_FAULTS.items()
-                   if (faults ^ self.reported) & bit] or [(0, 0x0000)]   # register only
+        changes = [(bit, code if faults & bit else 0x0000)
+                   for bit, (code, _) in EMCY_FAULTS.items() if (faults ^ self.reported) & bit]
+        if guard_changed:
+            changes.insert(0, (0, LIFE_GUARD_CODE if self.life_guard else 0x0000))
         sent = 0
-        for bit, code in changes:
-            appeared = bool(faults & bit)
+        for bit, code in changes or [(0, 0x0000)]:                      # register only
             self.network.send_message(cob_id & 0x7FF, struct.pack(
-                "<HBBB3x", code if appeared else 0x0000, register, bit, faults))
-            log.info("%s: EMCY %04X (flag 0x%02X %s)", self.name, code if appeared else 0,
-                     bit, "set" if appeared else "cleared")
-            self.reported ^= bit
+                "<HBBB3x", code, register, bit, faults))
+            log.info("%s: EMCY %04X (%s)", self.name, code,
+                     f"flag 0x{bit:02X} {'set' if faults & bit else 'cleared'}" if bit else
+                     "life guarding" if guard_changed and not sent else "error register")
+            if bit:
+                self.reported ^= bit
+            else:
+                self.told_life_guard = self.life_guard
             self.told_register = register
             sent += 1
             if inhibit_s > 0.0:

@@ -4,11 +4,11 @@ across the machine's buses), in arrival order, in bounded slices.
 Sevcon TPDO -> that unit's estimator step with the frame's own timestamp; oil and I/O frames
 -> latest values; NMT -> the canopen network of the bus it came on (a broadcast reaches that
 bus's nodes only); SYNC -> that bus's nodes' synchronous TPDOs; SDO requests and consumed
-heartbeats -> the network that serves them, each canopen COB-ID through its own rate
-limiter; frames on the emulated nodes' own IDs -> counted as ID clashes; anything else
-counted as unknown. A batch is handled at once when nothing is
-waiting and it is small (the common case, a few frames per wake), else queued for the
-dispatcher task, which works through the queue yielding between slices so that a flood never
+heartbeats -> the network that serves them; a remote frame on a node's error-control ID (node
+guarding) -> that node; each canopen COB-ID through its own rate limiter; other frames on the
+emulated nodes' own IDs -> counted as ID clashes; anything else counted as unknown. A batch
+is handled at once when nothing is waiting and it is small (the common case, a few frames per
+wake), else queued for the dispatcher task, which works through the queue yielding between slices so that a flood never
 holds up the ticks. The backlog is capped (``faults.backlog_max_frames``, and no batch older
 than BACKLOG_DROP_S): the oldest batches are dropped and counted, and the Sevcon frames lost
 with them are an unintegrated gap.
@@ -41,9 +41,11 @@ BACKLOG_DROP_S = 0.9
 # canopen traffic per COB-ID (NMT, SDO requests, consumed heartbeats): rate and burst. An NMT
 # master sends a handful of commands, an SDO client one request per response, a controller
 # one heartbeat per 100 ms or slower; beyond that a frame is dropped and counted.
-# A SYNC producer sends one per communication cycle, 1 ms at the fastest.
-CANOPEN_RATE_HZ = {"nmt": 20.0, "sdo": 500.0, "heartbeat": 50.0, "sync": 2000.0}
-CANOPEN_BURST = {"nmt": 10, "sdo": 100, "heartbeat": 10, "sync": 10}
+# A SYNC producer sends one per communication cycle, 1 ms at the fastest; a guarding master
+# one request per guard time, 10 ms at the fastest masters allow.
+CANOPEN_RATE_HZ = {"nmt": 20.0, "sdo": 500.0, "heartbeat": 50.0, "sync": 2000.0,
+                   "guard": 200.0}
+CANOPEN_BURST = {"nmt": 10, "sdo": 100, "heartbeat": 10, "sync": 10, "guard": 10}
 LSS_ID = 0x7E5                   # not served
 
 
@@ -81,7 +83,9 @@ class Ingest:
         for unit in self.units.values():
             assert unit.node is not None
             for kind, can_id in unit.node.cob_ids.items():
-                if kind != "sdo_rx":
+                if kind == "heartbeat":
+                    routes[can_id] = ("guard", unit.node)
+                elif kind != "sdo_rx":
                     routes[can_id] = ("clash", None)
         routes.pop(LSS_ID, None)
         return routes
@@ -166,6 +170,11 @@ class Ingest:
             if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus):
                 return
             target.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        elif kind == "guard":
+            if not msg.is_remote_frame:
+                self.inputs.clash(msg)
+            elif self._canopen_allowed(msg, now, bus, "guard"):
+                target.on_guard_request(now)
         elif kind == "sync":
             if not msg.is_remote_frame and self._canopen_allowed(msg, now, bus):
                 self.on_sync(bus)
@@ -181,14 +190,15 @@ class Ingest:
         else:
             self.inputs.clash(msg)
 
-    def _canopen_allowed(self, msg: can.Message, now: float, bus: str) -> bool:
+    def _canopen_allowed(self, msg: can.Message, now: float, bus: str,
+                         kind: str | None = None) -> bool:
         """A rate limiter per bus and canopen COB-ID, on arrival time: the excess of a flood
         is dropped, counted."""
         can_id = msg.arbitration_id
         limiter = self._canopen_limiters.get((bus, can_id))
         if limiter is None:
-            kind = "nmt" if can_id == 0 else "sync" if can_id == SYNC_COB_ID else \
-                "sdo" if 0x600 <= can_id < 0x680 else "heartbeat"
+            kind = kind or ("nmt" if can_id == 0 else "sync" if can_id == SYNC_COB_ID else
+                            "sdo" if 0x600 <= can_id < 0x680 else "heartbeat")
             limiter = RateLimiter(CANOPEN_RATE_HZ[kind], CANOPEN_BURST[kind])
             self._canopen_limiters[(bus, can_id)] = limiter
         if limiter.take(now):

@@ -373,8 +373,9 @@ class Inputs:
         if msg.is_remote_frame:             # a request for our frame, not another sender
             self.counts["remote_requests"] += 1
             self.log.warning(f"rtr-{msg.arbitration_id}", "remote request on 0x%03X not "
-                             "served: the emulated sensors answer no RTR (TPDOs go out on "
-                             "their timer or on SYNC; node guarding: no, heartbeat 0x1017)",
+                             "served: the emulated sensors' TPDOs go out on their timer or "
+                             "on SYNC, never on request (node guarding on 0x700 + node is "
+                             "answered)",
                              msg.arbitration_id)
             return
         self.counts["id_clash"] += 1

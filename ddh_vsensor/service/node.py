@@ -13,7 +13,8 @@ EDS shipped in the package, behaving as CiA 301 / CiA 406 describe for a generic
   Reset communication restores the communication area (0x1000..0x1FFF) to its defaults,
   reset node everything; the estimate itself is the process value and is kept. PDOs go out
   only while OPERATIONAL.
-- Heartbeat producer 0x1017 (EDS default 1000 ms).
+- Heartbeat producer 0x1017 (EDS default 1000 ms); node guarding answered, life guarding
+  with 0x100C x 0x100D: :mod:`.guarding`.
 - CiA 406 cyclic timer 0x6200: TPDO1's event timer (0x1800 sub 5) by the profile's name,
   which masters written for encoders set; reading and writing either is the same.
 - SDO server: reads return the live values; writing the preset 0x6010 sub 1 (in measuring
@@ -39,7 +40,8 @@ from canopen.sdo import SdoAbortedError
 from ..canbus.eds import unit_object_dictionary
 from ..config import Config
 from ..estimator.flags import Flags
-from .emcy import EmcyProducer, error_register
+from .emcy import EmcyProducer
+from .guarding import Guarding
 from .network import ServiceNetwork
 from .objects import (ABORT_MAX_BELOW_MIN, ABORT_VALUE_RANGE, ABORT_VALUE_TOO_HIGH,
                       ABORT_VALUE_TOO_LOW, ALARM_POSITION_ERROR, CHANNEL_ARRAYS, COMM_AREA,
@@ -105,6 +107,7 @@ class SensorNode:
         node.nmt.stop_heartbeat = self._stop_heartbeat            # type: ignore[method-assign]
         node.nmt.update_heartbeat = lambda: None                  # type: ignore[method-assign]
         self.emcy = EmcyProducer(node, network, actuator, self.cob_ids["emcy"])
+        self.guarding = Guarding(node, network.send_message, actuator)
         node.add_read_callback(self._on_read)
         node.add_read_callback(self.emcy.on_read)
         node.add_write_callback(self._on_write)
@@ -136,6 +139,7 @@ class SensorNode:
         if self.auto_start:
             nmt.send_command(0x01)      # -> OPERATIONAL
         self.emcy.booted()
+        self.guarding.reset()
         log.info("%s sensor node %d booted, %s", self.actuator, self.node_id, nmt.state)
 
     def _on_nmt_command(self, can_id: int, data: bytes, timestamp: float) -> None:
@@ -174,7 +178,14 @@ class SensorNode:
     def operational(self) -> bool:
         return self.node.nmt.state == "OPERATIONAL"
 
-    def heartbeat_due(self, now_s: float) -> None:
+    def on_guard_request(self, now_s: float) -> None:
+        """A node guarding request (remote frame on 0x700 + node) from the master."""
+        self.guarding.on_request(now_s)
+
+    def error_control_due(self, now_s: float) -> None:
+        """Every housekeeping tick: the heartbeat when due, the life guarding's verdict (its
+        EMCY goes out with the next fault report)."""
+        self.emcy.life_guard = self.guarding.check(now_s)
         if self.heartbeat_period_s <= 0.0:
             return
         if self._next_heartbeat_s is None or now_s >= self._next_heartbeat_s:
@@ -347,7 +358,7 @@ class SensorNode:
         if index in (0x2003, 0x2004):
             return (p.input_frames if index == 0x2003 else p.rejected_frames) & 0xFFFF
         if index == 0x1001:
-            return error_register(p.flags)
+            return self.emcy.register(p.flags)
         if index == 0x6400:
             return self._area_state(p.position_mm)
         if index == 0x6503:

@@ -484,7 +484,7 @@ class Service:
         self.housekeeping_ticks += 1
         for unit in self.units.values():
             assert unit.node is not None
-            unit.node.heartbeat_due(now)
+            unit.node.error_control_due(now)
         self._ready_when_open()
         if self.notifier.watchdog_interval_s and now >= self._next_watchdog_s \
                 and self.integrating(now):

@@ -30,7 +30,11 @@ REWORDED = {(None, None),                                        # the database'
             ("POSITION_BOOM_TPDO1", None), ("POSITION_BUCKET_TPDO1", None),  # EDS per unit
             ("POSITION_BOOM_TPDO1", "Position"), ("POSITION_BUCKET_TPDO1", "Position"),
             ("SENSOR_BOOM_EMCY", "FlagConcerned"),                # 0: a register-only reset
-            ("SENSOR_BUCKET_EMCY", "FlagConcerned")}
+            ("SENSOR_BUCKET_EMCY", "FlagConcerned"),
+            ("SENSOR_BOOM_EMCY", "ErrorCode"),                    # 8130: life guarding too
+            ("SENSOR_BUCKET_EMCY", "ErrorCode"),
+            ("SENSOR_BOOM_HEARTBEAT", None),                      # node guarding answers
+            ("SENSOR_BUCKET_HEARTBEAT", None)}
 # Frames described since (the sensors consume SYNC), and the nodes whose comment says so.
 ADDED = {"SYNC"}
 REWORDED_NODES = {"NMT_MASTER"}

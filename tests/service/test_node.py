@@ -84,7 +84,7 @@ def test_stopped_node_sends_nothing(node, sent) -> None:
     node.after_nmt_command()
     sent.clear()
     assert node.publish(Published(1.0, 0.0, 0.0, 0, 0, 0), 0) == 0 and not sent
-    node.heartbeat_due(100.0)
+    node.error_control_due(100.0)
     assert [bytes(m.data) for m in sent] == [b"\x04"]   # heartbeat says STOPPED
 
 
