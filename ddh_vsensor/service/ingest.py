@@ -6,12 +6,12 @@ Sevcon TPDO -> that unit's estimator step with the frame's own timestamp; oil an
 bus's nodes only); SYNC -> that bus's nodes' synchronous TPDOs; SDO requests and consumed
 heartbeats -> the network that serves them; a remote frame on a node's error-control ID (node
 guarding) -> that node; each canopen COB-ID through its own rate limiter; other frames on the
-emulated nodes' own IDs -> counted as ID clashes; anything else counted as unknown. A batch
-is handled at once when nothing is waiting and it is small (the common case, a few frames per
-wake), else queued for the dispatcher task, which works through the queue yielding between slices so that a flood never
-holds up the ticks. The backlog is capped (``faults.backlog_max_frames``, and no batch older
-than BACKLOG_DROP_S): the oldest batches are dropped and counted, and the Sevcon frames lost
-with them are an unintegrated gap.
+emulated nodes' own IDs -> counted as ID clashes; anything else counted as unknown. A batch is
+handled at once when nothing is waiting and it is small (the common case, a few frames per
+wake), else queued for the dispatcher task, which works through the queue yielding between
+slices so that a flood never holds up the ticks. The backlog is capped
+(``faults.backlog_max_frames``, and no batch older than BACKLOG_DROP_S): the oldest batches
+are dropped and counted, and the Sevcon frames lost with them are an unintegrated gap.
 """
 
 from __future__ import annotations
