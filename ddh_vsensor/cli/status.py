@@ -91,10 +91,13 @@ def _run(args: argparse.Namespace) -> int:
               f"{r['measuring_step_nm'] / 1e6:g} mm)")
         print(f"  speed         {r['speed_mm_s']:10.1f} mm/s")
         print(f"  uncertainty   {r['uncertainty_mm']:10.2f} mm")
-        print(f"  flags         {r['flag_names']} (0x{r['flags']:02X})")
+        print(f"  flags         {r['flag_names']} (0x{r['flags']:02X}), error register "
+              f"0x{r['error_register']:02X}")
         print(f"  input frames  {r['input_frames']:10d}  rejected {r['rejected_frames']}")
         print(f"  timers        TPDO1 {r['tpdo1_event_timer_ms']} ms, TPDO2 "
-              f"{r['tpdo2_event_timer_ms']} ms, heartbeat {r['heartbeat_ms']} ms")
+              f"{r['tpdo2_event_timer_ms']} ms, heartbeat {r['heartbeat_ms']} ms, guarding "
+              + (f"{r['guard_time_ms']} ms x {r['life_time_factor']}"
+                 if r['guard_time_ms'] and r['life_time_factor'] else "off"))
     return 0
 
 

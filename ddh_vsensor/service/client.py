@@ -97,6 +97,9 @@ class SensorClient:
             "tpdo1_event_timer_ms": self.sdo[0x1800][5].raw,
             "tpdo2_event_timer_ms": self.sdo[0x1801][5].raw,
             "heartbeat_ms": self.sdo[0x1017].raw,
+            "guard_time_ms": self.sdo[0x100C].raw,
+            "life_time_factor": self.sdo[0x100D].raw,
+            "error_register": self.sdo[0x1001].raw,
         }
 
     # --- settings ------------------------------------------------------------------------

@@ -165,7 +165,8 @@ def test_status_reads_the_nodes_and_presets(cfg, unit_tables, capsys) -> None:
     finally:
         runner.stop()
     assert re.search(r"boom \(node 49.*\n\s+position\s+12\.34 mm", out)
-    assert "timers        TPDO1 10 ms, TPDO2 100 ms, heartbeat 1000 ms" in out
+    assert "timers        TPDO1 10 ms, TPDO2 100 ms, heartbeat 1000 ms, guarding off" in out
+    assert re.search(r"flags .*\), error register 0x[0-9A-F]{2}\n", out)
     assert "refused" in err and "bucket" in err
 
 
