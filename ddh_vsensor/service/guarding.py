@@ -70,11 +70,17 @@ class Guarding:
             log.info("%s sensor node %d: node guarding requests again", self.name, self.node.id)
 
     def check(self, now_s: float) -> bool:
-        """Whether a life guarding event is on now (logged when it starts)."""
-        if self.lost or self.last_request_s is None:
+        """Whether a life guarding event is on now (logged when it starts; over when a
+        request comes or the master sets the life time to 0)."""
+        if self.last_request_s is None:
             return self.lost
         life_s = self.life_time_s()
-        if life_s > 0.0 and now_s - self.last_request_s > life_s:
+        if self.lost:
+            if life_s == 0.0:
+                self.lost = False
+                log.info("%s sensor node %d: life guarding switched off", self.name,
+                         self.node.id)
+        elif life_s > 0.0 and now_s - self.last_request_s > life_s:
             self.lost = True
             log.warning("%s sensor node %d: no node guarding request for %.0f ms (guard time "
                         "x life time factor): life guarding event, EMCY 8130", self.name,
