@@ -11,7 +11,7 @@
 enum {
     P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
     P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S, P_TORQUE_STEP,
-    P_WINDOW_S, P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
+    P_WINDOW_S, P_SPEED_LIMIT, P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
 };
 #define HF_LEARN 20         /* steps the drive's cadence is first learnt from (see HF_GAIN) */
@@ -183,8 +183,12 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * ends, and the endpoints' mean read as pump torque is a wrong pressure that a one-way
      * valve or the torque-blind common mode of the two chambers keeps. The pump torque
      * (the pressures) changes smoothly, so the mean is the value in that range nearest the
-     * last step's. */
-    if (fabs(tau - S[S_TAU]) > P[P_TORQUE_STEP]) {
+     * last step's. Whatever the step's size where the speed reaches or leaves the drive's
+     * speed limit within the sample: the limiter takes over from the torque command there
+     * (or hands back to it), and the acceleration ends or starts at an unknown instant. */
+    double limit = P[P_SPEED_LIMIT] - 1.0;         /* whole rpm */
+    int limit_edge = (fabs(n) >= limit) != (fabs(S[S_N]) >= limit);
+    if (fabs(tau - S[S_TAU]) > P[P_TORQUE_STEP] || limit_edge) {
         double lo = earlier + w * fmin(tau, S[S_TAU]) - inertia;
         double hi = earlier + w * fmax(tau, S[S_TAU]) - inertia;
         double last = S[S_PUMP_TAU];

@@ -26,8 +26,9 @@ there (the chamber force of its last moving step), and so does a rod whose chamb
 on a one-way valve;
 reversing on an end stop, the pumps' static friction lets any torque between the motoring
 and the pumping one hold the pressures; and a torque step within one sample larger than
-``torque_step_nm`` has an unknown shape, so the step's mean pump torque is taken nearest the
-last one.
+``torque_step_nm``, or any where the speed reaches or leaves the motor's speed limit (the
+drive's limiter takes over from the torque command there), has an unknown shape, so the
+step's mean pump torque is taken nearest the last one.
 
 The step is compiled C (``_chambers.c``, built with the package as an optional extension and
 loaded with ctypes): the online face calls it per sample, the offline face runs the same
@@ -62,8 +63,8 @@ _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valv
 # indices of the parameter and state vectors (the P_* / S_* enums of _chambers.c)
 (P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
  P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S,
- P_TORQUE_STEP, P_WINDOW_S) = range(18)
-P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 18, 22, 26, 30, 34, 46, 58
+ P_TORQUE_STEP, P_WINDOW_S, P_SPEED_LIMIT) = range(19)
+P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 19, 23, 27, 31, 35, 47, 59
 (S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
  S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING) = range(19)
 RING, HF_LEARN = 32, 20                              # as in _chambers.c
@@ -119,6 +120,7 @@ def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
     p[P_MAX_GAP_S] = max_gap_s
     p[P_TORQUE_STEP] = torque_step_nm
     p[P_WINDOW_S] = window_s
+    p[P_SPEED_LIMIT] = unit.motor.speed_limit_rpm
     for side, g, ge, k in ((a, P_G_A, P_GE_A, P_K_A), (b, P_G_B, P_GE_B, P_K_B)):
         g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
         g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
@@ -310,7 +312,8 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     inertia = P[P_INERTIA] * (n - n_first) / span
     mean = 0.5 * (tau + S[S_TAU])
     torque = earlier + w * mean - inertia
-    if abs(tau - S[S_TAU]) > P[P_TORQUE_STEP]:
+    limit = P[P_SPEED_LIMIT] - 1.0
+    if abs(tau - S[S_TAU]) > P[P_TORQUE_STEP] or (abs(n) >= limit) != (abs(S[S_N]) >= limit):
         lo = earlier + w * min(tau, S[S_TAU]) - inertia
         hi = earlier + w * max(tau, S[S_TAU]) - inertia
         torque = min(max(float(S[S_PUMP_TAU]), lo), hi)

@@ -167,6 +167,19 @@ def _random_run_worst(cfg, unit_tables, actuator, spec):
     return run, float(np.nanmax(np.abs(err)))
 
 
+def test_reaching_the_speed_limit_within_a_sample_is_a_torque_step_of_unknown_shape(
+        cfg, unit_tables):
+    """A random cycle at 2 degC (a set no rule was made on) drives the bucket's motor into
+    its 6000 rpm limit (32.82 s): the acceleration ends early in the sample and the torque
+    falls 37 N*m, under the torque-step threshold (40.5 N*m); the end values' mean read as
+    pump torque was 15 N*m off, +31 bar on B, 1.85 mm worst over the run. Reaching (or
+    leaving) the limit is now such a step whatever its size: 0.75 mm measured."""
+    _, worst = _random_run_worst(cfg, unit_tables, "bucket", RunSpec(
+        cycle=random_cycle(cfg, 31202, end_stop_share=0.012803929599974583), payload_kg=0.0,
+        oil_temp_c=2.0, seed=2))
+    assert worst <= 0.85
+
+
 def test_a_reversal_on_an_end_stop_is_read_through_the_pumps_friction_band(cfg, unit_tables):
     """A random cycle at 40 degC that presses the boom onto its top stop and reverses off it
     within one sample (56.69 s): the step's mean torque mixes the pumping and the motoring
