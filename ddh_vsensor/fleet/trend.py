@@ -19,9 +19,10 @@ least :data:`TREND_SCORE` whose trend is significant (slope at :data:`SLOPE_T`; 
 weighs each log by its interval and the day-to-day scatter, see :func:`_line`), else the
 best-scoring: a machine's constant deviation may explain more of its references than a
 young wear does. An alarm is raised when that cause's trend takes that error past the
-tolerance within the horizon (and no further ahead than the days the trend was fitted on:
-four days of logs say nothing of the fourteenth day after them), or when a named cause has
-it there already. A trend is caught
+tolerance within the horizon (beyond the days the trend was fitted on at the slope's
+conservative bound, :data:`EXTRAPOLATION_SE` standard errors nearer zero: a week of logs
+says how fast a parameter moves over that week, no more), or when a named cause has it there
+already. A trend is caught
 while the error is still small against the nominal model's own ~1 mm at the references, so
 its cause cannot yet explain the :data:`MIN_SCORE` share that naming a cause asks for; the
 significant slope, the positive held-out score and the projected error together do.
@@ -41,6 +42,7 @@ from ..diagnosis.selection import MIN_SCORE
 WINDOW = 10                     # logs the naming and the trend look back over
 MIN_LOGS = 7                    # a week of daily logs before anything is named (README)
 SLOPE_T = 4.0                   # |slope| / its standard error for a trend to count
+EXTRAPOLATION_SE = 2.0          # beyond its days, a trend goes on at |slope| - this x its se
 TREND_SCORE = 0.05              # held-out score a trending cause needs for an alarm
 PENALTY_PER_PARAMETER = 0.02
 LEVEL = 0.90
@@ -202,12 +204,14 @@ def heldout_score(fits: Sequence[LogFit]) -> float:
     return 1.0 - held / total - 2 * PENALTY_PER_PARAMETER if total > 0 else 0.0
 
 
-def _trend(window: Sequence[LogFit]) -> tuple[np.ndarray, np.ndarray, float, float, bool]:
-    """Days, parameters, the line's intercept and slope, and whether the slope counts."""
+def _trend(window: Sequence[LogFit]
+           ) -> tuple[np.ndarray, np.ndarray, float, float, float, bool]:
+    """Days, parameters, the line's intercept, slope and the slope's standard error, and
+    whether the slope counts."""
     t = np.array([f.time_s for f in window]) / DAY_S
     u = np.array([f.u for f in window])
     a, b, se = _line(t, u, _variances(window))
-    return t, u, a, b, bool(abs(b) > SLOPE_T * se)
+    return t, u, a, b, se, bool(abs(b) > SLOPE_T * se)
 
 
 def expected_error_mm(fits: Sequence[LogFit], u: float) -> float:
@@ -247,19 +251,22 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
             continue
         # what wears is what changes: a cause that only explains a constant deviation (the
         # machine's tolerances) well gives way to one that trends and explains some too
-        trend_causes = [c for c, tr in candidates.items() if tr[4]]
+        trend_causes = [c for c, tr in candidates.items() if tr[5]]
         best = max(trend_causes or candidates, key=scores.get)
         window = by_cause[best][max(0, i + 1 - WINDOW):i + 1]
-        t, u, a, b, trending = candidates[best]
+        t, u, a, b, se, trending = candidates[best]
         u_now = a + b * t[-1] if trending else float(np.median(u[-3:]))
         named = scores[best] >= MIN_SCORE and ALL_CAUSES[best].resolved(from_u(best, u_now))
         out.named.append(best if named or trending else "none")
         now = expected_error_mm(window, u_now)
-        # a trend is carried no further ahead than the days it was fitted on
-        reach = min(horizon_days, float(t[-1] - t[0]))
-        days = np.arange(0.0, reach + 0.5, 0.5)
-        path = [expected_error_mm(window, a + b * (t[-1] + d)) if trending else now
-                for d in days]
+        # within the days it was fitted on the trend goes on at its slope, beyond them at
+        # the slope's conservative bound (the same sign, or flat)
+        fitted_days = float(t[-1] - t[0])
+        slope_beyond = np.sign(b) * max(abs(b) - EXTRAPOLATION_SE * se, 0.0)
+        days = np.arange(0.0, horizon_days + 0.5, 0.5)
+        path = [expected_error_mm(window, u_now + b * min(d, fitted_days)
+                                  + slope_beyond * max(d - fitted_days, 0.0))
+                if trending else now for d in days]
         out.error_now_mm.append(now)
         out.error_projected_mm.append(path[-1])
         over = [d for d, e in zip(days, path) if e > tolerance_mm]

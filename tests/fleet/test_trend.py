@@ -4,6 +4,7 @@ alarmed before the expected error crosses the tolerance; a constant one is not."
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from ddh_vsensor.fleet.analysis import GRIDS
 from ddh_vsensor.fleet.trend import DAY_S, unit_trend
@@ -70,17 +71,27 @@ def test_an_error_already_beyond_tolerance_alarms_without_a_trend():
     assert tr.alarms[-1] is not None and tr.alarms[-1].cause == "pump_leakage"
 
 
-def test_a_trend_is_not_projected_further_ahead_than_the_days_it_was_fitted_on():
-    u = 0.02 * np.arange(30.0)                      # crosses 3 mm (8 mm per u) on day 18.75
+def test_beyond_its_days_a_trend_goes_on_at_its_slopes_conservative_bound():
+    """A week of logs says how fast a parameter moves over that week: within those days the
+    trend goes on at its slope, beyond them at the slope less EXTRAPOLATION_SE standard
+    errors. A steady drift crossing 3 mm (8 mm per u) on day 18.75 is alarmed as soon as a
+    week of logs allows, and the projection to the horizon is the damped one."""
+    from ddh_vsensor.fleet.trend import EXTRAPOLATION_SE, _trend
+    u = 0.02 * np.arange(30.0)
     tr = unit_trend("M4", "boom", rows(u, cause="time_offset",
-                                       others=("pump_leakage", "displacement"), noise=0.005),
+                                       others=("pump_leakage", "displacement"), noise=0.02),
                     tolerance_mm=3.0, horizon_days=14.0)
     first = tr.first_alarm
     assert first is not None and first.cause == "time_offset"
     day = (first.time_s - T0) / DAY_S
-    # day 5 would see the crossing within its 14-day horizon, but only 5 days of trend
-    assert day + min(day, 9.0) >= 18.75 - 0.5
-    assert 18.75 - day >= 7.0
+    assert day == 6.0 and 18.75 - day >= 7.0
+    t, fitted, a, b, se, trending = _trend(tr.series["time_offset"][:7])
+    assert trending and 0.0 < EXTRAPOLATION_SE * se < b
+    u_now, span = a + b * t[-1], t[-1] - t[0]
+    damped = u_now + b * span + (b - EXTRAPOLATION_SE * se) * (14.0 - span)
+    assert first.error_projected_mm == pytest.approx(8.0 * damped, rel=1e-6)
+    assert first.error_projected_mm < 8.0 * (u_now + 14.0 * b)
+    assert abs((first.crossing_time_s - T0) / DAY_S - 18.75) <= 1.5
 
 
 def test_no_cause_is_named_from_less_than_a_week_of_logs():
