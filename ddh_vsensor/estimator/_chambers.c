@@ -186,7 +186,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * last step's. Whatever the step's size where the speed reaches or leaves the drive's
      * speed limit within the sample: the limiter takes over from the torque command there
      * (or hands back to it), and the acceleration ends or starts at an unknown instant. */
-    double limit = P[P_SPEED_LIMIT] - 1.0;         /* whole rpm */
+    double limit = P[P_SPEED_LIMIT];      /* the limit less the speed's 1 rpm quantum */
     int limit_edge = (fabs(n) >= limit) != (fabs(S[S_N]) >= limit);
     if (fabs(tau - S[S_TAU]) > P[P_TORQUE_STEP] || limit_edge) {
         double lo = earlier + w * fmin(tau, S[S_TAU]) - inertia;

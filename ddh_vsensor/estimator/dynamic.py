@@ -120,7 +120,7 @@ def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
     p[P_MAX_GAP_S] = max_gap_s
     p[P_TORQUE_STEP] = torque_step_nm
     p[P_WINDOW_S] = window_s
-    p[P_SPEED_LIMIT] = unit.motor.speed_limit_rpm
+    p[P_SPEED_LIMIT] = unit.motor.speed_limit_rpm - 1.0     # within the speed's whole rpm
     for side, g, ge, k in ((a, P_G_A, P_GE_A, P_K_A), (b, P_G_B, P_GE_B, P_K_B)):
         g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
         g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
@@ -312,7 +312,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     inertia = P[P_INERTIA] * (n - n_first) / span
     mean = 0.5 * (tau + S[S_TAU])
     torque = earlier + w * mean - inertia
-    limit = P[P_SPEED_LIMIT] - 1.0
+    limit = P[P_SPEED_LIMIT]
     if abs(tau - S[S_TAU]) > P[P_TORQUE_STEP] or (abs(n) >= limit) != (abs(S[S_N]) >= limit):
         lo = earlier + w * min(tau, S[S_TAU]) - inertia
         hi = earlier + w * max(tau, S[S_TAU]) - inertia

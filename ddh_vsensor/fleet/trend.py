@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.stats import f as f_dist
@@ -204,14 +205,23 @@ def heldout_score(fits: Sequence[LogFit]) -> float:
     return 1.0 - held / total - 2 * PENALTY_PER_PARAMETER if total > 0 else 0.0
 
 
-def _trend(window: Sequence[LogFit]
-           ) -> tuple[np.ndarray, np.ndarray, float, float, float, bool]:
-    """Days, parameters, the line's intercept, slope and the slope's standard error, and
+class Trend(NamedTuple):
+    """A window's line: days, parameters, intercept, slope, the slope's standard error, and
     whether the slope counts."""
+
+    t: np.ndarray
+    u: np.ndarray
+    a: float
+    b: float
+    se: float
+    trending: bool
+
+
+def _trend(window: Sequence[LogFit]) -> Trend:
     t = np.array([f.time_s for f in window]) / DAY_S
     u = np.array([f.u for f in window])
     a, b, se = _line(t, u, _variances(window))
-    return t, u, a, b, se, bool(abs(b) > SLOPE_T * se)
+    return Trend(t, u, a, b, se, bool(abs(b) > SLOPE_T * se))
 
 
 def expected_error_mm(fits: Sequence[LogFit], u: float) -> float:
@@ -251,7 +261,7 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
             continue
         # what wears is what changes: a cause that only explains a constant deviation (the
         # machine's tolerances) well gives way to one that trends and explains some too
-        trend_causes = [c for c, tr in candidates.items() if tr[5]]
+        trend_causes = [c for c, tr in candidates.items() if tr.trending]
         best = max(trend_causes or candidates, key=scores.get)
         window = by_cause[best][max(0, i + 1 - WINDOW):i + 1]
         t, u, a, b, se, trending = candidates[best]

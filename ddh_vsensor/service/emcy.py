@@ -80,6 +80,14 @@ class EmcyProducer:
         self.errors.clear()
         self.active = 0
 
+    def life_guarding(self, on: bool) -> None:
+        """The node's life guarding event is on (or not): it enters the error field as it
+        begins; its EMCY (or error reset) goes out with the next report."""
+        if on and not self.life_guard:
+            self.errors.insert(0, LIFE_GUARD_CODE)
+            del self.errors[ERROR_FIELD_SIZE:]
+        self.life_guard = on
+
     def register(self, flags: int) -> int:
         """The error register 0x1001: the fault flags' bits and the life guarding event's."""
         return error_register(flags) | (LIFE_GUARD_REGISTER if self.life_guard else 0)
@@ -120,10 +128,6 @@ class EmcyProducer:
                     del self.errors[ERROR_FIELD_SIZE:]
             self.active = faults
         guard_changed = self.life_guard != self.told_life_guard
-        if guard_changed and self.life_guard and (not self.errors or
-                                                  self.errors[0] != LIFE_GUARD_CODE):
-            self.errors.insert(0, LIFE_GUARD_CODE)
-            del self.errors[ERROR_FIELD_SIZE:]
         register = self.register(faults)
         if faults == self.reported and register == self.told_register and not guard_changed \
                 or self.node.nmt.state in ("STOPPED", "INITIALISING"):

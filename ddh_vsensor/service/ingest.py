@@ -77,14 +77,15 @@ class Ingest:
         routes[self.inputs.io_id] = ("io", None)
         for network in self.networks.values():           # SDO requests, heartbeats
             for can_id in network.subscribers:
-                routes.setdefault(can_id, ("canopen", network))
+                kind = "sdo" if 0x600 <= can_id < 0x680 else "heartbeat"
+                routes.setdefault(can_id, (kind, network))
         routes[0] = ("nmt", None)                        # to the network of its bus
         routes[SYNC_COB_ID] = ("sync", None)
         for unit in self.units.values():
             assert unit.node is not None
             for kind, can_id in unit.node.cob_ids.items():
                 if kind == "heartbeat":
-                    routes[can_id] = ("guard", unit.node)
+                    routes[can_id] = ("guard", unit.node.guarding)
                 elif kind != "sdo_rx":
                     routes[can_id] = ("clash", None)
         routes.pop(LSS_ID, None)
@@ -166,20 +167,20 @@ class Ingest:
             self.inputs.oil(msg, now)
         elif kind == "io":
             self.inputs.io(msg, now)
-        elif kind == "canopen":
-            if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus):
+        elif kind in ("sdo", "heartbeat"):
+            if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus, kind):
                 return
             target.notify(msg.arbitration_id, msg.data, msg.timestamp)
         elif kind == "guard":
             if not msg.is_remote_frame:
                 self.inputs.clash(msg)
-            elif self._canopen_allowed(msg, now, bus, "guard"):
-                target.on_guard_request(now)
+            elif self._canopen_allowed(msg, now, bus, kind):
+                target.on_request(now)
         elif kind == "sync":
-            if not msg.is_remote_frame and self._canopen_allowed(msg, now, bus):
+            if not msg.is_remote_frame and self._canopen_allowed(msg, now, bus, kind):
                 self.on_sync(bus)
         elif kind == "nmt":
-            if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus):
+            if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus, kind):
                 return
             network = self.networks[bus]
             network.notify(0, msg.data, msg.timestamp)
@@ -190,15 +191,12 @@ class Ingest:
         else:
             self.inputs.clash(msg)
 
-    def _canopen_allowed(self, msg: can.Message, now: float, bus: str,
-                         kind: str | None = None) -> bool:
-        """A rate limiter per bus and canopen COB-ID, on arrival time: the excess of a flood
-        is dropped, counted."""
+    def _canopen_allowed(self, msg: can.Message, now: float, bus: str, kind: str) -> bool:
+        """A rate limiter per bus and canopen COB-ID (its route's kind sets rate and burst),
+        on arrival time: the excess of a flood is dropped, counted."""
         can_id = msg.arbitration_id
         limiter = self._canopen_limiters.get((bus, can_id))
         if limiter is None:
-            kind = kind or ("nmt" if can_id == 0 else "sync" if can_id == SYNC_COB_ID else
-                            "sdo" if 0x600 <= can_id < 0x680 else "heartbeat")
             limiter = RateLimiter(CANOPEN_RATE_HZ[kind], CANOPEN_BURST[kind])
             self._canopen_limiters[(bus, can_id)] = limiter
         if limiter.take(now):

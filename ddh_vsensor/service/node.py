@@ -178,14 +178,10 @@ class SensorNode:
     def operational(self) -> bool:
         return self.node.nmt.state == "OPERATIONAL"
 
-    def on_guard_request(self, now_s: float) -> None:
-        """A node guarding request (remote frame on 0x700 + node) from the master."""
-        self.guarding.on_request(now_s)
-
     def error_control_due(self, now_s: float) -> None:
         """Every housekeeping tick: the heartbeat when due, the life guarding's verdict (its
         EMCY goes out with the next fault report)."""
-        self.emcy.life_guard = self.guarding.check(now_s)
+        self.emcy.life_guarding(self.guarding.check(now_s))
         if self.heartbeat_period_s <= 0.0:
             return
         if self._next_heartbeat_s is None or now_s >= self._next_heartbeat_s:

@@ -48,37 +48,37 @@ def _emcy(node: SensorNode, sent: list[can.Message], now_s: float) -> list[tuple
 
 def test_answers_carry_the_state_and_a_toggle_from_zero(node, sent) -> None:
     for k in range(4):
-        node.on_guard_request(float(k))
+        node.guarding.on_request(float(k))
     assert [bytes(m.data) for m in sent] == [b"\x05", b"\x85", b"\x05", b"\x85"]
     node.node.nmt.on_command(0, bytes([0x80, 0]), 0.0)        # pre-operational: no reset
     node.after_nmt_command()
-    node.on_guard_request(5.0)
+    node.guarding.on_request(5.0)
     assert bytes(sent[-1].data) == b"\x7f"
     node.boot()
     sent.clear()
-    node.on_guard_request(6.0)
+    node.guarding.on_request(6.0)
     assert bytes(sent[-1].data) == b"\x05"
 
 
 def test_life_time_counts_from_the_last_request(node, sent) -> None:
     _life_time(node, 100, 3)                                  # 0.3 s
     assert _emcy(node, sent, 10.0) == []                      # no request yet: not started
-    node.on_guard_request(10.0)
-    node.on_guard_request(10.2)
+    node.guarding.on_request(10.0)
+    node.guarding.on_request(10.2)
     assert _emcy(node, sent, 10.49) == []
     assert _emcy(node, sent, 10.51) == [(LIFE_GUARD_CODE, 0x11, 0)]
     assert _emcy(node, sent, 11.0) == []                      # one EMCY per event
     assert node.node.sdo[0x1001].raw == 0x11 and node.node.sdo[0x1003][1].raw == LIFE_GUARD_CODE
-    node.on_guard_request(11.2)
+    node.guarding.on_request(11.2)
     assert _emcy(node, sent, 11.21) == [(0x0000, 0x00, 0)]
     assert node.node.sdo[0x1001].raw == 0
 
 
 def test_life_guarding_off_ends_the_event(node, sent) -> None:
-    node.on_guard_request(0.0)
+    node.guarding.on_request(0.0)
     assert _emcy(node, sent, 100.0) == []                     # 0 x 0: never lost
     _life_time(node, 50, 2)
-    node.on_guard_request(100.0)
+    node.guarding.on_request(100.0)
     assert _emcy(node, sent, 100.2)[0][0] == LIFE_GUARD_CODE
     _life_time(node, 0, 2)
     assert _emcy(node, sent, 100.3) == [(0x0000, 0x00, 0)]
@@ -86,5 +86,5 @@ def test_life_guarding_off_ends_the_event(node, sent) -> None:
 
 def test_the_node_answers_nothing_while_initialising(node, sent) -> None:
     node.node.nmt._state = 0                                  # noqa: SLF001
-    node.on_guard_request(0.0)
+    node.guarding.on_request(0.0)
     assert sent == [] and node.guarding.requests == 0
