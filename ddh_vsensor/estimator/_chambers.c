@@ -185,9 +185,13 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * (the pressures) changes smoothly, so the mean is the value in that range nearest the
      * last step's. Whatever the step's size where the speed reaches or leaves the drive's
      * speed limit within the sample: the limiter takes over from the torque command there
-     * (or hands back to it), and the acceleration ends or starts at an unknown instant. */
+     * (or hands back to it), and the acceleration ends or starts at an unknown instant. The
+     * speed comes in whole rpm, so a reading one below the limit may be the limit reached
+     * just after the sample or not yet: the band [limit - 1, limit) is a zone of its own,
+     * and entering or leaving any zone is the edge (the drop may come in either sample). */
     double limit = P[P_SPEED_LIMIT];      /* the limit less the speed's 1 rpm quantum */
-    int limit_edge = (fabs(n) >= limit) != (fabs(S[S_N]) >= limit);
+    int limit_edge = (fabs(n) >= limit) != (fabs(S[S_N]) >= limit)
+                     || (fabs(n) >= limit + 1.0) != (fabs(S[S_N]) >= limit + 1.0);
     if (fabs(tau - S[S_TAU]) > P[P_TORQUE_STEP] || limit_edge) {
         double lo = earlier + w * fmin(tau, S[S_TAU]) - inertia;
         double hi = earlier + w * fmax(tau, S[S_TAU]) - inertia;

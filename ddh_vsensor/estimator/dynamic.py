@@ -27,7 +27,8 @@ on a one-way valve;
 reversing on an end stop, the pumps' static friction lets any torque between the motoring
 and the pumping one hold the pressures; and a torque step within one sample larger than
 ``torque_step_nm``, or any where the speed reaches or leaves the motor's speed limit (the
-drive's limiter takes over from the torque command there), has an unknown shape, so the
+drive's limiter takes over from the torque command there; a reading one rpm below the limit
+is a zone of its own, as the limit may be reached in the sample after it), has an unknown shape, so the
 step's mean pump torque is taken nearest the last one.
 
 The step is compiled C (``_chambers.c``, built with the package as an optional extension and
@@ -313,7 +314,9 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     mean = 0.5 * (tau + S[S_TAU])
     torque = earlier + w * mean - inertia
     limit = P[P_SPEED_LIMIT]
-    if abs(tau - S[S_TAU]) > P[P_TORQUE_STEP] or (abs(n) >= limit) != (abs(S[S_N]) >= limit):
+    edge = ((abs(n) >= limit) != (abs(S[S_N]) >= limit)
+            or (abs(n) >= limit + 1.0) != (abs(S[S_N]) >= limit + 1.0))
+    if abs(tau - S[S_TAU]) > P[P_TORQUE_STEP] or edge:
         lo = earlier + w * min(tau, S[S_TAU]) - inertia
         hi = earlier + w * max(tau, S[S_TAU]) - inertia
         torque = min(max(float(S[S_PUMP_TAU]), lo), hi)
