@@ -185,6 +185,9 @@ class EstimatorConfig:
     # `dynamic`: a torque change within one sample larger than this share of the motor's
     # torque limit is read as a step of unknown shape, not a ramp (README: temperature sweep)
     dynamic_torque_step: float = field(default=0.45, metadata={"gt": 0.0, "le": 2.0})
+    # `dynamic`: below that step, the share of the torque's second difference over the last
+    # three samples by which the step's mean may lie off the samples' trapezoid (README)
+    dynamic_torque_curvature: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
     # `dynamic`: the torque balance is taken over the last samples spanning this time, so
     # that the speed's whole-rpm steps do not read as inertia torque at fast sampling (README)
     dynamic_window_s: float = field(default=0.01, metadata={"ge": 0.0, "le": 0.1})

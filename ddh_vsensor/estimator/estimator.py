@@ -140,7 +140,8 @@ class Estimator:
                                      blend_s=ecfg.dynamic_blend_s, max_gap_s=self.max_gap_s,
                                      torque_step_nm=ecfg.dynamic_torque_step
                                      * cfg.unit(actuator).motor.torque_limit_nm,
-                                     window_s=ecfg.dynamic_window_s)
+                                     window_s=ecfg.dynamic_window_s,
+                                     torque_curvature=ecfg.dynamic_torque_curvature)
                         if self.mode == "dynamic" else None)
         self.u_base = self.u_ref
         # False with no start position, after a restore or a provisional preset
