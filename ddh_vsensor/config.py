@@ -188,6 +188,12 @@ class EstimatorConfig:
     # `dynamic`: below that step, the share of the torque's second difference over the last
     # three samples by which the step's mean may lie off the samples' trapezoid (README)
     dynamic_torque_curvature: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
+    # `dynamic`: where the speed's second difference (the change of the steps' mean torque)
+    # and the samples' trapezoids disagree by more than the floor (a share of the motor's
+    # torque limit), this share of the excess is how far the step's mean may lie off (README)
+    dynamic_speed_disagreement: float = field(default=0.75, metadata={"ge": 0.0, "le": 1.0})
+    dynamic_speed_disagreement_floor: float = field(default=0.055,
+                                                    metadata={"ge": 0.0, "le": 1.0})
     # `dynamic`: the torque balance is taken over the last samples spanning this time, so
     # that the speed's whole-rpm steps do not read as inertia torque at fast sampling (README)
     dynamic_window_s: float = field(default=0.01, metadata={"ge": 0.0, "le": 0.1})

@@ -11,7 +11,7 @@
 enum {
     P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
     P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S, P_TORQUE_STEP,
-    P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
+    P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR, P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
 };
 #define HF_LEARN 20         /* steps the drive's cadence is first learnt from (see HF_GAIN) */
@@ -22,7 +22,7 @@ enum {
 #define RING 32
 enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
        S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING,
-       S_LEARN = S_RING + 3 * RING, S_TAU2 = S_LEARN + HF_LEARN, S_SIZE };
+       S_LEARN = S_RING + 3 * RING, S_TAU2 = S_LEARN + HF_LEARN, S_N2, S_SIZE };
 
 /* The drive samples on an even cadence; the frames' receive stamps come late by a varying
  * delay. The step is taken over the drive's periods, not the stamps' difference: a short
@@ -142,7 +142,8 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     if (S[S_STARTED] == 0.0 || !(h > 0.0) || h > P[P_MAX_GAP_S]) {
         if (S[S_STARTED] == 0.0 || h > 0.0) {
             settle(P, S, n, tau, mu);
-            S[S_N] = n; S[S_TAU] = S[S_TAU2] = tau; S[S_STARTED] = 1.0; S[S_HF] = 0.0;
+            S[S_N] = S[S_N2] = n; S[S_TAU] = S[S_TAU2] = tau; S[S_STARTED] = 1.0;
+            S[S_HF] = 0.0;
             S[S_HF_COUNT] = 0.0; S[S_HF_DEV] = 0.0;
             S[S_PUMP_TAU] = tau; S[S_RING_AT] = 0.0; S[S_RING_COUNT] = 0.0;
         }
@@ -196,9 +197,21 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * (the drive's loop swinging faster than it is sampled): the trapezoid is the step's
      * mean where the torque changes linearly, and off by a share of the bend where it does
      * not. The bend is the second difference of the last three samples; within P_CURVATURE
-     * of it (never beyond the step's ends) the mean is again the value nearest the last. */
+     * of it (never beyond the step's ends) the mean is again the value nearest the last.
+     * The speed has a say too: it integrates the motor torque, so its second difference is
+     * the change of the steps' mean motor torque from the last step to this one, wherever the
+     * pump torque stays (as it mostly does); the trapezoids say (tau - tau'')/2. Where they
+     * disagree by more than a floor (the pump torque's own change within a step, the speed's
+     * whole rpm), P_DISAGREE of the excess is how far this step's mean may lie off. */
     double jump = fabs(tau - S[S_TAU]);
-    double band = P[P_CURVATURE] * fabs(tau - 2.0 * S[S_TAU] + S[S_TAU2]);
+    double excess = 0.0;
+    if (count > 0) {                    /* the last step's length: a frame may have been lost */
+        double h_last = S[S_RING + 2 * RING + (at - 1 + RING) % RING];
+        double said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_N2]) / h_last);
+        excess = fabs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR];
+    }
+    double band = fmax(P[P_CURVATURE] * fabs(tau - 2.0 * S[S_TAU] + S[S_TAU2]),
+                       P[P_DISAGREE] * excess);
     if (jump > P[P_TORQUE_STEP] || limit_edge || band > 0.5 * jump)
         band = 0.5 * jump;
     if (band > 0.0) {
@@ -284,7 +297,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         v = 0.0;
     double x_new = x + 0.5 * h * (S[S_V] + v);
     S[S_X] = x_new < 0.0 ? 0.0 : x_new > stroke ? stroke : x_new;
-    S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n;
+    S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N2] = S[S_N]; S[S_N] = n;
     S[S_TAU2] = S[S_TAU]; S[S_TAU] = tau;
     S[S_RA] = ra; S[S_RB] = rb;
     if (v != 0.0 && known)

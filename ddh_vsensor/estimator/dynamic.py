@@ -66,14 +66,15 @@ _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valv
 # indices of the parameter and state vectors (the P_* / S_* enums of _chambers.c)
 (P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
  P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S,
- P_TORQUE_STEP, P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE) = range(20)
-P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 20, 24, 28, 32, 36, 48, 60
+ P_TORQUE_STEP, P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR) = range(22)
+P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 22, 26, 30, 34, 38, 50, 62
 (S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
  S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING) = range(19)
 RING, HF_LEARN = 32, 20                              # as in _chambers.c
 S_LEARN = S_RING + 3 * RING
 S_TAU2 = S_LEARN + HF_LEARN                          # the torque sample before S_TAU
-S_SIZE = S_TAU2 + 1
+S_N2 = S_TAU2 + 1                                    # the speed sample before S_N
+S_SIZE = S_N2 + 1
 HF_GAIN, LOST_AT, JITTER_SPAN = 0.05, 1.5, 3.6       # as in _chambers.c
 
 
@@ -107,7 +108,8 @@ def library() -> ctypes.CDLL | None:
 
 def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float,
                torque_step_nm: float = math.inf, window_s: float = 0.0,
-               torque_curvature: float = 0.0) -> np.ndarray:
+               torque_curvature: float = 0.0, speed_disagreement: float = 0.0,
+               speed_disagreement_floor_nm: float = 0.0) -> np.ndarray:
     """The step's parameter vector for one unit (SI units, speeds in motor rpm)."""
     a, b = unit.a, unit.b
     p = np.zeros(P_SIZE)
@@ -127,6 +129,8 @@ def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
     p[P_WINDOW_S] = window_s
     p[P_SPEED_LIMIT] = unit.motor.speed_limit_rpm - 1.0     # within the speed's whole rpm
     p[P_CURVATURE] = torque_curvature
+    p[P_DISAGREE] = speed_disagreement
+    p[P_DISAGREE_FLOOR] = speed_disagreement_floor_nm
     for side, g, ge, k in ((a, P_G_A, P_GE_A, P_K_A), (b, P_G_B, P_GE_B, P_K_B)):
         g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
         g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
@@ -143,7 +147,8 @@ class DynamicModel:
     def __init__(self, unit: DDHUnit, position_mm: float, *, inertia: bool = True,
                  blend_s: float = 0.0, max_gap_s: float = math.inf,
                  torque_step_nm: float = math.inf, window_s: float = 0.0,
-                 torque_curvature: float = 0.0, use_compiled: bool = True) -> None:
+                 torque_curvature: float = 0.0, speed_disagreement: float = 0.0,
+                 speed_disagreement_floor_nm: float = 0.0, use_compiled: bool = True) -> None:
         if not blend_s >= 0.0:
             raise ValueError(f"blend time constant must be >= 0 s, got {blend_s!r}")
         if not window_s >= 0.0:
@@ -152,10 +157,17 @@ class DynamicModel:
             raise ValueError(f"torque step must be > 0 N·m, got {torque_step_nm!r}")
         if not 0.0 <= torque_curvature <= 1.0:
             raise ValueError(f"torque curvature share must be 0..1, got {torque_curvature!r}")
+        if not 0.0 <= speed_disagreement <= 1.0:
+            raise ValueError(f"speed disagreement share must be 0..1, got {speed_disagreement!r}")
+        if not speed_disagreement_floor_nm >= 0.0:
+            raise ValueError("speed disagreement floor must be >= 0 N·m, got "
+                             f"{speed_disagreement_floor_nm!r}")
         self.oil: Oil = unit.oil
         self.params = parameters(unit, inertia=inertia, blend_s=blend_s, max_gap_s=max_gap_s,
                                  torque_step_nm=torque_step_nm, window_s=window_s,
-                                 torque_curvature=torque_curvature)
+                                 torque_curvature=torque_curvature,
+                                 speed_disagreement=speed_disagreement,
+                                 speed_disagreement_floor_nm=speed_disagreement_floor_nm)
         self.state = np.zeros(S_SIZE)
         self.state[S_X] = position_mm * 1e-3
         self.state[S_LOAD_F] = math.nan                 # no load seen moving yet
@@ -300,7 +312,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             S[S_RA] = S[S_SA] = ra
             S[S_RB] = S[S_SB] = rb
             S[S_N], S[S_TAU], S[S_STARTED], S[S_HF], S[S_PUMP_TAU] = n, tau, 1.0, 0.0, tau
-            S[S_TAU2] = tau
+            S[S_TAU2], S[S_N2] = tau, n
             S[S_RING_AT] = S[S_RING_COUNT] = S[S_HF_COUNT] = S[S_HF_DEV] = 0.0
         return float(S[S_V])
     pa, pb, x, stroke = float(S[S_PA]), float(S[S_PB]), float(S[S_X]), P[P_STROKE]
@@ -326,7 +338,12 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     edge = ((abs(n) >= limit) != (abs(S[S_N]) >= limit)
             or (abs(n) >= limit + 1.0) != (abs(S[S_N]) >= limit + 1.0))
     jump = abs(tau - S[S_TAU])
-    band = P[P_CURVATURE] * abs(tau - 2.0 * S[S_TAU] + S[S_TAU2])
+    excess = 0.0
+    if count > 0:                       # the last step's length: a frame may have been lost
+        h_last = float(S[S_RING + 2 * RING + (at - 1) % RING])
+        said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_N2]) / h_last)
+        excess = abs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR]
+    band = max(P[P_CURVATURE] * abs(tau - 2.0 * S[S_TAU] + S[S_TAU2]), P[P_DISAGREE] * excess)
     if jump > P[P_TORQUE_STEP] or edge or band > 0.5 * jump:
         band = 0.5 * jump
     if band > 0.0:
@@ -381,7 +398,8 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         v = 0.0
     x_new = x + 0.5 * h * (S[S_V] + v)
     S[S_X] = min(max(x_new, 0.0), stroke) if known else math.nan
-    S[S_PA], S[S_PB], S[S_V], S[S_N] = pa, pb, v, n
+    S[S_PA], S[S_PB], S[S_V] = pa, pb, v
+    S[S_N2], S[S_N] = S[S_N], n
     S[S_TAU2], S[S_TAU] = S[S_TAU], tau
     S[S_RA], S[S_RB] = ra, rb
     if v != 0.0 and known:

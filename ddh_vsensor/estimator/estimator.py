@@ -135,13 +135,16 @@ class Estimator:
         self.position_mm = 0.0 if initial_position_mm is None else float(initial_position_mm)
         # `dynamic`: the chamber pressures are states; the model carries its own rod position
         # for the chamber volumes (it sees no references, so both faces feed it alike)
+        limit_nm = cfg.unit(actuator).motor.torque_limit_nm
         self.dynamic = (DynamicModel(unit or DDHUnit.from_config(cfg, actuator), self.position_mm,
                                      inertia=ecfg.inertia_compensation,
                                      blend_s=ecfg.dynamic_blend_s, max_gap_s=self.max_gap_s,
-                                     torque_step_nm=ecfg.dynamic_torque_step
-                                     * cfg.unit(actuator).motor.torque_limit_nm,
+                                     torque_step_nm=ecfg.dynamic_torque_step * limit_nm,
                                      window_s=ecfg.dynamic_window_s,
-                                     torque_curvature=ecfg.dynamic_torque_curvature)
+                                     torque_curvature=ecfg.dynamic_torque_curvature,
+                                     speed_disagreement=ecfg.dynamic_speed_disagreement,
+                                     speed_disagreement_floor_nm=(
+                                         ecfg.dynamic_speed_disagreement_floor * limit_nm))
                         if self.mode == "dynamic" else None)
         self.u_base = self.u_ref
         # False with no start position, after a restore or a provisional preset
