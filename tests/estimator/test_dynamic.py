@@ -158,14 +158,21 @@ def test_a_torque_step_within_one_sample_is_not_read_as_pressure(bucket):
     assert travel == pytest.approx(float(st.velocity_m_s) * 1e3 * 2.99, abs=0.01)
 
 
+def _worst_of(cfg, unit_tables, actuator, run, time_s=None, keep=slice(None)):
+    """The `dynamic` estimate's worst error on one run of ``actuator`` (the samples ``keep``
+    of it, stamped ``time_s``: the run's own stamps unless given)."""
+    time_s = run.time_s if time_s is None else time_s
+    est = Estimator(cfg, actuator, unit_tables[actuator], mode="dynamic", references=False,
+                    initial_position_mm=float(run.position_mm[0]))
+    err = est.run(time_s[keep], run.speed_rpm[keep], run.torque_nm[keep],
+                  run.oil_temp_c[keep]).position_mm - run.position_mm[keep]
+    return float(np.nanmax(np.abs(err)))
+
+
 def _random_run_worst(cfg, unit_tables, actuator, spec):
     """One simulated run of ``actuator`` and the `dynamic` estimate's worst error on it."""
     run = simulate_campaign(cfg, [spec])[0][actuator]
-    est = Estimator(cfg, actuator, unit_tables[actuator], mode="dynamic", references=False,
-                    initial_position_mm=float(run.position_mm[0]))
-    err = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c).position_mm \
-        - run.position_mm
-    return run, float(np.nanmax(np.abs(err)))
+    return run, _worst_of(cfg, unit_tables, actuator, run)
 
 
 def test_reaching_the_speed_limit_within_a_sample_is_a_torque_step_of_unknown_shape(
@@ -188,16 +195,13 @@ def test_a_torque_bending_between_its_samples_is_not_read_as_pressure(cfg, unit_
     Each change is below the step threshold, but the samples bend: their trapezoid read as
     pump torque put A 38 bar high, 0.58 mm worst over the run. Within a tenth of the second
     difference of the last three samples the mean is taken nearest the last: 0.25 mm."""
-    _, worst = _random_run_worst(cfg, unit_tables, "boom", RunSpec(
+    run, worst = _random_run_worst(cfg, unit_tables, "boom", RunSpec(
         cycle=random_cycle(cfg, 35501, end_stop_share=0.6079986148430917), payload_kg=900.0,
         oil_temp_c=45.0, seed=1))
     assert worst <= 0.35
     straight = dataclasses.replace(cfg, estimator=dataclasses.replace(
         cfg.estimator, dynamic_torque_curvature=0.0))
-    _, worst_straight = _random_run_worst(straight, unit_tables, "boom", RunSpec(
-        cycle=random_cycle(cfg, 35501, end_stop_share=0.6079986148430917), payload_kg=900.0,
-        oil_temp_c=45.0, seed=1))
-    assert worst_straight >= 0.5
+    assert _worst_of(straight, unit_tables, "boom", run) >= 0.5
 
 
 def test_where_the_speed_disagrees_with_the_torque_samples_the_mean_is_uncertain(
@@ -213,12 +217,11 @@ def test_where_the_speed_disagrees_with_the_torque_samples_the_mean_is_uncertain
                    payload_kg=200.0, oil_temp_c=28.0, seed=105, controller=PIDSettings(
                        bandwidth_rad_s=5.122519299516545,
                        torque_filter_s=0.006656333457238676))
-    _, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
+    run, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
     assert worst <= 0.55
     deaf = dataclasses.replace(cfg, estimator=dataclasses.replace(
         cfg.estimator, dynamic_speed_disagreement=0.0))
-    _, worst_deaf = _random_run_worst(deaf, unit_tables, "bucket", spec)
-    assert worst_deaf >= 2.0
+    assert _worst_of(deaf, unit_tables, "bucket", run) >= 2.0
 
 
 def test_a_reading_one_rpm_below_the_limit_may_be_the_limit_reached_a_sample_later(
@@ -327,14 +330,6 @@ def test_at_the_drives_100_hz_the_window_is_one_sample(cfg, unit_tables):
                           _window_run(cfg, unit_tables, run, "bucket", 0.01))
 
 
-def _worst(cfg, unit_tables, actuator, run, time_s, keep):
-    est = Estimator(cfg, actuator, unit_tables[actuator], mode="dynamic", references=False,
-                    initial_position_mm=float(run.position_mm[0]))
-    return float(np.nanmax(np.abs(est.run(time_s[keep], run.speed_rpm[keep],
-                                          run.torque_nm[keep], run.oil_temp_c[keep]).position_mm
-                                  - run.position_mm[keep])))
-
-
 def test_a_lost_frame_is_two_periods_and_a_late_one_is_one(cfg, unit_tables, bucket):
     """The step is taken over the drive's periods, not the stamps' difference. A random cycle
     at 40 degC (700 kg, 100 Hz) with 5 % of the frames lost: bucket 0.48 mm (clean 0.32;
@@ -348,12 +343,12 @@ def test_a_lost_frame_is_two_periods_and_a_late_one_is_one(cfg, unit_tables, buc
     kept = np.random.default_rng(1).random(len(run.time_s)) >= 0.05
     kept[0] = True
     jittered = run.time_s + np.random.default_rng(2).uniform(-0.003, 0.003, len(run.time_s))
-    assert _worst(cfg, unit_tables, "bucket", run, run.time_s, kept) <= 0.6
-    assert _worst(cfg, unit_tables, "bucket", run, jittered, every) <= 0.8
+    assert _worst_of(cfg, unit_tables, "bucket", run, run.time_s, kept) <= 0.6
+    assert _worst_of(cfg, unit_tables, "bucket", run, jittered, every) <= 0.8
     fast = simulate_campaign(cfg, [RunSpec(speed=1, payload_kg=1040.0, oil_temp_c=27.0,
                                            sensors=SensorSettings(rate_hz=1000.0))])[0]["bucket"]
     late = fast.time_s + np.random.default_rng(3).uniform(0.0, 0.0008, len(fast.time_s))
-    assert _worst(cfg, unit_tables, "bucket", fast, late, np.ones(len(late), dtype=bool)) <= 0.3
+    assert _worst_of(cfg, unit_tables, "bucket", fast, late, np.ones(len(late), dtype=bool)) <= 0.3
     part = SimpleNamespace(time_s=late[:3000][kept[:3000]], **{
         k: getattr(fast, k)[:3000][kept[:3000]] for k in ("speed_rpm", "torque_nm", "oil_temp_c")})
     compiled = DynamicModel(bucket, 150.0, torque_step_nm=40.0, window_s=0.01)
