@@ -31,7 +31,9 @@ drive's limiter takes over from the torque command there; a reading one rpm belo
 is a zone of its own, as the limit may be reached in the sample after it), has an unknown
 shape, so the step's mean pump torque is taken nearest the last one; below that, so is one
 within ``torque_curvature`` of the samples' second difference (a torque bending between its
-samples, the trapezoid off by a share of the bend).
+samples, the trapezoid off by a share of the bend), or within ``speed_disagreement`` of how
+far the speed's second difference (the change of the steps' mean motor torque where the pump
+torque stays) disagrees with the samples beyond ``speed_disagreement_floor_nm``.
 
 The step is compiled C (``_chambers.c``, built with the package as an optional extension and
 loaded with ctypes): the online face calls it per sample, the offline face runs the same
