@@ -202,7 +202,9 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * the change of the steps' mean motor torque from the last step to this one, wherever the
      * pump torque stays (as it mostly does); the trapezoids say (tau - tau'')/2. Where they
      * disagree by more than a floor (the pump torque's own change within a step, the speed's
-     * whole rpm), P_DISAGREE of the excess is how far this step's mean may lie off. */
+     * whole rpm), P_DISAGREE of the excess is how far this step's mean may lie off: up to a
+     * whole change past the trapezoid, as a swing between the samples may peak beyond both
+     * (the bend's band stays within the step's ends). */
     double jump = fabs(tau - S[S_TAU]);
     double excess = 0.0;
     if (count > 0) {                    /* the last step's length: a frame may have been lost */
@@ -210,10 +212,11 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         double said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_N2]) / h_last);
         excess = fabs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR];
     }
-    double band = fmax(P[P_CURVATURE] * fabs(tau - 2.0 * S[S_TAU] + S[S_TAU2]),
-                       P[P_DISAGREE] * excess);
-    if (jump > P[P_TORQUE_STEP] || limit_edge || band > 0.5 * jump)
-        band = 0.5 * jump;
+    double band = fmax(fmin(P[P_CURVATURE] * fabs(tau - 2.0 * S[S_TAU] + S[S_TAU2]),
+                            0.5 * jump),
+                       fmin(P[P_DISAGREE] * excess, jump));
+    if (jump > P[P_TORQUE_STEP] || limit_edge)
+        band = fmax(band, 0.5 * jump);
     if (band > 0.0) {
         double lo = torque - w * band, hi = torque + w * band;
         double last = S[S_PUMP_TAU];

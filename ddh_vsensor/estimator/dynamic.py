@@ -345,9 +345,10 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         h_last = float(S[S_RING + 2 * RING + (at - 1) % RING])
         said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_N2]) / h_last)
         excess = abs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR]
-    band = max(P[P_CURVATURE] * abs(tau - 2.0 * S[S_TAU] + S[S_TAU2]), P[P_DISAGREE] * excess)
-    if jump > P[P_TORQUE_STEP] or edge or band > 0.5 * jump:
-        band = 0.5 * jump
+    band = max(min(P[P_CURVATURE] * abs(tau - 2.0 * S[S_TAU] + S[S_TAU2]), 0.5 * jump),
+               min(P[P_DISAGREE] * excess, jump))
+    if jump > P[P_TORQUE_STEP] or edge:
+        band = max(band, 0.5 * jump)
     if band > 0.0:
         lo, hi = torque - w * band, torque + w * band
         torque = min(max(float(S[S_PUMP_TAU]), lo), hi)
