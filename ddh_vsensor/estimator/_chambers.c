@@ -11,7 +11,8 @@
 enum {
     P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
     P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S, P_TORQUE_STEP,
-    P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR, P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
+    P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR,
+    P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
 };
 #define HF_LEARN 20         /* steps the drive's cadence is first learnt from (see HF_GAIN) */
@@ -22,7 +23,7 @@ enum {
 #define RING 32
 enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
        S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING,
-       S_LEARN = S_RING + 3 * RING, S_TAU2 = S_LEARN + HF_LEARN, S_N2, S_SIZE };
+       S_LEARN = S_RING + 3 * RING, S_TAU2 = S_LEARN + HF_LEARN, S_SIZE };
 
 /* The drive samples on an even cadence; the frames' receive stamps come late by a varying
  * delay. The step is taken over the drive's periods, not the stamps' difference: a short
@@ -124,6 +125,13 @@ static double drive_step(double *S, double h)
     return periods * hf;
 }
 
+/* Below the limit, within its last rpm (the limit may be reached just after such a reading),
+ * or at it: the speed's zones, whose changes are the limit's edges. */
+static int limit_zone(const double *P, double n)
+{
+    return (fabs(n) >= P[P_SPEED_LIMIT]) + (fabs(n) >= P[P_SPEED_LIMIT] + 1.0);
+}
+
 /* The steady state at this speed and (pump) torque: the step with no compliance. */
 static void settle(const double *P, double *S, double n, double torque, double mu)
 {
@@ -142,8 +150,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     if (S[S_STARTED] == 0.0 || !(h > 0.0) || h > P[P_MAX_GAP_S]) {
         if (S[S_STARTED] == 0.0 || h > 0.0) {
             settle(P, S, n, tau, mu);
-            S[S_N] = S[S_N2] = n; S[S_TAU] = S[S_TAU2] = tau; S[S_STARTED] = 1.0;
-            S[S_HF] = 0.0;
+            S[S_N] = n; S[S_TAU] = S[S_TAU2] = tau; S[S_STARTED] = 1.0; S[S_HF] = 0.0;
             S[S_HF_COUNT] = 0.0; S[S_HF_DEV] = 0.0;
             S[S_PUMP_TAU] = tau; S[S_RING_AT] = 0.0; S[S_RING_COUNT] = 0.0;
         }
@@ -190,9 +197,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * speed comes in whole rpm, so a reading one below the limit may be the limit reached
      * just after the sample or not yet: the band [limit - 1, limit) is a zone of its own,
      * and entering or leaving any zone is the edge (the drop may come in either sample). */
-    double limit = P[P_SPEED_LIMIT];      /* the limit less the speed's 1 rpm quantum */
-    int limit_edge = (fabs(n) >= limit) != (fabs(S[S_N]) >= limit)
-                     || (fabs(n) >= limit + 1.0) != (fabs(S[S_N]) >= limit + 1.0);
+    int limit_edge = limit_zone(P, n) != limit_zone(P, S[S_N]);
     /* Below that, the samples are instants of a torque that may still bend between them
      * (the drive's loop swinging faster than it is sampled): the trapezoid is the step's
      * mean where the torque changes linearly, and off by a share of the bend where it does
@@ -207,9 +212,11 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * (the bend's band stays within the step's ends). */
     double jump = fabs(tau - S[S_TAU]);
     double excess = 0.0;
-    if (count > 0) {                    /* the last step's length: a frame may have been lost */
-        double h_last = S[S_RING + 2 * RING + (at - 1 + RING) % RING];
-        double said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_N2]) / h_last);
+    if (count > 0) {                    /* the last step: its length (a frame may have been
+                                           lost) and the speed before it, from the ring */
+        int last = (at - 1 + RING) % RING;
+        double said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_RING + RING + last])
+                                                          / S[S_RING + 2 * RING + last]);
         excess = fabs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR];
     }
     double band = fmax(fmin(P[P_CURVATURE] * fabs(tau - 2.0 * S[S_TAU] + S[S_TAU2]),
@@ -300,7 +307,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         v = 0.0;
     double x_new = x + 0.5 * h * (S[S_V] + v);
     S[S_X] = x_new < 0.0 ? 0.0 : x_new > stroke ? stroke : x_new;
-    S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N2] = S[S_N]; S[S_N] = n;
+    S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n;
     S[S_TAU2] = S[S_TAU]; S[S_TAU] = tau;
     S[S_RA] = ra; S[S_RB] = rb;
     if (v != 0.0 && known)

@@ -75,8 +75,7 @@ P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 22, 26, 30, 34, 38, 50, 62
 RING, HF_LEARN = 32, 20                              # as in _chambers.c
 S_LEARN = S_RING + 3 * RING
 S_TAU2 = S_LEARN + HF_LEARN                          # the torque sample before S_TAU
-S_N2 = S_TAU2 + 1                                    # the speed sample before S_N
-S_SIZE = S_N2 + 1
+S_SIZE = S_TAU2 + 1
 HF_GAIN, LOST_AT, JITTER_SPAN = 0.05, 1.5, 3.6       # as in _chambers.c
 
 
@@ -298,6 +297,11 @@ def _drive_step(S: np.ndarray, h: float) -> float:
     return periods * hf
 
 
+def _limit_zone(P, n: float) -> int:
+    """``limit_zone`` of _chambers.c."""
+    return int(abs(n) >= P[P_SPEED_LIMIT]) + int(abs(n) >= P[P_SPEED_LIMIT] + 1.0)
+
+
 def _direction(n: float) -> int:
     return 2 if n > 0.0 else 0 if n < 0.0 else 1
 
@@ -314,7 +318,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             S[S_RA] = S[S_SA] = ra
             S[S_RB] = S[S_SB] = rb
             S[S_N], S[S_TAU], S[S_STARTED], S[S_HF], S[S_PUMP_TAU] = n, tau, 1.0, 0.0, tau
-            S[S_TAU2], S[S_N2] = tau, n
+            S[S_TAU2] = tau
             S[S_RING_AT] = S[S_RING_COUNT] = S[S_HF_COUNT] = S[S_HF_DEV] = 0.0
         return float(S[S_V])
     pa, pb, x, stroke = float(S[S_PA]), float(S[S_PB]), float(S[S_X]), P[P_STROKE]
@@ -336,14 +340,13 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     inertia = P[P_INERTIA] * (n - n_first) / span
     mean = 0.5 * (tau + S[S_TAU])
     torque = earlier + w * mean - inertia
-    limit = P[P_SPEED_LIMIT]
-    edge = ((abs(n) >= limit) != (abs(S[S_N]) >= limit)
-            or (abs(n) >= limit + 1.0) != (abs(S[S_N]) >= limit + 1.0))
+    edge = _limit_zone(P, n) != _limit_zone(P, float(S[S_N]))
     jump = abs(tau - S[S_TAU])
     excess = 0.0
-    if count > 0:                       # the last step's length: a frame may have been lost
-        h_last = float(S[S_RING + 2 * RING + (at - 1) % RING])
-        said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_N2]) / h_last)
+    if count > 0:                       # the last step: its length, the speed before it
+        last = (at - 1) % RING
+        said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_RING + RING + last])
+                               / S[S_RING + 2 * RING + last])
         excess = abs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR]
     band = max(min(P[P_CURVATURE] * abs(tau - 2.0 * S[S_TAU] + S[S_TAU2]), 0.5 * jump),
                min(P[P_DISAGREE] * excess, jump))
@@ -401,8 +404,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         v = 0.0
     x_new = x + 0.5 * h * (S[S_V] + v)
     S[S_X] = min(max(x_new, 0.0), stroke) if known else math.nan
-    S[S_PA], S[S_PB], S[S_V] = pa, pb, v
-    S[S_N2], S[S_N] = S[S_N], n
+    S[S_PA], S[S_PB], S[S_V], S[S_N] = pa, pb, v, n
     S[S_TAU2], S[S_TAU] = S[S_TAU], tau
     S[S_RA], S[S_RB] = ra, rb
     if v != 0.0 and known:
