@@ -129,12 +129,15 @@ class Stamps:
 
 def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "main",
                       rate_hz: float | None = None, stamps: Stamps = Stamps(),
-                      temps_c: tuple[float, ...] | None = None) -> None:
+                      temps_c: tuple[float, ...] | None = None,
+                      plant_step_s: float | None = None) -> None:
     rows = []
     prefix, temps, make = SWEEPS[which]
     temps = temps_c or temps
     if rate_hz is not None:
         prefix = f"{prefix}_{rate_hz:g}Hz"
+    if plant_step_s is not None:
+        prefix = f"{prefix}_step{plant_step_s:g}s"
     prefix += stamps.tag
     for temp in temps:
         t0 = time.perf_counter()
@@ -143,6 +146,8 @@ def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "mai
             specs = [dataclasses.replace(s, sensors=dataclasses.replace(s.sensors,
                                                                          rate_hz=rate_hz))
                      for s in specs]
+        if plant_step_s is not None:
+            specs = [dataclasses.replace(s, step_s=plant_step_s) for s in specs]
         runs = simulate_campaign(cfg, specs)
         print(f"{temp:g} degC: simulated {len(specs)} runs in {time.perf_counter() - t0:.0f} s",
               flush=True)
@@ -250,6 +255,10 @@ def main() -> None:
                         help="frames' stamps jittered by a uniform +-this (s)")
     parser.add_argument("--temps", type=float, nargs="+", default=None, metavar="DEGC",
                         help="only these of the set's oil temperatures")
+    parser.add_argument("--plant-step-s", type=float, default=None,
+                        help="the simulator's integration step (default 1 ms); the torque "
+                             "it logs is the one applied over the last step, half a step "
+                             "behind the speed")
     args = parser.parse_args()
     if not (0.0 <= args.lost <= 0.5 and args.late_s >= 0.0 and args.jitter_s >= 0.0):
         parser.error("--lost 0..0.5, --late-s and --jitter-s >= 0")
@@ -257,6 +266,8 @@ def main() -> None:
         parser.error(f"--temps: the {args.sweep} set has {SWEEPS[args.sweep][1]}")
     if args.rate_hz is not None and not 1.0 <= args.rate_hz <= 1000.0:
         parser.error("--rate-hz: 1..1000 (the simulator steps at 1 ms)")
+    if args.plant_step_s is not None and not 1e-5 <= args.plant_step_s <= 1e-3:
+        parser.error("--plant-step-s: 1e-5..1e-3 s (a whole number of steps per sample)")
     cfg = load_config(None)
     if args.window_s is not None:
         cfg = dataclasses.replace(cfg, estimator=dataclasses.replace(
@@ -268,7 +279,7 @@ def main() -> None:
     if not args.skip_sweep:
         temperature_sweep(cfg, tables, figures, args.sweep, args.rate_hz,
                           Stamps(args.lost, args.late_s, args.jitter_s),
-                          tuple(args.temps) if args.temps else None)
+                          tuple(args.temps) if args.temps else None, args.plant_step_s)
     publish("accuracy", figures)
 
 

@@ -98,11 +98,15 @@ class LoadConfig:
 
 @dataclass(frozen=True)
 class MotorConfig:
-    """Electric motor limits and the rotating inertia of motor plus pumps."""
+    """Electric motor limits, the rotating inertia of motor plus pumps, and how far behind
+    its speed the drive reports its torque (``torque_lag_s``: the inertia torque is the
+    speed's change, so the two must describe the same instants; negative where the speed is
+    the older)."""
 
     inertia_kg_m2: float = field(metadata=_positive(le=100.0))
     torque_limit_nm: float = field(metadata=_positive(le=100000.0))
     speed_limit_rpm: float = field(metadata=_positive(le=100000.0))
+    torque_lag_s: float = field(default=0.0, metadata={"ge": -0.005, "le": 0.005})
 
 
 @dataclass(frozen=True)
@@ -486,6 +490,7 @@ class Config:
         for unit in data["units"].values():
             for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm"):
                 unit.pop(key)
+            unit["motor"].pop("torque_lag_s")          # how the drive reports, not physics
         blob = json.dumps(data, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 

@@ -24,6 +24,7 @@ from ..physics.unit import DDHUnit
 from ..tables.build import build_unit_tables
 from ..tables.lookup import UnitTables
 from ..estimator.chambers import ChamberRow, track_chambers
+from ..estimator.timing import torque_at_speed_instants
 from ..estimator.extension import (NEUTRAL, corrected_inputs, shift_signal,
                                    with_inertia_compensation)
 from .runs import AnalysisRun
@@ -193,7 +194,8 @@ class Workbench:
                 scale = p.get("position_scale", 1.0)
                 x0 = r.initial_position_mm / scale
                 if "air_fraction" in p:
-                    rows.append(ChamberRow(r.time_s, pumps, tau, temp, x0, p["air_fraction"]))
+                    rows.append(ChamberRow(r.time_s, pumps, self._at_speed_instants(r.time_s, tau),
+                                           temp, x0, p["air_fraction"]))
                     where.append((j, i, scale))
                     continue
                 if mode is None and all(v == NEUTRAL[key] for key, v in p.items()):
@@ -218,6 +220,12 @@ class Workbench:
                     out[j][i] = scale * tr.position_mm
         return out  # type: ignore[return-value]
 
+    def _at_speed_instants(self, time_s: np.ndarray, torque_nm: np.ndarray) -> np.ndarray:
+        """The torque as the chamber track takes it (the estimator does this itself)."""
+        return torque_at_speed_instants(time_s, torque_nm,
+                                        self.cfg.unit(self.actuator).motor.torque_lag_s,
+                                        self.cfg.estimator.max_gap_s)
+
     def scaled_unit(self, p: Params) -> DDHUnit:
         """The unit with the pumps of ``p``."""
         leak, disp = _pump_factors(p)
@@ -239,7 +247,8 @@ class Workbench:
         """Compressible-chamber positions (mm): [air fraction][run] (cached)."""
         todo = sorted({float(x) for x in air_fractions} - set(self._chamber_cache))
         if todo:
-            rows = [ChamberRow(r.time_s, r.speed_rpm, r.torque_nm, r.oil_temp_c,
+            rows = [ChamberRow(r.time_s, r.speed_rpm,
+                               self._at_speed_instants(r.time_s, r.torque_nm), r.oil_temp_c,
                                r.initial_position_mm, x) for x in todo for r in self.runs]
             tracks = track_chambers(self.unit, rows, max_gap_s=self.cfg.estimator.max_gap_s,
                                     window_s=self.cfg.estimator.dynamic_window_s)

@@ -30,6 +30,7 @@ from .flags import Flags
 from .references import (Debouncer, Switch, accepted_edges, share_after_crossing,
                          switches_from_config)
 from .state import EstimatorState
+from .timing import torque_at_speed_instant, torque_at_speed_instants
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
 LATE_EDGE_MAX_S = 0.1       # an I/O frame read later than this: its edge is taken where seen
@@ -91,6 +92,7 @@ class _Online:
     t: float | None = None
     v: float = 0.0
     n: float = 0.0
+    tau: float = 0.0                # the last torque sample as the drive reported it
     index: int = -1
     s_up: float = 0.0
     s_down: float = 0.0
@@ -121,6 +123,8 @@ class Estimator:
         # motor accelerates part of its torque goes into the rotating inertia instead.
         self.inertia_nm_per_rpm_s = (ucfg.motor.inertia_kg_m2 * 2.0 * np.pi / 60.0
                                      if ecfg.inertia_compensation else 0.0)
+        # that term is the speed's change: the torque is taken at the speed's instants
+        self.torque_lag_s = ucfg.motor.torque_lag_s
         self.debounce_s = ecfg.debounce_s
         self.resync_gain_moving = ecfg.resync_gain_moving
         self.resync_slow_mm_s = ecfg.resync_slow_mm_s
@@ -289,6 +293,9 @@ class Estimator:
         t_last = on.t
         dt = t_s - t_last if t_last is not None else 0.0
         valid = 0.0 < dt <= self.max_gap_s
+        reported, on.tau = on.tau, torque_nm
+        if valid and self.torque_lag_s:
+            torque_nm = torque_at_speed_instant(torque_nm, reported, dt, self.torque_lag_s)
         if self.dynamic is not None:
             v, clamped = self.dynamic.step(dt, speed_rpm, torque_nm, oil_temp_c), False
         else:
@@ -379,6 +386,7 @@ class Estimator:
         dt = np.diff(t)
         valid = (dt > 0.0) & (dt <= self.max_gap_s)
         speed = np.asarray(speed_rpm, dtype=float)
+        torque = torque_at_speed_instants(t, torque_nm, self.torque_lag_s, self.max_gap_s)
         stale = np.zeros(n, dtype=bool)
         stale[1:] = ~valid & (dt > 0.0)
         v, dx_raw, hold_dt, s_up, s_down = (np.zeros(n) for _ in range(5))
@@ -401,7 +409,6 @@ class Estimator:
             # The chamber model's rod follows every reference (end stops, volumes), so it
             # runs segment by segment, up to each accepted edge, as step() does.
             clamped = np.zeros(n, dtype=bool)
-            torque = np.asarray(torque_nm, dtype=float)
             temp = np.broadcast_to(np.asarray(oil_temp_c, dtype=float), t.shape)
 
             def advance(lo: int, hi: int) -> None:
@@ -409,7 +416,7 @@ class Estimator:
                                        t_last_s=float(t[lo - 1]) if lo else 0.0)
                 integrate(lo, hi)
         else:
-            pump_torque = np.array(torque_nm, dtype=float)
+            pump_torque = torque.copy()
             safe_dt = np.where(valid, dt, 1.0)
             pump_torque[1:] -= np.where(valid, self.inertia_nm_per_rpm_s * np.diff(speed)
                                         / safe_dt, 0.0)

@@ -53,6 +53,7 @@ from ..tables.lookup import UnitTables
 from . import chambers
 from .estimator import Estimator, RunEstimate, Step
 from .state import EstimatorState
+from .timing import torque_at_speed_instants
 
 FORMAT = "ddh-vsensor-extension"
 FORMAT_VERSION = 2
@@ -406,9 +407,11 @@ class ExtendedEstimator:
                               adaptation=False, initial_position_mm=x0, unit=self._unit)
             tables_x = plain.run(t[s0:], pumps_n[s0:], tau[s0:], temp[s0:]).position_mm
             ch = chambers
+            lag_s = self._cfg.unit(ext.actuator).motor.torque_lag_s
             air = ch.track_chambers(self._unit, [ch.ChamberRow(
-                t[s0:], pumps_n[s0:], tau[s0:], temp[s0:], x0, ext.param("air_fraction"))],
-                max_gap_s=self._max_gap_s)[0]
+                t[s0:], pumps_n[s0:],
+                torque_at_speed_instants(t[s0:], tau[s0:], lag_s, self._max_gap_s),
+                temp[s0:], x0, ext.param("air_fraction"))], max_gap_s=self._max_gap_s)[0]
             correction[s0:] += air.position_mm - tables_x
         if ext.residual is not None:
             mu = self._unit.oil.dynamic_viscosity_pa_s(temp)

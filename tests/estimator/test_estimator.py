@@ -1,6 +1,8 @@
 """The estimator on synthetic runs whose truth is the exact steady state (hence `full` mode:
 the tables are that steady state; `dynamic` is tested on simulated runs)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -35,6 +37,30 @@ def test_online_and_offline_faces_agree(cfg, boom, unit_tables, make_run, mode):
     assert [s.flags for s in steps] == res.flags.tolist()
     assert res.flags[2000] & Flags.STALE_INPUT and not res.flags[1999] & Flags.STALE_INPUT
     assert np.allclose(on.gain.gain, off.gain.gain)
+
+
+@pytest.mark.parametrize("mode", ["full", "dynamic"])
+def test_the_faces_agree_with_the_torque_carried_to_the_speeds_instants(
+        cfg, boom, unit_tables, make_run, mode):
+    """``motor.torque_lag_s``: each torque sample moved along its last change, in both faces
+    alike (a gap's first sample has no last change)."""
+    lagging = dataclasses.replace(cfg, units={name: dataclasses.replace(
+        u, motor=dataclasses.replace(u.motor, torque_lag_s=0.002))
+        for name, u in cfg.units.items()})
+    run = make_run(boom, seconds=20, unit_cfg=cfg.unit("boom"))
+    run.time_s[1000:] += 0.2
+    estimates = []
+    for c in (cfg, lagging):
+        off = Estimator(c, "boom", unit_tables["boom"], mode=mode, references=False,
+                        initial_position_mm=22.0)
+        res = off.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c)
+        on = Estimator(c, "boom", unit_tables["boom"], mode=mode, references=False,
+                       initial_position_mm=22.0)
+        steps = _online(on, run, refs=False)
+        assert np.max(np.abs(np.array([s.velocity_mm_s for s in steps]) - res.velocity_mm_s)
+                      ) < 1e-6
+        estimates.append(res.velocity_mm_s)
+    assert np.max(np.abs(estimates[1] - estimates[0])) > 0.01
 
 
 def test_full_mode_tracks_the_truth_without_references(cfg, boom, unit_tables, make_run):

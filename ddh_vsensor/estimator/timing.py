@@ -1,0 +1,33 @@
+"""The drive's torque at its speed's instants.
+
+The rotor's inertia torque is J times the speed's change, and the pump torque is the reported
+torque less it, so the two signals must describe the same instants: where the torque swings 30
+N·m per sample a millisecond between them is several N·m of pump torque, which the chamber
+model reads as pressure (README: the torque's timing). A drive that reports its torque
+``lag_s`` behind its speed (a filter, the order it samples in, a simulator's step) has each
+sample carried forward along its last change; the first sample after a gap has none and stays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+
+def torque_at_speed_instants(time_s: ArrayLike, torque_nm: ArrayLike, lag_s: float,
+                             max_gap_s: float) -> np.ndarray:
+    """Each torque sample moved ``lag_s`` forward along the change from the sample before
+    (within ``max_gap_s`` of it); a copy, equal to the samples where ``lag_s`` is 0."""
+    torque = np.array(torque_nm, dtype=float)
+    if lag_s and torque.size > 1:
+        dt = np.diff(np.asarray(time_s, dtype=float))
+        valid = (dt > 0.0) & (dt <= max_gap_s)
+        torque[1:] += np.where(valid, lag_s * np.diff(torque) / np.where(valid, dt, 1.0), 0.0)
+    return torque
+
+
+def torque_at_speed_instant(torque_nm: float, last_torque_nm: float, dt_s: float,
+                            lag_s: float) -> float:
+    """One sample of :func:`torque_at_speed_instants` (``dt_s`` within the gap limit), with
+    the same arithmetic."""
+    return torque_nm + lag_s * (torque_nm - last_torque_nm) / dt_s
