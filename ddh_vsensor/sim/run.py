@@ -5,6 +5,10 @@ row of one vectorised plant, so the per-step Python overhead is shared (runs wit
 step, sample rate and controller settings go together; the others form further batches).
 ``simulate(cfg, spec)`` is the one-run form, ``write_run_dir`` writes one ``<unit>.csv`` per
 unit (``boom.csv``, ``bucket.csv`` for the reference loader) and ``run.blf``.
+
+Each sample holds the plant's state at its instant and the motor torque applied over the
+step that ended there: the torque is half a step (``step_s``) behind the speed, as a drive's
+may be (``motor.torque_lag_s``, README: the torque's timing).
 """
 
 from __future__ import annotations
