@@ -111,6 +111,29 @@ def test_online_face_follows_the_offline_one(cause, params, cfg, unit_tables, no
         assert np.max(np.abs(offline.position_mm - plain)) > 0.05     # it does something
 
 
+def test_the_air_track_takes_the_torque_at_the_speeds_instants_in_both_faces(
+        cfg, unit_tables, nominal_run):
+    """``motor.torque_lag_s``: the estimator and the extension's own chamber track both carry
+    the torque forward, online as offline."""
+    run = nominal_run
+    lagging = dataclasses.replace(cfg, units={name: dataclasses.replace(
+        u, motor=dataclasses.replace(u.motor, torque_lag_s=0.002))
+        for name, u in cfg.units.items()})
+    ext = dataclasses.replace(_ext(cfg, "compressibility", air_fraction=0.03), mode="full")
+    kw = dict(references=True, initial_position_mm=float(run.position_mm[0]))
+    positions = []
+    for c in (cfg, lagging):
+        offline = ext.estimator(c, unit_tables["boom"], **kw).run(
+            run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs).position_mm
+        est = ext.estimator(c, unit_tables["boom"], **kw)
+        online = np.array([est.step(t, n, q, T, {k: bool(v[i]) for k, v in run.refs.items()})
+                           .position_mm for i, (t, n, q, T) in enumerate(zip(
+                               run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c))])
+        assert np.max(np.abs(online - offline)) < 1e-6        # the same steps (1e-11 here)
+        positions.append(offline)
+    assert np.max(np.abs(positions[1] - positions[0])) > 0.01
+
+
 def test_online_time_offset_with_references_on_lagging_signals(cfg, unit_tables):
     lag = float(np.random.default_rng(BASE_SEED).uniform(0.05, 0.3))
     run = simulate(cfg, RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=35.0,
