@@ -13,7 +13,7 @@ enum {
     P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S, P_TORQUE_STEP,
     P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR,
     P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
-    P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_SIZE = P_K_B + 12
+    P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_FRIC_C = P_K_B + 12, P_FRIC_V, P_FRIC_S, P_SIZE
 };
 #define HF_LEARN 20         /* steps the drive's cadence is first learnt from (see HF_GAIN) */
 
@@ -277,17 +277,18 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     int stopped = known && ((x <= 0.0 && n <= 0.0) || (x >= stroke && n >= 0.0));
     if (!stopped && known && (x <= 0.0 || x >= stroke) && load == load) {
         /* Driven away from its stop, the rod stays until the chambers' force overcomes the
-         * load it held arriving (the load does not change on the stop; its friction only
-         * delays the start further): until then the pumps' flow (de)compresses the chambers,
-         * which the torque, read as pressure, would turn into travel. Both chambers pinned
-         * by their valves are the most force they can make: the load cannot be more. */
+         * load it held arriving (the load does not change on the stop) and the rod's static
+         * friction: until then the pumps' flow (de)compresses the chambers, which the
+         * torque, read as pressure, would turn into travel. Both chambers pinned by their
+         * valves are the most force they can make: the load cannot be more. */
         int qa, qb;
         double sa, sb;
         still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da, &qa, &sa);
         still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db, &qb, &sb);
         double force = sa * P[P_AREA_A] - sb * P[P_AREA_B];
         int pinned = (qa == 0 || qa == 3) && (qb == 0 || qb == 3);
-        stopped = still_done = !pinned && (x <= 0.0 ? force < load : force > load);
+        stopped = still_done = !pinned && (x <= 0.0 ? force < load + P[P_FRIC_S]
+                                                    : force > load - P[P_FRIC_S]);
         if (still_done) {
             pa = sa; ra = qa; pb = sb; rb = qb;
         }
@@ -310,8 +311,9 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n;
     S[S_TAU2] = S[S_TAU]; S[S_TAU] = tau;
     S[S_RA] = ra; S[S_RB] = rb;
-    if (v != 0.0 && known)
-        S[S_LOAD_F] = pa * P[P_AREA_A] - pb * P[P_AREA_B];
+    if (v != 0.0 && known)      /* the load: the chambers' force less the moving friction */
+        S[S_LOAD_F] = pa * P[P_AREA_A] - pb * P[P_AREA_B]
+                      - copysign(P[P_FRIC_C] + P[P_FRIC_V] * fabs(v), v);
     return v;
 }
 

@@ -22,8 +22,8 @@ value was chosen and why.
 Where the torque cannot tell the rod's speed, the step does not ask it (README: temperature
 sweep): a rod on its end stop (the model's own position at the stroke end) stays there unless
 the motor drives it away and the chambers' force has overcome the load the rod held arriving
-there (the chamber force of its last moving step), and so does a rod whose chambers both sit
-on a one-way valve;
+there (the chamber force of its last moving step less the rod's moving friction then) and the
+rod's static friction, and so does a rod whose chambers both sit on a one-way valve;
 reversing on an end stop, the pumps' static friction lets any torque between the motoring
 and the pumping one hold the pressures; and a torque step within one sample larger than
 ``torque_step_nm``, or any where the speed reaches or leaves the motor's speed limit (the
@@ -69,7 +69,8 @@ _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valv
 (P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,
  P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S,
  P_TORQUE_STEP, P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR) = range(22)
-P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B, P_SIZE = 22, 26, 30, 34, 38, 50, 62
+P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B = 22, 26, 30, 34, 38, 50
+P_FRIC_C, P_FRIC_V, P_FRIC_S, P_SIZE = 62, 63, 64, 65   # the rod's friction (N, N·s/m)
 (S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
  S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING) = range(19)
 RING, HF_LEARN = 32, 20                              # as in _chambers.c
@@ -132,6 +133,10 @@ def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
     p[P_CURVATURE] = torque_curvature
     p[P_DISAGREE] = speed_disagreement
     p[P_DISAGREE_FLOOR] = speed_disagreement_floor_nm
+    cyl = unit.cylinder
+    p[P_FRIC_C], p[P_FRIC_V], p[P_FRIC_S] = (cyl.coulomb_friction_n,
+                                             cyl.viscous_friction_n_s_m,
+                                             cyl.static_friction_n)
     for side, g, ge, k in ((a, P_G_A, P_GE_A, P_K_A), (b, P_G_B, P_GE_B, P_K_B)):
         g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
         g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
@@ -391,7 +396,8 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         sb, qb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)
         force = sa * P[P_AREA_A] - sb * P[P_AREA_B]
         pinned = qa in (0, 3) and qb in (0, 3)
-        stopped = still_done = not pinned and (force < load if x <= 0.0 else force > load)
+        stopped = still_done = not pinned and (force < load + P[P_FRIC_S] if x <= 0.0
+                                               else force > load - P[P_FRIC_S])
         if still_done:
             pa, ra, pb, rb = sa, qa, sb, qb
     if not stopped:
@@ -408,5 +414,6 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     S[S_TAU2], S[S_TAU] = S[S_TAU], tau
     S[S_RA], S[S_RB] = ra, rb
     if v != 0.0 and known:
-        S[S_LOAD_F] = pa * P[P_AREA_A] - pb * P[P_AREA_B]
+        S[S_LOAD_F] = (pa * P[P_AREA_A] - pb * P[P_AREA_B]
+                       - math.copysign(P[P_FRIC_C] + P[P_FRIC_V] * abs(v), v))
     return v
