@@ -13,7 +13,8 @@ enum {
     P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S, P_TORQUE_STEP,
     P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR,
     P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
-    P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_FRIC_C = P_K_B + 12, P_FRIC_V, P_FRIC_S, P_SIZE
+    P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_FRIC_C = P_K_B + 12, P_FRIC_V, P_FRIC_S, P_MASS,
+    P_SIZE
 };
 #define HF_LEARN 20         /* steps the drive's cadence is first learnt from (see HF_GAIN) */
 
@@ -269,6 +270,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         fa += ka * qa; fb += kb * qb; da += ka; db += kb;
     }
     double load = S[S_LOAD_F];
+    double beyond = -1.0;       /* force beyond what holds the rod on its stop (N); < 0: none */
     double v = 0.0;
     int still_done = 0;         /* pa, pb, ra, rb already the chambers' own (rod still) */
     /* A rod on its end stop stays there unless the motor drives it away: pressed into the
@@ -287,14 +289,25 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db, &qb, &sb);
         double force = sa * P[P_AREA_A] - sb * P[P_AREA_B];
         int pinned = (qa == 0 || qa == 3) && (qb == 0 || qb == 3);
-        stopped = still_done = !pinned && (x <= 0.0 ? force < load + P[P_FRIC_S]
-                                                    : force > load - P[P_FRIC_S]);
+        beyond = x <= 0.0 ? force - load - P[P_FRIC_S] : load - P[P_FRIC_S] - force;
+        stopped = still_done = !pinned && beyond < 0.0;
         if (still_done) {
             pa = sa; ra = qa; pb = sb; rb = qb;
         }
     }
     if (!stopped) {
         solve(P, fa, fb, da, db, torque, d, &ra, &rb, &pa, &pb, &v);
+        /* Leaving the stop, the rod and its load (their mass, at least the empty machine's)
+         * take up speed from the force beyond what held them, which grows from nothing
+         * within the step: half its end value on average. Read from the torque alone, the
+         * rod went at once; the pumps' flow it cannot take yet compresses the chambers. */
+        double vmax = 0.5 * beyond / P[P_MASS] * h;
+        if (beyond > 0.0 && S[S_V] == 0.0 && !((ra == 0 || ra == 3) && (rb == 0 || rb == 3))
+            && fabs(v) > vmax) {
+            v = copysign(vmax, v);
+            pa = (fa + P[P_GE_A + ra] - P[P_AREA_A] * v) / (da + P[P_G_A + ra]);
+            pb = (fb + P[P_GE_B + rb] + P[P_AREA_B] * v) / (db + P[P_G_B + rb]);
+        }
         /* Both chambers on a one-way valve (relief, anti-cavitation): their pressures are
          * pinned, and the torque, which only sees pressures, cannot tell the rod's speed (a
          * newton-metre of error reads as hundreds of mm/s). The valves take the flow. */

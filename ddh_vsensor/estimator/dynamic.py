@@ -70,7 +70,8 @@ _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valv
  P_CRACK, P_RELIEF_A, P_RELIEF_B, P_INERTIA, P_BETA, P_BLEND_S, P_MAX_GAP_S,
  P_TORQUE_STEP, P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR) = range(22)
 P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B = 22, 26, 30, 34, 38, 50
-P_FRIC_C, P_FRIC_V, P_FRIC_S, P_SIZE = 62, 63, 64, 65   # the rod's friction (N, N·s/m)
+P_FRIC_C, P_FRIC_V, P_FRIC_S, P_MASS = 62, 63, 64, 65   # the rod's friction, its load's mass
+P_SIZE = 66
 (S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
  S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING) = range(19)
 RING, HF_LEARN = 32, 20                              # as in _chambers.c
@@ -137,6 +138,7 @@ def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
     p[P_FRIC_C], p[P_FRIC_V], p[P_FRIC_S] = (cyl.coulomb_friction_n,
                                              cyl.viscous_friction_n_s_m,
                                              cyl.static_friction_n)
+    p[P_MASS] = unit.moving_mass_kg(0.0)                    # the empty machine's: the least
     for side, g, ge, k in ((a, P_G_A, P_GE_A, P_K_A), (b, P_G_B, P_GE_B, P_K_B)):
         g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
         g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
@@ -388,6 +390,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         da += ka
         db += kb
     load = float(S[S_LOAD_F])
+    beyond = -1.0                      # force beyond what holds the rod on its stop
     v = 0.0
     still_done = False
     stopped = known and ((x <= 0.0 and n <= 0.0) or (x >= stroke and n >= 0.0))
@@ -396,13 +399,19 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         sb, qb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)
         force = sa * P[P_AREA_A] - sb * P[P_AREA_B]
         pinned = qa in (0, 3) and qb in (0, 3)
-        stopped = still_done = not pinned and (force < load + P[P_FRIC_S] if x <= 0.0
-                                               else force > load - P[P_FRIC_S])
+        beyond = (force - load - P[P_FRIC_S] if x <= 0.0
+                  else load - P[P_FRIC_S] - force)
+        stopped = still_done = not pinned and beyond < 0.0
         if still_done:
             pa, ra, pb, rb = sa, qa, sb, qb
     if not stopped:
         pa, pb, v, ra, rb = _solve(P, fa, fb, da, db, torque, d, ra, rb)
         stopped = ra in (0, 3) and rb in (0, 3)
+        vmax = 0.5 * beyond / P[P_MASS] * h
+        if beyond > 0.0 and S[S_V] == 0.0 and not stopped and abs(v) > vmax:
+            v = math.copysign(vmax, v)
+            pa = (fa + P[P_GE_A + ra] - P[P_AREA_A] * v) / (da + P[P_G_A + ra])
+            pb = (fb + P[P_GE_B + rb] + P[P_AREA_B] * v) / (db + P[P_G_B + rb])
     if stopped and not still_done:
         pa, ra = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
         pb, rb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)

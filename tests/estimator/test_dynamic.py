@@ -311,15 +311,37 @@ def test_a_rod_leaving_its_end_stop_breaks_its_friction_first(cfg, unit_tables):
     bottom stop at 200 bar and reverses off it at the torque limit (49.9 s). The load the rod
     held arriving is the chamber force less the friction that helped it then; leaving, the
     rod must break its static friction as well. Without the friction the model's rod left
-    that much early: 0.44 mm worst over the run; with the reference sheet's friction 0.30."""
+    that much early: 0.44 mm worst over the run, 0.33 with the rod's mass (next test) and
+    0.19 with both, within 49.8-50.5 s (0.25 mm over the run, elsewhere)."""
     spec = RunSpec(cycle=random_cycle(cfg, 420, end_stop_share=0.4), payload_kg=1040.0,
                    oil_temp_c=65.0, seed=3)
     run, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
-    assert worst <= 0.36
+    assert worst <= 0.3
+    est = Estimator(cfg, "bucket", unit_tables["bucket"], mode="dynamic", references=False,
+                    initial_position_mm=float(run.position_mm[0]))
+    err = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c).position_mm \
+        - run.position_mm
+    assert np.max(np.abs(err[(run.time_s >= 49.8) & (run.time_s <= 50.5)])) <= 0.23
     frictionless = dataclasses.replace(cfg, units={**cfg.units, "bucket": dataclasses.replace(
         cfg.units["bucket"], friction_static_n=0.0, friction_coulomb_n=0.0,
         friction_viscous_n_s_per_m=0.0)})
-    assert _worst_of(frictionless, unit_tables, "bucket", run) >= 0.4
+    assert _worst_of(frictionless, unit_tables, "bucket", run) >= 0.3
+
+
+def test_a_rod_leaving_its_end_stop_takes_up_speed_with_its_mass(cfg, unit_tables):
+    """The check set's 5 degC bucket run (a random cycle, empty) drives the bucket off its end
+    stops at the torque limit. Once the chambers' force passes what held the rod, the torque
+    read as pressure gave the model's rod its full speed in that sample, while the real one
+    (with the empty machine's 3 t at the rod at least) accelerates from the force beyond the
+    threshold, growing from nothing within the sample: 0.35 mm worst over the run. Limited
+    to what half that force gives the empty machine's mass in the sample: 0.17 mm."""
+    spec = RunSpec(cycle=random_cycle(cfg, 405, end_stop_share=0.4), payload_kg=0.0,
+                   oil_temp_c=5.0, seed=0)
+    run, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
+    assert worst <= 0.22
+    massless = dataclasses.replace(cfg, units={**cfg.units, "bucket": dataclasses.replace(
+        cfg.units["bucket"], load=dataclasses.replace(cfg.units["bucket"].load, mass_kg=1e-3))})
+    assert _worst_of(massless, unit_tables, "bucket", run) >= 0.3
 
 
 def test_the_dynamic_mode_runs_the_pumps_it_is_given(cfg, unit_tables, boom):
