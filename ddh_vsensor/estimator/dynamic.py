@@ -23,7 +23,8 @@ Where the torque cannot tell the rod's speed, the step does not ask it (README: 
 sweep): a rod on its end stop (the model's own position at the stroke end) stays there unless
 the motor drives it away and the chambers' force has overcome the load the rod held arriving
 there (the chamber force of its last moving step less the rod's moving friction then) and the
-rod's static friction, and so does a rod whose chambers both sit on a one-way valve;
+rod's static friction, and then takes up speed no faster than the force beyond that gives
+the empty machine's mass; so does a rod whose chambers both sit on a one-way valve;
 reversing on an end stop, the pumps' static friction lets any torque between the motoring
 and the pumping one hold the pressures; and a torque step within one sample larger than
 ``torque_step_nm``, or any where the speed reaches or leaves the motor's speed limit (the
