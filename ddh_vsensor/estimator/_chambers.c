@@ -46,12 +46,20 @@ static int regime(double dp, double crack, double relief)
     return (dp >= crack) + (dp >= 0.0) + (dp > relief);
 }
 
+/* In regimes ra, rb each chamber's pressure is linear in the rod's speed: p = al + be * v. */
+static void linear(const double *P, int ra, int rb, double fa, double fb, double da, double db,
+                   double *al_a, double *be_a, double *al_b, double *be_b)
+{
+    double den_a = da + P[P_G_A + ra], den_b = db + P[P_G_B + rb];
+    *al_a = (fa + P[P_GE_A + ra]) / den_a; *be_a = -P[P_AREA_A] / den_a;
+    *al_b = (fb + P[P_GE_B + rb]) / den_b; *be_b = P[P_AREA_B] / den_b;
+}
+
 static void attempt(const double *P, int ra, int rb, double fa, double fb, double da,
                     double db, double torque, int d, double *pa, double *pb, double *v)
 {
-    double den_a = da + P[P_G_A + ra], den_b = db + P[P_G_B + rb];
-    double al_a = (fa + P[P_GE_A + ra]) / den_a, be_a = -P[P_AREA_A] / den_a;
-    double al_b = (fb + P[P_GE_B + rb]) / den_b, be_b = P[P_AREA_B] / den_b;
+    double al_a, be_a, al_b, be_b;
+    linear(P, ra, rb, fa, fb, da, db, &al_a, &be_a, &al_b, &be_b);
     double k_a = P[P_K_A + 4 * d + ra], k_b = P[P_K_B + 4 * d + rb];
     *v = (torque - k_a * al_a - k_b * al_b) / (k_a * be_a + k_b * be_b);
     *pa = al_a + be_a * *v;
@@ -297,21 +305,22 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     }
     if (!stopped) {
         solve(P, fa, fb, da, db, torque, d, &ra, &rb, &pa, &pb, &v);
+        /* Both chambers on a one-way valve (relief, anti-cavitation): their pressures are
+         * pinned, and the torque, which only sees pressures, cannot tell the rod's speed (a
+         * newton-metre of error reads as hundreds of mm/s). The valves take the flow. */
+        stopped = (ra == 0 || ra == 3) && (rb == 0 || rb == 3);
         /* Leaving the stop, the rod and its load (their mass, at least the empty machine's)
          * take up speed from the force beyond what held them, which grows from nothing
          * within the step: half its end value on average. Read from the torque alone, the
          * rod went at once; the pumps' flow it cannot take yet compresses the chambers. */
         double vmax = 0.5 * beyond / P[P_MASS] * h;
-        if (beyond > 0.0 && S[S_V] == 0.0 && !((ra == 0 || ra == 3) && (rb == 0 || rb == 3))
-            && fabs(v) > vmax) {
+        if (!stopped && beyond > 0.0 && S[S_V] == 0.0 && fabs(v) > vmax) {
+            double al_a, be_a, al_b, be_b;
+            linear(P, ra, rb, fa, fb, da, db, &al_a, &be_a, &al_b, &be_b);
             v = copysign(vmax, v);
-            pa = (fa + P[P_GE_A + ra] - P[P_AREA_A] * v) / (da + P[P_G_A + ra]);
-            pb = (fb + P[P_GE_B + rb] + P[P_AREA_B] * v) / (db + P[P_G_B + rb]);
+            pa = al_a + be_a * v;
+            pb = al_b + be_b * v;
         }
-        /* Both chambers on a one-way valve (relief, anti-cavitation): their pressures are
-         * pinned, and the torque, which only sees pressures, cannot tell the rod's speed (a
-         * newton-metre of error reads as hundreds of mm/s). The valves take the flow. */
-        stopped = (ra == 0 || ra == 3) && (rb == 0 || rb == 3);
     }
     if (stopped && !still_done) {
         still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da, &ra, &pa);

@@ -249,11 +249,16 @@ def _regime(dp: float, crack: float, relief: float) -> int:
     return int(dp >= crack) + int(dp >= 0.0) + int(dp > relief)
 
 
-def _attempt(P, ra, rb, fa, fb, da, db, torque, d):
+def _linear(P, ra, rb, fa, fb, da, db):
+    """``linear`` of _chambers.c: (al_a, be_a, al_b, be_b), each pressure al + be * v."""
     den_a = da + P[P_G_A + ra]
     den_b = db + P[P_G_B + rb]
-    al_a, be_a = (fa + P[P_GE_A + ra]) / den_a, -P[P_AREA_A] / den_a
-    al_b, be_b = (fb + P[P_GE_B + rb]) / den_b, P[P_AREA_B] / den_b
+    return ((fa + P[P_GE_A + ra]) / den_a, -P[P_AREA_A] / den_a,
+            (fb + P[P_GE_B + rb]) / den_b, P[P_AREA_B] / den_b)
+
+
+def _attempt(P, ra, rb, fa, fb, da, db, torque, d):
+    al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
     k_a, k_b = P[P_K_A + 4 * d + ra], P[P_K_B + 4 * d + rb]
     v = (torque - k_a * al_a - k_b * al_b) / (k_a * be_a + k_b * be_b)
     return al_a + be_a * v, al_b + be_b * v, v
@@ -409,10 +414,10 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         pa, pb, v, ra, rb = _solve(P, fa, fb, da, db, torque, d, ra, rb)
         stopped = ra in (0, 3) and rb in (0, 3)
         vmax = 0.5 * beyond / P[P_MASS] * h
-        if beyond > 0.0 and S[S_V] == 0.0 and not stopped and abs(v) > vmax:
+        if not stopped and beyond > 0.0 and S[S_V] == 0.0 and abs(v) > vmax:
+            al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
             v = math.copysign(vmax, v)
-            pa = (fa + P[P_GE_A + ra] - P[P_AREA_A] * v) / (da + P[P_G_A + ra])
-            pb = (fb + P[P_GE_B + rb] + P[P_AREA_B] * v) / (db + P[P_G_B + rb])
+            pa, pb = al_a + be_a * v, al_b + be_b * v
     if stopped and not still_done:
         pa, ra = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
         pb, rb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)

@@ -139,7 +139,7 @@ class Estimator:
         self.position_mm = 0.0 if initial_position_mm is None else float(initial_position_mm)
         # `dynamic`: the chamber pressures are states; the model carries its own rod position
         # for the chamber volumes (it sees no references, so both faces feed it alike)
-        limit_nm = cfg.unit(actuator).motor.torque_limit_nm
+        limit_nm = ucfg.motor.torque_limit_nm
         self.dynamic = (DynamicModel(unit or DDHUnit.from_config(cfg, actuator), self.position_mm,
                                      inertia=ecfg.inertia_compensation,
                                      blend_s=ecfg.dynamic_blend_s, max_gap_s=self.max_gap_s,
@@ -179,6 +179,12 @@ class Estimator:
         return cls(cfg, unit, tables, **options)
 
     # --- shared pieces -------------------------------------------------------------------
+
+    @property
+    def reported_torque_nm(self) -> float:
+        """The last torque sample as the drive reported it, before :mod:`.timing` moved it
+        (kept only where ``motor.torque_lag_s`` is set)."""
+        return self._on.tau
 
     @property
     def referenced(self) -> bool:
@@ -293,9 +299,10 @@ class Estimator:
         t_last = on.t
         dt = t_s - t_last if t_last is not None else 0.0
         valid = 0.0 < dt <= self.max_gap_s
-        reported, on.tau = on.tau, torque_nm
-        if valid and self.torque_lag_s:
-            torque_nm = torque_at_speed_instant(torque_nm, reported, dt, self.torque_lag_s)
+        if self.torque_lag_s:
+            reported, on.tau = on.tau, torque_nm
+            if valid:
+                torque_nm = torque_at_speed_instant(torque_nm, reported, dt, self.torque_lag_s)
         if self.dynamic is not None:
             v, clamped = self.dynamic.step(dt, speed_rpm, torque_nm, oil_temp_c), False
         else:
@@ -416,7 +423,7 @@ class Estimator:
                                        t_last_s=float(t[lo - 1]) if lo else 0.0)
                 integrate(lo, hi)
         else:
-            pump_torque = torque.copy()
+            pump_torque = torque                # the run's own copy, less the inertia term
             safe_dt = np.where(valid, dt, 1.0)
             pump_torque[1:] -= np.where(valid, self.inertia_nm_per_rpm_s * np.diff(speed)
                                         / safe_dt, 0.0)

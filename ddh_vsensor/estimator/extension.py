@@ -326,7 +326,7 @@ class ExtendedEstimator:
 
     _OWN = frozenset({"extension", "estimator", "_cfg", "_unit", "_tables_x", "_max_gap_s",
                       "_chambers", "_t", "_v", "_delayed", "_offset_mm", "_out", "_params",
-                      "_air", "_resid_mm", "_tau", "_lag_s"})
+                      "_air", "_resid_mm"})
 
     def __init__(self, cfg: Config, extension: Extension, tables: UnitTables | None = None,
                  **kwargs: Any) -> None:
@@ -345,8 +345,6 @@ class ExtendedEstimator:
         self._max_gap_s = cfg.estimator.max_gap_s
         self._chambers = None
         self._t: float | None = None
-        self._tau = 0.0                         # the last torque as the drive reported it
-        self._lag_s = cfg.unit(extension.actuator).motor.torque_lag_s
         self._delayed: deque = deque()          # time_offset: (t, values) not yet due
         self._offset_mm = 0.0                   # corrections at the last reset
         self._resid_mm = 0.0                    # integrated residual model
@@ -411,7 +409,8 @@ class ExtendedEstimator:
             ch = chambers
             air = ch.track_chambers(self._unit, [ch.ChamberRow(
                 t[s0:], pumps_n[s0:],
-                torque_at_speed_instants(t[s0:], tau[s0:], self._lag_s, self._max_gap_s),
+                torque_at_speed_instants(t[s0:], tau[s0:], self.estimator.torque_lag_s,
+                                         self._max_gap_s),
                 temp[s0:], x0, ext.param("air_fraction"))], max_gap_s=self._max_gap_s)[0]
             correction[s0:] += air.position_mm - tables_x
         if ext.residual is not None:
@@ -444,6 +443,7 @@ class ExtendedEstimator:
         slip = p.get("slip_percent_per_100nm", 0.0)
         pumps_n = float(speed_rpm * max(1.0 - slip * 1e-4 * abs(tau), 0.0)) if slip \
             else speed_rpm
+        reported = self.estimator.reported_torque_nm     # the sample before this one
         step = self.estimator.step(t_s, pumps_n, tau, temp, refs, refs_since_s, refs_timed)
         x = step.position_mm
         if t_off > 0.0:
@@ -453,7 +453,6 @@ class ExtendedEstimator:
         h = None if self._t is None else t_s - self._t
         ok = h is not None and 0.0 < h <= self._max_gap_s
         mu = float(self._unit.oil.dynamic_viscosity_pa_s(temp))
-        reported, self._tau = self._tau, tau
         if self._air and self.estimator.referenced:     # tracked from a known position
             if self._chambers is None:
                 ch = chambers
@@ -462,8 +461,9 @@ class ExtendedEstimator:
                                                  max_gap_s=self._max_gap_s)
                 self._tables_x = step.position_mm
             else:
+                lag_s = self.estimator.torque_lag_s
                 self._chambers.advance(h, pumps_n, torque_at_speed_instant(
-                    tau, reported, h, self._lag_s) if ok and self._lag_s else tau, mu)
+                    tau, reported, h, lag_s) if ok and lag_s else tau, mu)
                 if ok:                  # the tables' own integration, no references
                     self._tables_x += 0.5 * (self._v + step.velocity_mm_s) * h
         if ext.residual is not None and ok:
