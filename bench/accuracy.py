@@ -247,6 +247,9 @@ def main() -> None:
                              "simulator's 100 Hz)")
     parser.add_argument("--window-s", type=float, default=None,
                         help="estimator.dynamic_window_s for this run (0: per sample)")
+    parser.add_argument("--torque-lag-s", type=float, default=None,
+                        help="motor.torque_lag_s of every unit for this run (the "
+                             "configuration's otherwise)")
     parser.add_argument("--lost", type=float, default=0.0,
                         help="share of the frames lost before the estimator (0..0.5)")
     parser.add_argument("--late-s", type=float, default=0.0,
@@ -272,6 +275,13 @@ def main() -> None:
     if args.window_s is not None:
         cfg = dataclasses.replace(cfg, estimator=dataclasses.replace(
             cfg.estimator, dynamic_window_s=args.window_s))
+    if args.torque_lag_s is not None:
+        if not -0.005 <= args.torque_lag_s <= 0.005:
+            parser.error("--torque-lag-s: -0.005..0.005 s")
+        cfg = dataclasses.replace(cfg, units={
+            name: dataclasses.replace(unit, motor=dataclasses.replace(
+                unit.motor, torque_lag_s=args.torque_lag_s))
+            for name, unit in cfg.units.items()})
     tables = {a: build_unit_tables(cfg, a) for a in cfg.unit_names}
     figures: dict[str, object] = {}
     if not args.sweep_only:

@@ -663,6 +663,20 @@ def _read_bounded(path: Path, source: str) -> str:
             from None
 
 
+def _check_unique_keys(node: yaml.MappingNode, source: str) -> None:
+    """A key given twice in one mapping is an error: YAML readers keep the last silently, so
+    an edit above a forgotten copy would change nothing."""
+    first_line: dict[str, int] = {}
+    for key, _ in node.value:
+        if not isinstance(key, yaml.ScalarNode) or key.tag == "tag:yaml.org,2002:merge":
+            continue
+        line = key.start_mark.line + 1
+        if key.value in first_line:
+            raise ConfigError(source, "", f"line {line}: key {key.value!r} given twice (first "
+                              f"on line {first_line[key.value]})")
+        first_line[key.value] = line
+
+
 def _check_shape(node: yaml.Node, source: str) -> None:
     """Refuse documents that expand (through aliases) into too many nodes or nest too
     deeply, before anything walks them: counted with memoised sizes, no recursion."""
@@ -677,6 +691,7 @@ def _check_shape(node: yaml.Node, source: str) -> None:
         if isinstance(current, yaml.SequenceNode):
             children = list(current.value)
         elif isinstance(current, yaml.MappingNode):
+            _check_unique_keys(current, source)
             children = [n for pair in current.value for n in pair]
         else:
             size[id(current)] = 1

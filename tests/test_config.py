@@ -7,7 +7,7 @@ import sys
 import pytest
 import yaml
 
-from ddh_vsensor.config import ConfigError, load_config, parse_config
+from ddh_vsensor.config import DEFAULT_CONFIG, ConfigError, load_config, parse_config, parse_yaml
 from ddh_vsensor.errors import UserError
 
 from .conftest import REPO
@@ -204,3 +204,18 @@ def test_a_huge_bad_value_is_truncated_in_the_message():
     with pytest.raises(ConfigError) as err:
         parse_config(_mutate("units.boom.stroke_mm", "y" * 100_000), source="machine.yaml")
     assert len(str(err.value)) <= 300
+
+
+def test_a_key_given_twice_is_an_error_with_both_lines(tmp_path):
+    """YAML readers keep the last of two equal keys: an edit to the first would be lost."""
+    text = (DEFAULT_CONFIG.read_text().replace(
+        "      torque_lag_s: 0.0", "      torque_lag_s: 0.0\n      torque_lag_s: 0.001", 1))
+    path = tmp_path / "twice.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=r"line (\d+): key 'torque_lag_s' given twice "
+                                          r"\(first on line \d+\)"):
+        load_config(path)
+    merged = tmp_path / "merged.yaml"
+    merged.write_text("base: &b {x: 1}\nother:\n  <<: *b\n  x: 2\n")
+    assert parse_yaml(merged.read_text(), str(merged)) == {"base": {"x": 1},
+                                                           "other": {"x": 2}}
