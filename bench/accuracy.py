@@ -9,8 +9,9 @@
   per actuator, no references. ``--sweep check`` runs the second set instead (oil at -5..75
   degC, 500 kg paper cycles, dig-dump at speeds 2-3, four random cycles per temperature with
   0-1040 kg and 40 % of the moves into an end stop, seeds 401..), which checked the rules the
-  first set had shown (README).
+  first set had shown (README); ``--draw SEED`` a set designed for nothing, drawn from SEED.
 Run: python bench/accuracy.py [--cycles 50] [--skip-sweep | --sweep-only] [--sweep main|check]
+     [--draw SEED]
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from _results import publish  # noqa: E402
 from ddh_vsensor.config import load_config  # noqa: E402
 from ddh_vsensor.estimator.accuracy import accuracy  # noqa: E402
 from ddh_vsensor.estimator.estimator import Estimator  # noqa: E402
+from ddh_vsensor.sim.control import PIDSettings  # noqa: E402
 from ddh_vsensor.sim.cycles import dig_dump_cycle, random_cycle  # noqa: E402
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
@@ -93,10 +95,50 @@ def rates_specs(cfg, temp_c: float) -> list[RunSpec]:
     return specs
 
 
+def drawn_set(cfg, seed: int) -> dict[float, list[RunSpec]]:
+    """A set designed for nothing, drawn from ``seed``: two oil temperatures from -10 to 27
+    degC and four from 27 to 80, each with twelve runs, a quarter the paper cycle at a random
+    speed, a fifth dig-dump, the rest random cycles with 10-60 % of their moves into an end
+    stop; payloads 0-1040 kg; 60 % of the runs on a drive tuned otherwise (loop 3-6.5 rad/s,
+    derivative filter 80-160 ms, torque ramp 5-20 ms)."""
+    rng = np.random.default_rng(seed)
+    temps = [round(float(t), 1) for t in np.concatenate([rng.uniform(-10.0, 27.0, 2),
+                                                          rng.uniform(27.0, 80.0, 4)])]
+    runs: dict[float, list[RunSpec]] = {}
+    for i, temp in enumerate(temps):
+        specs = runs.setdefault(temp, [])
+        for k in range(12):
+            pid = PIDSettings(bandwidth_rad_s=float(rng.uniform(3.0, 6.5)),
+                              derivative_filter_s=float(rng.uniform(0.08, 0.16)),
+                              torque_filter_s=float(rng.uniform(0.005, 0.02))) \
+                if rng.random() < 0.6 else PIDSettings()
+            payload = float(rng.uniform(0.0, 1040.0))
+            kind = rng.random()
+            common = dict(payload_kg=payload, oil_temp_c=temp, controller=pid, seed=k)
+            if kind < 0.25:
+                specs.append(RunSpec(speed=int(rng.integers(1, 5)), **common))
+            elif kind < 0.45:
+                specs.append(RunSpec(cycle=dig_dump_cycle(cfg, int(rng.integers(1, 5))),
+                                     **common))
+            else:
+                cycle = random_cycle(cfg, seed * 100 + i * 12 + k,
+                                     end_stop_share=float(rng.uniform(0.1, 0.6)))
+                specs.append(RunSpec(cycle=cycle, **common))
+    return runs
+
+
 # run set -> (figure prefix, temperatures, runs at one temperature)
 SWEEPS = {"main": ("sweep", SWEEP_TEMPS_C, sweep_specs),
           "check": ("check", CHECK_TEMPS_C, check_specs),
           "rates": ("rates", RATES_TEMPS_C, rates_specs)}
+
+
+def run_set(cfg, which: str, draw_seed: int | None):
+    """(figure prefix, temperatures, runs at one temperature) of a named or drawn set."""
+    if draw_seed is None:
+        return SWEEPS[which]
+    drawn = drawn_set(cfg, draw_seed)
+    return f"drawn{draw_seed}", tuple(drawn), lambda _cfg, temp: drawn[temp]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,9 +172,9 @@ class Stamps:
 def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "main",
                       rate_hz: float | None = None, stamps: Stamps = Stamps(),
                       temps_c: tuple[float, ...] | None = None,
-                      plant_step_s: float | None = None) -> None:
+                      plant_step_s: float | None = None, draw_seed: int | None = None) -> None:
     rows = []
-    prefix, temps, make = SWEEPS[which]
+    prefix, temps, make = run_set(cfg, which, draw_seed)
     temps = temps_c or temps
     if rate_hz is not None:
         prefix = f"{prefix}_{rate_hz:g}Hz"
@@ -240,6 +282,9 @@ def main() -> None:
     parser.add_argument("--skip-sweep", action="store_true")
     parser.add_argument("--sweep", choices=tuple(SWEEPS), default="main",
                         help="the temperature sweep's run set (check: the second set)")
+    parser.add_argument("--draw", type=int, default=None, metavar="SEED",
+                        help="instead of --sweep, a set designed for nothing drawn from SEED "
+                             "(six oil temperatures, 72 runs, drives tuned otherwise)")
     parser.add_argument("--sweep-only", action="store_true",
                         help="skip the 27 degC table and the multi-cycle runs")
     parser.add_argument("--rate-hz", type=float, default=None,
@@ -265,13 +310,16 @@ def main() -> None:
     args = parser.parse_args()
     if not (0.0 <= args.lost <= 0.5 and args.late_s >= 0.0 and args.jitter_s >= 0.0):
         parser.error("--lost 0..0.5, --late-s and --jitter-s >= 0")
-    if args.temps and not set(args.temps) <= set(SWEEPS[args.sweep][1]):
-        parser.error(f"--temps: the {args.sweep} set has {SWEEPS[args.sweep][1]}")
+    if args.draw is not None and not 0 <= args.draw < 2 ** 32:
+        parser.error("--draw: a seed 0..2**32-1")
+    cfg = load_config(None)
+    set_temps = run_set(cfg, args.sweep, args.draw)[1]
+    if args.temps and not set(args.temps) <= set(set_temps):
+        parser.error(f"--temps: the set has {set_temps}")
     if args.rate_hz is not None and not 1.0 <= args.rate_hz <= 1000.0:
         parser.error("--rate-hz: 1..1000 (the simulator steps at 1 ms)")
     if args.plant_step_s is not None and not 1e-5 <= args.plant_step_s <= 1e-3:
         parser.error("--plant-step-s: 1e-5..1e-3 s (a whole number of steps per sample)")
-    cfg = load_config(None)
     if args.window_s is not None:
         cfg = dataclasses.replace(cfg, estimator=dataclasses.replace(
             cfg.estimator, dynamic_window_s=args.window_s))
@@ -289,7 +337,8 @@ def main() -> None:
     if not args.skip_sweep:
         temperature_sweep(cfg, tables, figures, args.sweep, args.rate_hz,
                           Stamps(args.lost, args.late_s, args.jitter_s),
-                          tuple(args.temps) if args.temps else None, args.plant_step_s)
+                          tuple(args.temps) if args.temps else None, args.plant_step_s,
+                          args.draw)
     publish("accuracy", figures)
 
 
