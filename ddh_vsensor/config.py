@@ -106,7 +106,7 @@ class MotorConfig:
     inertia_kg_m2: float = field(metadata=_positive(le=100.0))
     torque_limit_nm: float = field(metadata=_positive(le=100000.0))
     speed_limit_rpm: float = field(metadata=_positive(le=100000.0))
-    torque_lag_s: float = field(default=0.0, metadata={"ge": -0.005, "le": 0.005})
+    torque_lag_s: float = field(default=0.0005, metadata={"ge": -0.005, "le": 0.005})
 
 
 @dataclass(frozen=True)
