@@ -217,8 +217,10 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * pump torque stays (as it mostly does); the trapezoids say (tau - tau'')/2. Where they
      * disagree by more than a floor (the pump torque's own change within a step, the speed's
      * whole rpm), P_DISAGREE of the excess is how far this step's mean may lie off: up to a
-     * whole change past the trapezoid, as a swing between the samples may peak beyond both
-     * (the bend's band stays within the step's ends). */
+     * whole change past the trapezoid, as a swing between the samples may peak beyond both,
+     * this step's change or the last one's, whichever is larger (samples either side of a
+     * peak change little however large the swing: a torque ringing at a quarter of the
+     * sampling rate); the bend's band stays within the step's ends. */
     double jump = fabs(tau - S[S_TAU]);
     double excess = 0.0;
     if (count > 0) {                    /* the last step: its length (a frame may have been
@@ -228,9 +230,10 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
                                                           / S[S_RING + 2 * RING + last]);
         excess = fabs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR];
     }
+    double swing = fmax(jump, fabs(S[S_TAU] - S[S_TAU2]));
     double band = fmax(fmin(P[P_CURVATURE] * fabs(tau - 2.0 * S[S_TAU] + S[S_TAU2]),
                             0.5 * jump),
-                       fmin(P[P_DISAGREE] * excess, jump));
+                       fmin(P[P_DISAGREE] * excess, swing));
     if (jump > P[P_TORQUE_STEP] || limit_edge)
         band = fmax(band, 0.5 * jump);
     if (band > 0.0) {
