@@ -201,6 +201,10 @@ class EstimatorConfig:
     # `dynamic`: the torque balance is taken over the last samples spanning this time, so
     # that the speed's whole-rpm steps do not read as inertia torque at fast sampling (README)
     dynamic_window_s: float = field(default=0.01, metadata={"ge": 0.0, "le": 0.1})
+    # `dynamic`: a rod at rest takes up speed no faster than the change of the chambers' force
+    # (beyond its static friction) gives the empty machine's mass, plus this acceleration
+    # (m/s²) for the pressures' own error; a torque that says more is misread (README)
+    dynamic_start_tolerance_m_s2: float = field(default=1.0, metadata={"ge": 0.0, "le": 1000.0})
 
 
 DEFAULT_BUS = "default"      # the bus of the top-level `bus:` key; `buses:` names the others

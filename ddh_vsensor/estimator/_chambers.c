@@ -14,8 +14,10 @@ enum {
     P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR,
     P_G_A, P_GE_A = P_G_A + 4, P_G_B = P_GE_A + 4, P_GE_B = P_G_B + 4,
     P_K_A = P_GE_B + 4, P_K_B = P_K_A + 12, P_FRIC_C = P_K_B + 12, P_FRIC_V, P_FRIC_S, P_MASS,
-    P_SIZE
+    P_START_TOL, P_SIZE
 };
+/* A rod slower than this (m/s) is at rest: a standing rod's leakage creep, not a move */
+#define REST_SPEED 2e-3
 #define HF_LEARN 20         /* steps the drive's cadence is first learnt from (see HF_GAIN) */
 
 /* The torque balance's window: the last RING samples' mean motor torques, the speeds
@@ -323,6 +325,29 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
             v = copysign(vmax, v);
             pa = al_a + be_a * v;
             pb = al_b + be_b * v;
+        } else if (!stopped && beyond <= 0.0 && fabs(S[S_V]) <= REST_SPEED) {
+            /* A rod at rest mid-stroke starts with the force that starts it: it held its load
+             * within its static friction at the chambers' last force, so it takes up speed
+             * only the way that force has changed beyond the friction, and no faster than the
+             * change gives the empty machine's mass (m (v - v0) / h = F(v) - F0 -+ F_s - c_v
+             * (v - v0), F(v) the chambers' force at speed v, h in the drive's periods). A
+             * torque that says more, by more than P_START_TOL of acceleration, is misread (a
+             * PID kick or ring between the samples), and the pumps' flow the rod cannot take
+             * compresses the chambers. */
+            double al_a, be_a, al_b, be_b;
+            linear(P, ra, rb, fa, fb, da, db, &al_a, &be_a, &al_b, &be_b);
+            double v0 = S[S_V], m = P[P_MASS];
+            double f0 = S[S_PA] * P[P_AREA_A] - S[S_PB] * P[P_AREA_B];
+            double g1 = P[P_AREA_A] * be_a - P[P_AREA_B] * be_b - P[P_FRIC_V];
+            double g0 = P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - f0 + P[P_FRIC_V] * v0
+                        + m * v0 / hn;
+            double lo = fmin(v0, (g0 - P[P_FRIC_S]) / (m / hn - g1)) - P[P_START_TOL] * hn;
+            double hi = fmax(v0, (g0 + P[P_FRIC_S]) / (m / hn - g1)) + P[P_START_TOL] * hn;
+            if (v < lo || v > hi) {
+                v = v < lo ? lo : hi;
+                pa = al_a + be_a * v;
+                pb = al_b + be_b * v;
+            }
         }
     }
     if (stopped && !still_done) {

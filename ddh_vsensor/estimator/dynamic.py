@@ -74,7 +74,9 @@ _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valv
  P_TORQUE_STEP, P_WINDOW_S, P_SPEED_LIMIT, P_CURVATURE, P_DISAGREE, P_DISAGREE_FLOOR) = range(22)
 P_G_A, P_GE_A, P_G_B, P_GE_B, P_K_A, P_K_B = 22, 26, 30, 34, 38, 50
 P_FRIC_C, P_FRIC_V, P_FRIC_S, P_MASS = 62, 63, 64, 65   # the rod's friction, its load's mass
-P_SIZE = 66
+P_START_TOL = 66                                     # a start's acceleration beyond the mass's
+P_SIZE = 67
+REST_SPEED = 2e-3                                    # m/s: a rod at rest (as in _chambers.c)
 (S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
  S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING) = range(19)
 RING, HF_LEARN = 32, 20                              # as in _chambers.c
@@ -115,7 +117,8 @@ def library() -> ctypes.CDLL | None:
 def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float,
                torque_step_nm: float = math.inf, window_s: float = 0.0,
                torque_curvature: float = 0.0, speed_disagreement: float = 0.0,
-               speed_disagreement_floor_nm: float = 0.0) -> np.ndarray:
+               speed_disagreement_floor_nm: float = 0.0,
+               start_tolerance_m_s2: float = math.inf) -> np.ndarray:
     """The step's parameter vector for one unit (SI units, speeds in motor rpm)."""
     a, b = unit.a, unit.b
     p = np.zeros(P_SIZE)
@@ -142,6 +145,7 @@ def parameters(unit: DDHUnit, *, inertia: bool, blend_s: float, max_gap_s: float
                                              cyl.viscous_friction_n_s_m,
                                              cyl.static_friction_n)
     p[P_MASS] = unit.moving_mass_kg(0.0)                    # the empty machine's: the least
+    p[P_START_TOL] = start_tolerance_m_s2
     for side, g, ge, k in ((a, P_G_A, P_GE_A, P_K_A), (b, P_G_B, P_GE_B, P_K_B)):
         g_ac, cr = side.anticav.gradient_m3_s_pa, side.anticav.cracking_pa
         g_rv, st = side.relief.gradient_m3_s_pa, side.relief.setting_pa
@@ -159,7 +163,8 @@ class DynamicModel:
                  blend_s: float = 0.0, max_gap_s: float = math.inf,
                  torque_step_nm: float = math.inf, window_s: float = 0.0,
                  torque_curvature: float = 0.0, speed_disagreement: float = 0.0,
-                 speed_disagreement_floor_nm: float = 0.0, use_compiled: bool = True) -> None:
+                 speed_disagreement_floor_nm: float = 0.0,
+                 start_tolerance_m_s2: float = math.inf, use_compiled: bool = True) -> None:
         if not blend_s >= 0.0:
             raise ValueError(f"blend time constant must be >= 0 s, got {blend_s!r}")
         if not window_s >= 0.0:
@@ -173,12 +178,16 @@ class DynamicModel:
         if not speed_disagreement_floor_nm >= 0.0:
             raise ValueError("speed disagreement floor must be >= 0 N·m, got "
                              f"{speed_disagreement_floor_nm!r}")
+        if not start_tolerance_m_s2 >= 0.0:
+            raise ValueError("start tolerance must be >= 0 m/s², got "
+                             f"{start_tolerance_m_s2!r}")
         self.oil: Oil = unit.oil
         self.params = parameters(unit, inertia=inertia, blend_s=blend_s, max_gap_s=max_gap_s,
                                  torque_step_nm=torque_step_nm, window_s=window_s,
                                  torque_curvature=torque_curvature,
                                  speed_disagreement=speed_disagreement,
-                                 speed_disagreement_floor_nm=speed_disagreement_floor_nm)
+                                 speed_disagreement_floor_nm=speed_disagreement_floor_nm,
+                                 start_tolerance_m_s2=start_tolerance_m_s2)
         self.state = np.zeros(S_SIZE)
         self.state[S_X] = position_mm * 1e-3
         self.state[S_LOAD_F] = math.nan                 # no load seen moving yet
@@ -421,6 +430,18 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
             v = math.copysign(vmax, v)
             pa, pb = al_a + be_a * v, al_b + be_b * v
+        elif not stopped and beyond <= 0.0 and abs(S[S_V]) <= REST_SPEED:
+            # a rod at rest starts with the force that starts it (_chambers.c)
+            al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
+            v0, m = float(S[S_V]), P[P_MASS]
+            f0 = S[S_PA] * P[P_AREA_A] - S[S_PB] * P[P_AREA_B]
+            g1 = P[P_AREA_A] * be_a - P[P_AREA_B] * be_b - P[P_FRIC_V]
+            g0 = P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - f0 + P[P_FRIC_V] * v0 + m * v0 / hn
+            lo = min(v0, (g0 - P[P_FRIC_S]) / (m / hn - g1)) - P[P_START_TOL] * hn
+            hi = max(v0, (g0 + P[P_FRIC_S]) / (m / hn - g1)) + P[P_START_TOL] * hn
+            if v < lo or v > hi:
+                v = lo if v < lo else hi
+                pa, pb = al_a + be_a * v, al_b + be_b * v
     if stopped and not still_done:
         pa, ra = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
         pb, rb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)

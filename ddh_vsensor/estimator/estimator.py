@@ -148,7 +148,8 @@ class Estimator:
                                      torque_curvature=ecfg.dynamic_torque_curvature,
                                      speed_disagreement=ecfg.dynamic_speed_disagreement,
                                      speed_disagreement_floor_nm=(
-                                         ecfg.dynamic_speed_disagreement_floor * limit_nm))
+                                         ecfg.dynamic_speed_disagreement_floor * limit_nm),
+                                     start_tolerance_m_s2=ecfg.dynamic_start_tolerance_m_s2)
                         if self.mode == "dynamic" else None)
         self.u_base = self.u_ref
         # False with no start position, after a restore or a provisional preset

@@ -266,6 +266,23 @@ def test_a_torque_ringing_between_its_samples_may_peak_by_its_last_change(cfg, u
     assert _worst_of(deaf, unit_tables, "bucket", run) >= 1.2
 
 
+def test_a_rod_at_rest_starts_with_the_force_that_starts_it(cfg, unit_tables):
+    """A drawn set's 34.5 degC bucket run (625 kg, the usual drive): the bucket holds at
+    -11 rpm, then the drive kicks it to +64 rpm in one sample while its torque reads
+    -12.9 -> +10.0 -> -13.1 N*m (a change under the speed's floor, 5 N*m, from the
+    trapezoid). Read as pump torque, the chambers decompressed into 23 and 44 mm/s of rod
+    travel where the rod crept at 1-3 mm/s: 0.90 mm worst. A rod at rest takes up speed
+    only the way the chambers' force changed beyond its static friction, no faster than
+    that gives the empty machine's mass (plus 1 m/s^2): 0.47 mm."""
+    spec = RunSpec(cycle=random_cycle(cfg, 200365, end_stop_share=0.2826108396234964),
+                   payload_kg=624.8852641953704, oil_temp_c=34.5, seed=5)
+    run, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
+    assert worst <= 0.55
+    unbound = dataclasses.replace(cfg, estimator=dataclasses.replace(
+        cfg.estimator, dynamic_start_tolerance_m_s2=1000.0))
+    assert _worst_of(unbound, unit_tables, "bucket", run) >= 0.8
+
+
 @pytest.fixture(scope="module")
 def swinging_drive_run(cfg):
     """A drive tuned otherwise (position loop 6 rad/s, a 19 ms torque ramp; 66 degC, 700 kg):
@@ -402,12 +419,17 @@ def test_at_1_khz_whole_rpm_speed_steps_are_not_read_as_inertia_torque(cfg, unit
     """The drive reports whole rpm: sampled at 1 kHz, one rpm of speed difference is 3 N m of
     bucket inertia torque, and per sample the paper cycle (speed 1, 1040 kg, 27 degC) ends
     2.04 mm off (0.14 mm with the speed unrounded). Over the 10 ms window: 0.22 mm measured.
-    The ring of the window is the same arithmetic in C and Python."""
+    (Per sample with a rod at rest starting only with the force that starts it: 0.51 mm, as
+    that rule holds much of the same noise at standstill; the window's own figure is taken
+    without it.) The ring of the window is the same arithmetic in C and Python."""
     run = simulate_campaign(cfg, [RunSpec(speed=1, payload_kg=1040.0, oil_temp_c=27.0,
                                           sensors=SensorSettings(rate_hz=1000.0))])[0]["bucket"]
     assert np.all(run.speed_rpm == np.round(run.speed_rpm))
-    worst = {w: float(np.nanmax(np.abs(_window_run(cfg, unit_tables, run, "bucket", w)
-                                       - run.position_mm))) for w in (0.0, 0.01)}
+    unbound = dataclasses.replace(cfg, estimator=dataclasses.replace(
+        cfg.estimator, dynamic_start_tolerance_m_s2=1000.0))
+    worst = {w: float(np.nanmax(np.abs(_window_run(c, unit_tables, run, "bucket", w)
+                                       - run.position_mm))) for c, w in ((cfg, 0.01),
+                                                                         (unbound, 0.0))}
     assert worst[0.01] <= 0.3
     assert worst[0.0] >= 1.5
     part = SimpleNamespace(**{k: getattr(run, k)[20000:26000] for k in (
