@@ -188,6 +188,18 @@ def test_reaching_the_speed_limit_within_a_sample_is_a_torque_step_of_unknown_sh
     assert worst <= 0.85
 
 
+def _with_and_without(cfg, unit_tables, actuator, spec, **off):
+    """The `dynamic` estimate's worst error on one simulated run, as configured and with the
+    ``estimator.*`` keys ``off`` (a rule switched off)."""
+    run, worst = _random_run_worst(cfg, unit_tables, actuator, spec)
+    return worst, _worst_of(_tuned(cfg, **off), unit_tables, actuator, run)
+
+
+def _tuned(cfg, **estimator):
+    """``cfg`` with these ``estimator.*`` keys changed (a rule off, a share changed)."""
+    return dataclasses.replace(cfg, estimator=dataclasses.replace(cfg.estimator, **estimator))
+
+
 def _lagging(cfg, torque_lag_s):
     return dataclasses.replace(cfg, units={name: dataclasses.replace(u, motor=dataclasses.replace(
         u.motor, torque_lag_s=torque_lag_s)) for name, u in cfg.units.items()})
@@ -203,13 +215,11 @@ def test_a_torque_bending_between_its_samples_is_not_read_as_pressure(cfg, unit_
     Measured with the torque's timing at 0: at the default 0.5 ms the lag alone takes this
     run to 0.25 mm without the band (README: the torque's timing)."""
     cfg = _lagging(cfg, 0.0)
-    run, worst = _random_run_worst(cfg, unit_tables, "boom", RunSpec(
+    worst, straight = _with_and_without(cfg, unit_tables, "boom", RunSpec(
         cycle=random_cycle(cfg, 35501, end_stop_share=0.6079986148430917), payload_kg=900.0,
-        oil_temp_c=45.0, seed=1))
+        oil_temp_c=45.0, seed=1), dynamic_torque_curvature=0.0)
     assert worst <= 0.35
-    straight = dataclasses.replace(cfg, estimator=dataclasses.replace(
-        cfg.estimator, dynamic_torque_curvature=0.0))
-    assert _worst_of(straight, unit_tables, "boom", run) >= 0.5
+    assert straight >= 0.5
 
 
 def test_where_the_speed_disagrees_with_the_torque_samples_the_mean_is_uncertain(
@@ -227,11 +237,10 @@ def test_where_the_speed_disagrees_with_the_torque_samples_the_mean_is_uncertain
                    payload_kg=200.0, oil_temp_c=28.0, seed=105, controller=PIDSettings(
                        bandwidth_rad_s=5.122519299516545,
                        torque_filter_s=0.006656333457238676))
-    run, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
+    worst, deaf = _with_and_without(cfg, unit_tables, "bucket", spec,
+                                    dynamic_speed_disagreement=0.0)
     assert worst <= 0.55
-    deaf = dataclasses.replace(cfg, estimator=dataclasses.replace(
-        cfg.estimator, dynamic_speed_disagreement=0.0))
-    assert _worst_of(deaf, unit_tables, "bucket", run) >= 2.0
+    assert deaf >= 2.0
 
 
 def test_a_swing_may_peak_beyond_both_samples_where_the_speed_says_so(cfg, unit_tables):
@@ -259,11 +268,10 @@ def test_a_torque_ringing_between_its_samples_may_peak_by_its_last_change(cfg, u
     the last step's change too (42 N*m here): 0.30 mm; without the speed's say, 1.42."""
     spec = RunSpec(cycle=random_cycle(cfg, 119045, end_stop_share=0.15414745651373654),
                    payload_kg=884.9807344225874, oil_temp_c=51.3, seed=9)
-    run, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
+    worst, deaf = _with_and_without(cfg, unit_tables, "bucket", spec,
+                                    dynamic_speed_disagreement=0.0)
     assert worst <= 0.4
-    deaf = dataclasses.replace(cfg, estimator=dataclasses.replace(
-        cfg.estimator, dynamic_speed_disagreement=0.0))
-    assert _worst_of(deaf, unit_tables, "bucket", run) >= 1.2
+    assert deaf >= 1.2
 
 
 def test_a_rod_at_rest_starts_with_the_force_that_starts_it(cfg, unit_tables):
@@ -276,11 +284,10 @@ def test_a_rod_at_rest_starts_with_the_force_that_starts_it(cfg, unit_tables):
     that gives the empty machine's mass (plus 1 m/s^2): 0.47 mm."""
     spec = RunSpec(cycle=random_cycle(cfg, 200365, end_stop_share=0.2826108396234964),
                    payload_kg=624.8852641953704, oil_temp_c=34.5, seed=5)
-    run, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
+    worst, unbound = _with_and_without(cfg, unit_tables, "bucket", spec,
+                                       dynamic_start_tolerance_m_s2=1000.0)
     assert worst <= 0.55
-    unbound = dataclasses.replace(cfg, estimator=dataclasses.replace(
-        cfg.estimator, dynamic_start_tolerance_m_s2=1000.0))
-    assert _worst_of(unbound, unit_tables, "bucket", run) >= 0.8
+    assert unbound >= 0.8
 
 
 @pytest.fixture(scope="module")
@@ -407,8 +414,7 @@ def test_the_dynamic_mode_runs_the_pumps_it_is_given(cfg, unit_tables, boom):
 
 
 def _window_run(cfg, unit_tables, run, actuator, window_s):
-    cfg = dataclasses.replace(cfg, estimator=dataclasses.replace(cfg.estimator,
-                                                                 dynamic_window_s=window_s))
+    cfg = _tuned(cfg, dynamic_window_s=window_s)
     est = Estimator(cfg, actuator, unit_tables[actuator], mode="dynamic", references=False,
                     initial_position_mm=float(run.position_mm[0]))
     return est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c).position_mm
@@ -425,8 +431,7 @@ def test_at_1_khz_whole_rpm_speed_steps_are_not_read_as_inertia_torque(cfg, unit
     run = simulate_campaign(cfg, [RunSpec(speed=1, payload_kg=1040.0, oil_temp_c=27.0,
                                           sensors=SensorSettings(rate_hz=1000.0))])[0]["bucket"]
     assert np.all(run.speed_rpm == np.round(run.speed_rpm))
-    unbound = dataclasses.replace(cfg, estimator=dataclasses.replace(
-        cfg.estimator, dynamic_start_tolerance_m_s2=1000.0))
+    unbound = _tuned(cfg, dynamic_start_tolerance_m_s2=1000.0)
     worst = {w: float(np.nanmax(np.abs(_window_run(c, unit_tables, run, "bucket", w)
                                        - run.position_mm))) for c, w in ((cfg, 0.01),
                                                                          (unbound, 0.0))}
