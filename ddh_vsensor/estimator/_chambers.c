@@ -26,7 +26,7 @@ enum {
 #define RING 32
 enum { S_PA, S_PB, S_V, S_X, S_N, S_TAU, S_RA, S_RB, S_SA, S_SB, S_STARTED, S_HF, S_PUMP_TAU,
        S_LOAD_F, S_HF_COUNT, S_HF_DEV, S_RING_AT, S_RING_COUNT, S_RING,
-       S_LEARN = S_RING + 3 * RING, S_TAU2 = S_LEARN + HF_LEARN, S_SIZE };
+       S_LEARN = S_RING + 3 * RING, S_TAU2 = S_LEARN + HF_LEARN, S_LEFT, S_SIZE };
 
 /* The drive samples on an even cadence; the frames' receive stamps come late by a varying
  * delay. The step is taken over the drive's periods, not the stamps' difference: a short
@@ -163,7 +163,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
             settle(P, S, n, tau, mu);
             S[S_N] = n; S[S_TAU] = S[S_TAU2] = tau; S[S_STARTED] = 1.0; S[S_HF] = 0.0;
             S[S_HF_COUNT] = 0.0; S[S_HF_DEV] = 0.0;
-            S[S_PUMP_TAU] = tau; S[S_RING_AT] = 0.0; S[S_RING_COUNT] = 0.0;
+            S[S_PUMP_TAU] = tau; S[S_RING_AT] = 0.0; S[S_RING_COUNT] = 0.0; S[S_LEFT] = 0.0;
         }
         return S[S_V];
     }
@@ -282,7 +282,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         double ka = ca * hn / P[P_BLEND_S], kb = cb * hn / P[P_BLEND_S];
         fa += ka * qa; fb += kb * qb; da += ka; db += kb;
     }
-    double load = S[S_LOAD_F];
+    double load = S[S_LOAD_F], v_before = S[S_V];
     double beyond = -1.0;       /* force beyond what holds the rod on its stop (N); < 0: none */
     double v = 0.0;
     int still_done = 0;         /* pa, pb, ra, rb already the chambers' own (rod still) */
@@ -325,7 +325,24 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
             v = copysign(vmax, v);
             pa = al_a + be_a * v;
             pb = al_b + be_b * v;
-        } else if (!stopped && beyond <= 0.0 && fabs(S[S_V]) <= REST_SPEED) {
+        }
+        if (!stopped && S[S_LEFT] * v > 0.0 && load == load) {
+            /* The sample after the rod left its end stop: it goes on taking up speed with its
+             * mass from the force beyond the load it held there (m (v - v0) / h = F(v) - load
+             * - friction), which the torque, read as pressure, would again give it at once. */
+            double al_a, be_a, al_b, be_b;
+            linear(P, ra, rb, fa, fb, da, db, &al_a, &be_a, &al_b, &be_b);
+            double m = P[P_MASS], sg = S[S_LEFT];
+            double vd = (P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - load - sg * P[P_FRIC_C]
+                         + m * S[S_V] / hn)
+                        / (m / hn - P[P_AREA_A] * be_a + P[P_AREA_B] * be_b + P[P_FRIC_V]);
+            if (sg * vd > 0.0 && sg * v > sg * vd) {
+                v = vd;
+                pa = al_a + be_a * v;
+                pb = al_b + be_b * v;
+            }
+        }
+        if (!stopped && beyond <= 0.0 && fabs(S[S_V]) <= REST_SPEED) {
             /* A rod at rest mid-stroke starts with the force that starts it: it held its load
              * within its static friction at the chambers' last force, so it takes up speed
              * only the way that force has changed beyond the friction, and no faster than the
@@ -361,6 +378,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n;
     S[S_TAU2] = S[S_TAU]; S[S_TAU] = tau;
     S[S_RA] = ra; S[S_RB] = rb;
+    S[S_LEFT] = beyond > 0.0 && v_before == 0.0 && v != 0.0 ? (v > 0.0 ? 1.0 : -1.0) : 0.0;
     if (v != 0.0 && known)      /* the load: the chambers' force less the moving friction */
         S[S_LOAD_F] = pa * P[P_AREA_A] - pb * P[P_AREA_B]
                       - copysign(P[P_FRIC_C] + P[P_FRIC_V] * fabs(v), v);

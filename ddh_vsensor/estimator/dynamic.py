@@ -24,7 +24,10 @@ sweep): a rod on its end stop (the model's own position at the stroke end) stays
 the motor drives it away and the chambers' force has overcome the load the rod held arriving
 there (the chamber force of its last moving step less the rod's moving friction then) and the
 rod's static friction, and then takes up speed no faster than the force beyond that gives
-the empty machine's mass; so does a rod whose chambers both sit on a one-way valve;
+the empty machine's mass (its first two moving samples); a rod whose chambers both sit on
+a one-way valve stays too; a rod at rest mid-stroke takes up speed only the way the
+chambers' force changed beyond its static friction, no faster than the change gives that
+mass (plus ``start_tolerance_m_s2``);
 reversing on an end stop, the pumps' static friction lets any torque between the motoring
 and the pumping one hold the pressures; and a torque step within one sample larger than
 ``torque_step_nm``, or any where the speed reaches or leaves the motor's speed limit (the
@@ -82,7 +85,8 @@ REST_SPEED = 2e-3                                    # m/s: a rod at rest (as in
 RING, HF_LEARN = 32, 20                              # as in _chambers.c
 S_LEARN = S_RING + 3 * RING
 S_TAU2 = S_LEARN + HF_LEARN                          # the torque sample before S_TAU
-S_SIZE = S_TAU2 + 1
+S_LEFT = S_TAU2 + 1                                  # +-1: the rod left its end stop last sample
+S_SIZE = S_LEFT + 1
 HF_GAIN, LOST_AT, JITTER_SPAN = 0.05, 1.5, 3.6       # as in _chambers.c
 
 
@@ -343,7 +347,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             S[S_RB] = S[S_SB] = rb
             S[S_N], S[S_TAU], S[S_STARTED], S[S_HF], S[S_PUMP_TAU] = n, tau, 1.0, 0.0, tau
             S[S_TAU2] = tau
-            S[S_RING_AT] = S[S_RING_COUNT] = S[S_HF_COUNT] = S[S_HF_DEV] = 0.0
+            S[S_RING_AT] = S[S_RING_COUNT] = S[S_HF_COUNT] = S[S_HF_DEV] = S[S_LEFT] = 0.0
         return float(S[S_V])
     pa, pb, x, stroke = float(S[S_PA]), float(S[S_PB]), float(S[S_X]), P[P_STROKE]
     known = x == x                                      # NaN: position unknown
@@ -407,7 +411,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         fb += kb * qb
         da += ka
         db += kb
-    load = float(S[S_LOAD_F])
+    load, v_before = float(S[S_LOAD_F]), float(S[S_V])
     beyond = -1.0                      # force beyond what holds the rod on its stop
     v = 0.0
     still_done = False
@@ -430,7 +434,17 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
             v = math.copysign(vmax, v)
             pa, pb = al_a + be_a * v, al_b + be_b * v
-        elif not stopped and beyond <= 0.0 and abs(S[S_V]) <= REST_SPEED:
+        if not stopped and S[S_LEFT] * v > 0.0 and load == load:
+            # the sample after leaving the end stop: speed taken up with the mass (_chambers.c)
+            al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
+            m, sg = P[P_MASS], float(S[S_LEFT])
+            vd = ((P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - load - sg * P[P_FRIC_C]
+                   + m * S[S_V] / hn)
+                  / (m / hn - P[P_AREA_A] * be_a + P[P_AREA_B] * be_b + P[P_FRIC_V]))
+            if sg * vd > 0.0 and sg * v > sg * vd:
+                v = vd
+                pa, pb = al_a + be_a * v, al_b + be_b * v
+        if not stopped and beyond <= 0.0 and abs(S[S_V]) <= REST_SPEED:
             # a rod at rest starts with the force that starts it (_chambers.c)
             al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
             v0, m = float(S[S_V]), P[P_MASS]
@@ -452,6 +466,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     S[S_PA], S[S_PB], S[S_V], S[S_N] = pa, pb, v, n
     S[S_TAU2], S[S_TAU] = S[S_TAU], tau
     S[S_RA], S[S_RB] = ra, rb
+    S[S_LEFT] = math.copysign(1.0, v) if beyond > 0.0 and v_before == 0.0 and v != 0.0 else 0.0
     if v != 0.0 and known:
         S[S_LOAD_F] = (pa * P[P_AREA_A] - pb * P[P_AREA_B]
                        - math.copysign(P[P_FRIC_C] + P[P_FRIC_V] * abs(v), v))

@@ -169,6 +169,17 @@ def _worst_of(cfg, unit_tables, actuator, run, time_s=None, keep=slice(None)):
     return float(np.nanmax(np.abs(err)))
 
 
+def _compiled_and_python_agree(unit, run):
+    """The compiled and the Python step over a whole run: the same velocities and state."""
+    compiled = DynamicModel(unit, float(run.position_mm[0]), torque_step_nm=40.0)
+    if not compiled.compiled:
+        pytest.skip("no C compiler: only the Python step exists")
+    python = DynamicModel(unit, float(run.position_mm[0]), torque_step_nm=40.0,
+                          use_compiled=False)
+    assert np.max(np.abs(_drive(compiled, run) - _drive(python, run))) < 1e-9
+    assert np.allclose(compiled.state, python.state, rtol=1e-12, atol=1e-6)
+
+
 def _random_run_worst(cfg, unit_tables, actuator, spec):
     """One simulated run of ``actuator`` and the `dynamic` estimate's worst error on it."""
     run = simulate_campaign(cfg, [spec])[0][actuator]
@@ -274,6 +285,25 @@ def test_a_torque_ringing_between_its_samples_may_peak_by_its_last_change(cfg, u
     assert deaf >= 1.2
 
 
+def test_a_rod_that_left_its_end_stop_goes_on_taking_up_speed_with_its_mass(
+        cfg, unit_tables, boom):
+    """A drawn set's 49.6 degC boom run (200 kg; a drive tuned to a 6.2 rad/s loop and an
+    18 ms torque ramp) drives the boom off its top stop at the torque limit, again and
+    again. The first moving sample was held to what half the force beyond the load gives
+    the empty machine's 15 t; in the next, the torque read as pressure gave the model's rod
+    its full speed at once, a sample before the real one had it: 0.47 mm worst. In that
+    sample too the rod takes up speed from the force beyond the load it held on the stop:
+    0.26 mm. The Python step does the same."""
+    spec = RunSpec(cycle=random_cycle(cfg, 119062, end_stop_share=0.536860241138741),
+                   payload_kg=197.5911786580926, oil_temp_c=49.6, seed=2,
+                   controller=PIDSettings(bandwidth_rad_s=6.245090428020477,
+                                          derivative_filter_s=0.10208132114240502,
+                                          torque_filter_s=0.01778734937123935))
+    run, worst = _random_run_worst(cfg, unit_tables, "boom", spec)
+    assert worst <= 0.33
+    _compiled_and_python_agree(boom, run)
+
+
 def test_a_rod_at_rest_starts_with_the_force_that_starts_it(cfg, unit_tables):
     """A drawn set's 34.5 degC bucket run (625 kg, the usual drive): the bucket holds at
     -11 rpm, then the drive kicks it to +64 rpm in one sample while its torque reads
@@ -344,13 +374,7 @@ def test_a_rod_driven_off_its_end_stop_waits_for_its_load(cfg, unit_tables, buck
         cycle=random_cycle(cfg, 415, end_stop_share=0.4), payload_kg=700.0, oil_temp_c=40.0,
         seed=2))
     assert worst <= 0.45
-    compiled = DynamicModel(bucket, float(run.position_mm[0]), torque_step_nm=40.0)
-    if not compiled.compiled:
-        pytest.skip("no C compiler: only the Python step exists")
-    python = DynamicModel(bucket, float(run.position_mm[0]), torque_step_nm=40.0,
-                          use_compiled=False)
-    assert np.max(np.abs(_drive(compiled, run) - _drive(python, run))) < 1e-9
-    assert np.allclose(compiled.state, python.state, rtol=1e-12, atol=1e-6)
+    _compiled_and_python_agree(bucket, run)
 
 
 def test_a_rod_leaving_its_end_stop_breaks_its_friction_first(cfg, unit_tables):
@@ -360,7 +384,8 @@ def test_a_rod_leaving_its_end_stop_breaks_its_friction_first(cfg, unit_tables):
     rod must break its static friction as well. Without the friction the model's rod left
     that much early: 0.44 mm worst over the run, 0.33 with the rod's mass (next test) and
     0.19 with both, within 49.8-50.5 s (0.25 mm over the run, elsewhere). Measured with the
-    torque's timing at 0 (at the default 0.5 ms, 0.29 mm without the friction)."""
+    torque's timing at 0. With the rod's mass in the sample after leaving too (a later test)
+    the frictionless rod is caught up there: 0.26 mm in the window, 0.27 over the run."""
     cfg = _lagging(cfg, 0.0)
     spec = RunSpec(cycle=random_cycle(cfg, 420, end_stop_share=0.4), payload_kg=1040.0,
                    oil_temp_c=65.0, seed=3)
@@ -370,11 +395,16 @@ def test_a_rod_leaving_its_end_stop_breaks_its_friction_first(cfg, unit_tables):
                     initial_position_mm=float(run.position_mm[0]))
     err = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c).position_mm \
         - run.position_mm
-    assert np.max(np.abs(err[(run.time_s >= 49.8) & (run.time_s <= 50.5)])) <= 0.23
+    window = (run.time_s >= 49.8) & (run.time_s <= 50.5)
+    assert np.max(np.abs(err[window])) <= 0.23
     frictionless = dataclasses.replace(cfg, units={**cfg.units, "bucket": dataclasses.replace(
         cfg.units["bucket"], friction_static_n=0.0, friction_coulomb_n=0.0,
         friction_viscous_n_s_per_m=0.0)})
-    assert _worst_of(frictionless, unit_tables, "bucket", run) >= 0.3
+    est = Estimator(frictionless, "bucket", unit_tables["bucket"], mode="dynamic",
+                    references=False, initial_position_mm=float(run.position_mm[0]))
+    err = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c).position_mm \
+        - run.position_mm
+    assert np.max(np.abs(err[window])) >= 0.24
 
 
 def test_a_rod_leaving_its_end_stop_takes_up_speed_with_its_mass(cfg, unit_tables):
