@@ -57,6 +57,17 @@ static void linear(const double *P, int ra, int rb, double fa, double fb, double
     *al_b = (fb + P[P_GE_B + rb]) / den_b; *be_b = P[P_AREA_B] / den_b;
 }
 
+/* The rod's speed at the step's end from its equation of motion with the empty machine's
+ * mass, m (v - v0) / h = F(v) - resist - c_v v, F(v) the chambers' force at speed v (the
+ * pressures of linear()) and resist the load and friction it works against. */
+static double rod_speed(const double *P, double al_a, double be_a, double al_b, double be_b,
+                        double v0, double h, double resist)
+{
+    double m = P[P_MASS];
+    return (P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - resist + m * v0 / h)
+           / (m / h - P[P_AREA_A] * be_a + P[P_AREA_B] * be_b + P[P_FRIC_V]);
+}
+
 static void attempt(const double *P, int ra, int rb, double fa, double fb, double da,
                     double db, double torque, int d, double *pa, double *pb, double *v)
 {
@@ -282,7 +293,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         double ka = ca * hn / P[P_BLEND_S], kb = cb * hn / P[P_BLEND_S];
         fa += ka * qa; fb += kb * qb; da += ka; db += kb;
     }
-    double load = S[S_LOAD_F], v_before = S[S_V];
+    double load = S[S_LOAD_F];
     double beyond = -1.0;       /* force beyond what holds the rod on its stop (N); < 0: none */
     double v = 0.0;
     int still_done = 0;         /* pa, pb, ra, rb already the chambers' own (rod still) */
@@ -330,12 +341,10 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
             /* The sample after the rod left its end stop: it goes on taking up speed with its
              * mass from the force beyond the load it held there (m (v - v0) / h = F(v) - load
              * - friction), which the torque, read as pressure, would again give it at once. */
-            double al_a, be_a, al_b, be_b;
+            double al_a, be_a, al_b, be_b, sg = S[S_LEFT];
             linear(P, ra, rb, fa, fb, da, db, &al_a, &be_a, &al_b, &be_b);
-            double m = P[P_MASS], sg = S[S_LEFT];
-            double vd = (P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - load - sg * P[P_FRIC_C]
-                         + m * S[S_V] / hn)
-                        / (m / hn - P[P_AREA_A] * be_a + P[P_AREA_B] * be_b + P[P_FRIC_V]);
+            double vd = rod_speed(P, al_a, be_a, al_b, be_b, S[S_V], hn,
+                                  load + sg * P[P_FRIC_C]);
             if (sg * vd > 0.0 && sg * v > sg * vd) {
                 v = vd;
                 pa = al_a + be_a * v;
@@ -351,15 +360,13 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
              * torque that says more, by more than P_START_TOL of acceleration, is misread (a
              * PID kick or ring between the samples), and the pumps' flow the rod cannot take
              * compresses the chambers. */
-            double al_a, be_a, al_b, be_b;
+            double al_a, be_a, al_b, be_b, v0 = S[S_V];
             linear(P, ra, rb, fa, fb, da, db, &al_a, &be_a, &al_b, &be_b);
-            double v0 = S[S_V], m = P[P_MASS];
-            double f0 = S[S_PA] * P[P_AREA_A] - S[S_PB] * P[P_AREA_B];
-            double g1 = P[P_AREA_A] * be_a - P[P_AREA_B] * be_b - P[P_FRIC_V];
-            double g0 = P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - f0 + P[P_FRIC_V] * v0
-                        + m * v0 / hn;
-            double lo = fmin(v0, (g0 - P[P_FRIC_S]) / (m / hn - g1)) - P[P_START_TOL] * hn;
-            double hi = fmax(v0, (g0 + P[P_FRIC_S]) / (m / hn - g1)) + P[P_START_TOL] * hn;
+            double held = S[S_PA] * P[P_AREA_A] - S[S_PB] * P[P_AREA_B] - P[P_FRIC_V] * v0;
+            double lo = fmin(v0, rod_speed(P, al_a, be_a, al_b, be_b, v0, hn,
+                                           held + P[P_FRIC_S])) - P[P_START_TOL] * hn;
+            double hi = fmax(v0, rod_speed(P, al_a, be_a, al_b, be_b, v0, hn,
+                                           held - P[P_FRIC_S])) + P[P_START_TOL] * hn;
             if (v < lo || v > hi) {
                 v = v < lo ? lo : hi;
                 pa = al_a + be_a * v;
@@ -375,10 +382,11 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         v = 0.0;
     double x_new = x + 0.5 * h * (S[S_V] + v);
     S[S_X] = x_new < 0.0 ? 0.0 : x_new > stroke ? stroke : x_new;
+    /* the rod left its end stop in this sample (the way it went), for the next */
+    S[S_LEFT] = beyond > 0.0 && S[S_V] == 0.0 && v != 0.0 ? (v > 0.0 ? 1.0 : -1.0) : 0.0;
     S[S_PA] = pa; S[S_PB] = pb; S[S_V] = v; S[S_N] = n;
     S[S_TAU2] = S[S_TAU]; S[S_TAU] = tau;
     S[S_RA] = ra; S[S_RB] = rb;
-    S[S_LEFT] = beyond > 0.0 && v_before == 0.0 && v != 0.0 ? (v > 0.0 ? 1.0 : -1.0) : 0.0;
     if (v != 0.0 && known)      /* the load: the chambers' force less the moving friction */
         S[S_LOAD_F] = pa * P[P_AREA_A] - pb * P[P_AREA_B]
                       - copysign(P[P_FRIC_C] + P[P_FRIC_V] * fabs(v), v);

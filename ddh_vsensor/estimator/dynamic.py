@@ -272,6 +272,13 @@ def _linear(P, ra, rb, fa, fb, da, db):
             (fb + P[P_GE_B + rb]) / den_b, P[P_AREA_B] / den_b)
 
 
+def _rod_speed(P, al_a, be_a, al_b, be_b, v0: float, h: float, resist: float) -> float:
+    """``rod_speed`` of _chambers.c: m (v - v0) / h = F(v) - resist - c_v v, solved for v."""
+    m = P[P_MASS]
+    return ((P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - resist + m * v0 / h)
+            / (m / h - P[P_AREA_A] * be_a + P[P_AREA_B] * be_b + P[P_FRIC_V]))
+
+
 def _attempt(P, ra, rb, fa, fb, da, db, torque, d):
     al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
     k_a, k_b = P[P_K_A + 4 * d + ra], P[P_K_B + 4 * d + rb]
@@ -411,7 +418,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         fb += kb * qb
         da += ka
         db += kb
-    load, v_before = float(S[S_LOAD_F]), float(S[S_V])
+    load = float(S[S_LOAD_F])
     beyond = -1.0                      # force beyond what holds the rod on its stop
     v = 0.0
     still_done = False
@@ -437,22 +444,20 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         if not stopped and S[S_LEFT] * v > 0.0 and load == load:
             # the sample after leaving the end stop: speed taken up with the mass (_chambers.c)
             al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
-            m, sg = P[P_MASS], float(S[S_LEFT])
-            vd = ((P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - load - sg * P[P_FRIC_C]
-                   + m * S[S_V] / hn)
-                  / (m / hn - P[P_AREA_A] * be_a + P[P_AREA_B] * be_b + P[P_FRIC_V]))
+            sg = float(S[S_LEFT])
+            vd = _rod_speed(P, al_a, be_a, al_b, be_b, S[S_V], hn, load + sg * P[P_FRIC_C])
             if sg * vd > 0.0 and sg * v > sg * vd:
                 v = vd
                 pa, pb = al_a + be_a * v, al_b + be_b * v
         if not stopped and beyond <= 0.0 and abs(S[S_V]) <= REST_SPEED:
             # a rod at rest starts with the force that starts it (_chambers.c)
             al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
-            v0, m = float(S[S_V]), P[P_MASS]
-            f0 = S[S_PA] * P[P_AREA_A] - S[S_PB] * P[P_AREA_B]
-            g1 = P[P_AREA_A] * be_a - P[P_AREA_B] * be_b - P[P_FRIC_V]
-            g0 = P[P_AREA_A] * al_a - P[P_AREA_B] * al_b - f0 + P[P_FRIC_V] * v0 + m * v0 / hn
-            lo = min(v0, (g0 - P[P_FRIC_S]) / (m / hn - g1)) - P[P_START_TOL] * hn
-            hi = max(v0, (g0 + P[P_FRIC_S]) / (m / hn - g1)) + P[P_START_TOL] * hn
+            v0 = float(S[S_V])
+            held = S[S_PA] * P[P_AREA_A] - S[S_PB] * P[P_AREA_B] - P[P_FRIC_V] * v0
+            lo = min(v0, _rod_speed(P, al_a, be_a, al_b, be_b, v0, hn,
+                                    held + P[P_FRIC_S])) - P[P_START_TOL] * hn
+            hi = max(v0, _rod_speed(P, al_a, be_a, al_b, be_b, v0, hn,
+                                    held - P[P_FRIC_S])) + P[P_START_TOL] * hn
             if v < lo or v > hi:
                 v = lo if v < lo else hi
                 pa, pb = al_a + be_a * v, al_b + be_b * v
@@ -463,10 +468,10 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         v = 0.0
     x_new = x + 0.5 * h * (S[S_V] + v)
     S[S_X] = min(max(x_new, 0.0), stroke) if known else math.nan
+    S[S_LEFT] = math.copysign(1.0, v) if beyond > 0.0 and S[S_V] == 0.0 and v != 0.0 else 0.0
     S[S_PA], S[S_PB], S[S_V], S[S_N] = pa, pb, v, n
     S[S_TAU2], S[S_TAU] = S[S_TAU], tau
     S[S_RA], S[S_RB] = ra, rb
-    S[S_LEFT] = math.copysign(1.0, v) if beyond > 0.0 and v_before == 0.0 and v != 0.0 else 0.0
     if v != 0.0 and known:
         S[S_LOAD_F] = (pa * P[P_AREA_A] - pb * P[P_AREA_B]
                        - math.copysign(P[P_FRIC_C] + P[P_FRIC_V] * abs(v), v))
