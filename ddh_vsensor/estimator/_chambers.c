@@ -218,8 +218,14 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * (or hands back to it), and the acceleration ends or starts at an unknown instant. The
      * speed comes in whole rpm, so a reading one below the limit may be the limit reached
      * just after the sample or not yet: the band [limit - 1, limit) is a zone of its own,
-     * and entering or leaving any zone is the edge (the drop may come in either sample). */
+     * and entering or leaving any zone is the edge (the drop may come in either sample).
+     * The step after the edge is one too: the limiter took over (or handed back) at an
+     * unknown instant of the last step, and the torque settles to its new course within
+     * this one, so the trapezoid of its samples is no better a mean. */
     int limit_edge = limit_zone(P, n) != limit_zone(P, S[S_N]);
+    /* the speed before the last step, from the ring (the speed now where there is none) */
+    double n_before = count > 0 ? S[S_RING + RING + (at - 1 + RING) % RING] : S[S_N];
+    limit_edge |= limit_zone(P, S[S_N]) != limit_zone(P, n_before);
     /* Below that, the samples are instants of a torque that may still bend between them
      * (the drive's loop swinging faster than it is sampled): the trapezoid is the step's
      * mean where the torque changes linearly, and off by a share of the bend where it does
@@ -239,7 +245,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
     if (count > 0) {                    /* the last step: its length (a frame may have been
                                            lost) and the speed before it, from the ring */
         int last = (at - 1 + RING) % RING;
-        double said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_RING + RING + last])
+        double said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - n_before)
                                                           / S[S_RING + 2 * RING + last]);
         excess = fabs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR];
     }

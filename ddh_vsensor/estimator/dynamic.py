@@ -30,9 +30,10 @@ chambers' force changed beyond its static friction, no faster than the change gi
 mass (plus ``start_tolerance_m_s2``);
 reversing on an end stop, the pumps' static friction lets any torque between the motoring
 and the pumping one hold the pressures; and a torque step within one sample larger than
-``torque_step_nm``, or any where the speed reaches or leaves the motor's speed limit (the
-drive's limiter takes over from the torque command there; a reading one rpm below the limit
-is a zone of its own, as the limit may be reached in the sample after it), has an unknown
+``torque_step_nm``, or any where the speed reaches or leaves the motor's speed limit or did
+in the step before (the drive's limiter takes over from the torque command there, and its
+torque settles in the next step; a reading one rpm below the limit is a zone of its own, as
+the limit may be reached in the sample after it), has an unknown
 shape, so the step's mean pump torque is taken nearest the last one; below that, so is one
 within ``torque_curvature`` of the samples' second difference (a torque bending between its
 samples, the trapezoid off by a share of the bend), or within ``speed_disagreement`` of how
@@ -376,11 +377,13 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     mean = 0.5 * (tau + S[S_TAU])
     torque = earlier + w * mean - inertia
     edge = _limit_zone(P, n) != _limit_zone(P, float(S[S_N]))
+    n_before = float(S[S_RING + RING + (at - 1) % RING]) if count > 0 else float(S[S_N])
+    edge = edge or _limit_zone(P, float(S[S_N])) != _limit_zone(P, n_before)
     jump = abs(tau - S[S_TAU])
     excess = 0.0
     if count > 0:                       # the last step: its length, the speed before it
         last = (at - 1) % RING
-        said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - S[S_RING + RING + last])
+        said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - n_before)
                                / S[S_RING + 2 * RING + last])
         excess = abs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR]
     swing = max(jump, abs(S[S_TAU] - S[S_TAU2]))      # this step's change or the last one's
