@@ -204,7 +204,7 @@ class EstimatorConfig:
     # `dynamic`: a rod at rest takes up speed no faster than the change of the chambers' force
     # (beyond its static friction) gives the empty machine's mass, plus this acceleration
     # (m/s²) for the pressures' own error; a torque that says more is misread (README)
-    dynamic_start_tolerance_m_s2: float = field(default=1.0, metadata={"ge": 0.0, "le": 1000.0})
+    dynamic_start_tolerance_m_s2: float = field(default=0.0, metadata={"ge": 0.0, "le": 1000.0})
 
 
 DEFAULT_BUS = "default"      # the bus of the top-level `bus:` key; `buses:` names the others

@@ -17,7 +17,10 @@ def bounded_cumsum(x_start: float, dx: np.ndarray, lower: float,
     x = np.empty(n)
     i, start = 0, x_start
     while i < n:
-        y = start + np.cumsum(dx[i:])
+        # added in the loop's order (start + dx0) + dx1 ..., not start + (dx0 + dx1 ...):
+        # equal to the online step's sums to the bit, which the chamber model's decisions
+        # (fed the position at each reference) can turn on
+        y = np.add.accumulate(np.concatenate([[start], dx[i:]]))[1:]
         out = (y > upper) | (y < lower)
         if not out.any():
             x[i:] = y

@@ -28,8 +28,8 @@ the empty machine's mass (its first two moving samples); a rod whose chambers bo
 a one-way valve stays too; a rod at rest mid-stroke takes up speed only the way the
 chambers' force changed beyond its static friction, no faster than the change gives that
 mass (plus ``start_tolerance_m_s2``);
-reversing on an end stop, the pumps' static friction lets any torque between the motoring
-and the pumping one hold the pressures; and a torque step within one sample larger than
+where the pumps stand at either end of a step or reverse within it, their static friction
+lets any torque between the motoring and the pumping one hold the pressures; and a torque step within one sample larger than
 ``torque_step_nm``, or any where the speed reaches or leaves the motor's speed limit or did
 in the step before (the drive's limiter takes over from the torque command there, and its
 torque settles in the next step; a reading one rpm below the limit is a zone of its own, as
@@ -224,6 +224,16 @@ class DynamicModel:
             self._mu = self.oil.dynamic_viscosity_scalar_pa_s(oil_temp_c)
         return self._mu
 
+    def _viscosities_pa_s(self, temp_c: np.ndarray) -> np.ndarray:
+        """Per sample, by the scalar formula :meth:`step` uses, once per run of equal
+        temperatures: the vectorised one differs in the last bit, and a decision of the step
+        (a valve, the pumps' friction band) can turn on that bit."""
+        if not len(temp_c):
+            return np.empty(0)
+        starts = np.concatenate([[0], np.flatnonzero(temp_c[1:] != temp_c[:-1]) + 1])
+        values = [self.oil.dynamic_viscosity_scalar_pa_s(float(c)) for c in temp_c[starts]]
+        return np.repeat(values, np.diff(np.append(starts, len(temp_c))))
+
     def step(self, h_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float) -> float:
         """One sample ``h_s`` after the last (ignored on the first): velocity in mm/s."""
         mu = self.viscosity_pa_s(oil_temp_c)
@@ -241,7 +251,7 @@ class DynamicModel:
         tau = np.ascontiguousarray(torque_nm, dtype=float)
         temp = np.ascontiguousarray(oil_temp_c, dtype=float)
         temp = np.broadcast_to(temp, t.shape) if temp.ndim == 0 else temp
-        mu = np.ascontiguousarray(self.oil.dynamic_viscosity_pa_s(temp), dtype=float)
+        mu = self._viscosities_pa_s(temp)
         v = np.empty(len(t))
         if self._lib is not None:
             self._lib.chambers_run(self._p_ptr, self._s_ptr, len(t), t.ctypes.data,
@@ -405,7 +415,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     da, db = ca + ga, cb + gb
     d = _direction(n + S[S_N])
     ra, rb = int(S[S_RA]), int(S[S_RB])
-    if n * S[S_N] <= 0.0 and known and (x <= 0.0 or x >= stroke):
+    if n * S[S_N] <= 0.0:
         t_neg = P[P_K_A + ra] * pa + P[P_K_B + rb] * pb
         t_pos = P[P_K_A + 8 + ra] * pa + P[P_K_B + 8 + rb] * pb
         if min(t_neg, t_pos) <= torque <= max(t_neg, t_pos):

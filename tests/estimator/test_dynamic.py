@@ -70,26 +70,35 @@ def test_a_rod_pressed_into_its_end_stop_does_not_travel(cfg, unit_tables):
 
 
 def test_a_wrong_pump_parameter_cannot_run_the_pressures_away(cfg, boom, unit_tables):
-    """The model's pumps 3 % larger than the plant's, cold oil, 5 min of holding and moving:
-    the valves and the leakage bound the pressures; the error stays the steady state's."""
-    plant = boom.with_pumps(displacement=1.03)
+    """The model's pumps 3 % smaller than the plant's, cold oil, 5 min of holding and moving:
+    the valves and the leakage bound the pressures; the error stays the steady state's. The
+    dynamic and the table travel part by a steady 0.05 mm per 10 s period wherever the pumps
+    reverse (the plant's steady torque jumps across the friction band there), as much with
+    the right pumps as with the wrong ones: the wrong parameter adds no growth (measured
+    0.0005 mm per period)."""
     t = np.arange(0.0, 300.0, 0.01)
     force = boom.load_force_n(0.0)
-    n = 1000.0 * np.sin(2 * np.pi * t / 10.0) + holding_speed(plant, force, -10.0).speed_rpm
-    st = steady_state(plant, n, force, -10.0)
-    model = DynamicModel(boom, 150.0, max_gap_s=0.05)
-    v = model.run(t, n, st.torque_nm, np.full_like(t, -10.0))
-    p_a, p_b = model.pressures_bar
-    assert -1.0 < p_a < 270.0 * 1.1 and -1.0 < p_b < 70.0 * 1.1
-    table = unit_tables["boom"].full.velocity_many(n, st.torque_nm, np.full_like(t, -10.0))[0]
 
     def travel(vel):
         return np.concatenate([[0.0], np.cumsum(0.5 * (vel[1:] + vel[:-1]) * np.diff(t))])
 
-    apart = travel(v) - travel(table)                      # dynamic minus table position
-    cycle_ends = apart[::1000]                             # every 10 s period, same phase
-    assert np.max(np.abs(np.diff(cycle_ends[10:]))) < 0.05  # no growth once settled
-    assert np.max(np.abs(apart)) < 10.0
+    growth = {}
+    for displacement in (1.0, 1.03):
+        plant = boom.with_pumps(displacement=displacement)
+        n = (1000.0 * np.sin(2 * np.pi * t / 10.0)
+             + holding_speed(plant, force, -10.0).speed_rpm)
+        st = steady_state(plant, n, force, -10.0)
+        model = DynamicModel(boom, 150.0, max_gap_s=0.05)
+        v = model.run(t, n, st.torque_nm, np.full_like(t, -10.0))
+        p_a, p_b = model.pressures_bar
+        assert -1.0 < p_a < 270.0 * 1.1 and -1.0 < p_b < 70.0 * 1.1
+        table = unit_tables["boom"].full.velocity_many(n, st.torque_nm,
+                                                       np.full_like(t, -10.0))[0]
+        apart = travel(v) - travel(table)                  # dynamic minus table position
+        assert np.max(np.abs(apart)) < 10.0
+        growth[displacement] = np.diff(apart[::1000][10:])  # every 10 s period, same phase
+    assert np.max(np.abs(growth[1.03] - growth[1.0])) < 0.005
+    assert np.ptp(growth[1.03]) < 0.005                    # a steady rate: nothing runs away
 
 
 def test_an_unreferenced_estimate_assumes_no_end_stop(cfg, unit_tables):
@@ -257,9 +266,9 @@ def test_where_the_speed_disagrees_with_the_torque_samples_the_mean_is_uncertain
     step threshold and hardly bent. The speed's second difference says the step's mean
     motor torque rose 54 N*m from the last step's, the trapezoids 30: the ramp reached its
     value early in the sample. Read as pump torque, B 65 bar for 22, A below the
-    anti-cavitation valve's cracking, 2.23 mm worst over the run. Three quarters of the
-    disagreement beyond its floor is now how far the mean may lie off the trapezoid.
-    Measured with the torque's timing at 0 (at the default 0.5 ms, 1.91 mm without it)."""
+    anti-cavitation valve's cracking, 1.72 mm worst over the run. Three quarters of the
+    disagreement beyond its floor is now how far the mean may lie off the trapezoid: 0.49 mm.
+    Measured with the torque's timing at 0 (at the default 0.5 ms, 0.31 / 1.92 mm)."""
     cfg = _lagging(cfg, 0.0)
     spec = RunSpec(cycle=random_cycle(cfg, 54805, end_stop_share=0.10353854752850625),
                    payload_kg=200.0, oil_temp_c=28.0, seed=105, controller=PIDSettings(
@@ -268,7 +277,7 @@ def test_where_the_speed_disagrees_with_the_torque_samples_the_mean_is_uncertain
     worst, deaf = _with_and_without(cfg, unit_tables, "bucket", spec,
                                     dynamic_speed_disagreement=0.0)
     assert worst <= 0.55
-    assert deaf >= 2.0
+    assert deaf >= 1.5
 
 
 def test_a_swing_may_peak_beyond_both_samples_where_the_speed_says_so(cfg, unit_tables):
@@ -321,20 +330,43 @@ def test_a_rod_that_left_its_end_stop_goes_on_taking_up_speed_with_its_mass(
     _compiled_and_python_agree(boom, run)
 
 
+def test_a_standing_pump_holds_the_pressures_its_torque_cannot_tell(cfg, unit_tables):
+    """The paper's cycle at 80 degC with 1040 kg: the boom holds its load at 78 bar between
+    moves, the motor at 0 rpm while the drive eases its torque off (29 -> 25 N*m) as the
+    pumps' static friction takes part of the load. Read as pumping torque, the model's A
+    chamber fell to 65 bar (6.7 bar low on the mean of the still samples, 13.4 at most) and
+    its rod sank by leakage it does not have: 0.51 mm worst. Wherever the pumps stand (or
+    reverse), a torque within their friction band holds the pressures: within 1 bar of the
+    simulator's (0.41 measured), 0.20 mm worst."""
+    run = simulate_campaign(cfg, [RunSpec(speed=1, payload_kg=1040.0,
+                                          oil_temp_c=80.0)])[0]["boom"]
+    est = Estimator(cfg, "boom", unit_tables["boom"], mode="dynamic", references=False,
+                    initial_position_mm=float(run.position_mm[0]))
+    x, p_a = np.empty(len(run.time_s)), np.empty(len(run.time_s))
+    for k in range(len(run.time_s)):
+        x[k] = est.step(run.time_s[k], run.speed_rpm[k], float(run.torque_nm[k]),
+                        run.oil_temp_c[k]).position_mm
+        p_a[k] = est.dynamic.pressures_bar[0]
+    still = np.flatnonzero((run.speed_rpm[1:] == 0.0) & (run.speed_rpm[:-1] == 0.0)) + 1
+    assert len(still) >= 50
+    assert np.max(np.abs(p_a[still] - run.p_a_bar[still])) <= 1.0
+    assert np.max(np.abs(x - run.position_mm)) <= 0.25
+
+
 def test_a_rod_at_rest_starts_with_the_force_that_starts_it(cfg, unit_tables):
     """A drawn set's 34.5 degC bucket run (625 kg, the usual drive): the bucket holds at
     -11 rpm, then the drive kicks it to +64 rpm in one sample while its torque reads
     -12.9 -> +10.0 -> -13.1 N*m (a change under the speed's floor, 5 N*m, from the
     trapezoid). Read as pump torque, the chambers decompressed into 23 and 44 mm/s of rod
-    travel where the rod crept at 1-3 mm/s: 0.90 mm worst. A rod at rest takes up speed
+    travel where the rod crept at 1-3 mm/s: 0.64 mm worst. A rod at rest takes up speed
     only the way the chambers' force changed beyond its static friction, no faster than
-    that gives the empty machine's mass (plus 1 m/s^2): 0.47 mm."""
+    that gives the empty machine's mass: 0.41 mm."""
     spec = RunSpec(cycle=random_cycle(cfg, 200365, end_stop_share=0.2826108396234964),
                    payload_kg=624.8852641953704, oil_temp_c=34.5, seed=5)
     worst, unbound = _with_and_without(cfg, unit_tables, "bucket", spec,
                                        dynamic_start_tolerance_m_s2=1000.0)
-    assert worst <= 0.55
-    assert unbound >= 0.8
+    assert worst <= 0.47
+    assert unbound >= 0.58
 
 
 @pytest.fixture(scope="module")
