@@ -122,6 +122,15 @@ static void still(const double *P, int g, int ge, double relief, double f, doubl
     }
 }
 
+/* Both pressures at a rod speed the step has chosen: each chamber's own flows, its valves
+ * included (a rod held back from the torque's speed leaves the pumps' flow to them). */
+static void at_speed(const double *P, double fa, double fb, double da, double db, double v,
+                     int *ra, int *rb, double *pa, double *pb)
+{
+    still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa - P[P_AREA_A] * v, da, ra, pa);
+    still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb + P[P_AREA_B] * v, db, rb, pb);
+}
+
 static int direction(double n) { return n > 0.0 ? 2 : n < 0.0 ? 0 : 1; }
 
 /* This step's length in the drive's periods (see HF_GAIN). */
@@ -336,27 +345,26 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         /* Leaving the stop, the rod and its load (their mass, at least the empty machine's)
          * take up speed from the force beyond what held them, which grows from nothing
          * within the step: half its end value on average. Read from the torque alone, the
-         * rod went at once; the pumps' flow it cannot take yet compresses the chambers. */
+         * rod went at once; the pumps' flow it cannot take yet compresses the chambers, as far
+         * as their valves let it (the pumps turn at speed already: taken in the torque's
+         * valve regimes, the boom's rod side read 230 bar at a 76 bar relief). */
         double vmax = 0.5 * beyond / P[P_MASS] * h;
         if (!stopped && beyond > 0.0 && S[S_V] == 0.0 && fabs(v) > vmax) {
-            double al_a, be_a, al_b, be_b;
-            linear(P, ra, rb, fa, fb, da, db, &al_a, &be_a, &al_b, &be_b);
             v = copysign(vmax, v);
-            pa = al_a + be_a * v;
-            pb = al_b + be_b * v;
+            at_speed(P, fa, fb, da, db, v, &ra, &rb, &pa, &pb);
         }
         if (!stopped && S[S_LEFT] * v > 0.0 && load == load) {
             /* The sample after the rod left its end stop: it goes on taking up speed with its
              * mass from the force beyond the load it held there (m (v - v0) / h = F(v) - load
-             * - friction), which the torque, read as pressure, would again give it at once. */
+             * - friction), which the torque, read as pressure, would again give it at once;
+             * the flow it does not take, the chambers and their valves do. */
             double al_a, be_a, al_b, be_b, sg = S[S_LEFT];
             linear(P, ra, rb, fa, fb, da, db, &al_a, &be_a, &al_b, &be_b);
             double vd = rod_speed(P, al_a, be_a, al_b, be_b, S[S_V], hn,
                                   load + sg * P[P_FRIC_C]);
             if (sg * vd > 0.0 && sg * v > sg * vd) {
                 v = vd;
-                pa = al_a + be_a * v;
-                pb = al_b + be_b * v;
+                at_speed(P, fa, fb, da, db, v, &ra, &rb, &pa, &pb);
             }
         }
         if (!stopped && beyond <= 0.0 && fabs(S[S_V]) <= REST_SPEED) {

@@ -326,6 +326,14 @@ def _still(P, g: int, ge: int, relief: float, f: float, d: float) -> tuple[float
     return p, i
 
 
+def _at_speed(P, fa: float, fb: float, da: float, db: float, v: float
+              ) -> tuple[float, int, float, int]:
+    """``at_speed`` of _chambers.c: (pa, ra, pb, rb) at rod speed ``v``, valves included."""
+    pa, ra = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa - P[P_AREA_A] * v, da)
+    pb, rb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb + P[P_AREA_B] * v, db)
+    return pa, ra, pb, rb
+
+
 def _drive_step(S: np.ndarray, h: float) -> float:
     """``drive_step`` of _chambers.c: the step's length in the drive's periods."""
     hf, count, dev = float(S[S_HF]), int(S[S_HF_COUNT]), float(S[S_HF_DEV])
@@ -451,9 +459,8 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         stopped = ra in (0, 3) and rb in (0, 3)
         vmax = 0.5 * beyond / P[P_MASS] * h
         if not stopped and beyond > 0.0 and S[S_V] == 0.0 and abs(v) > vmax:
-            al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
             v = math.copysign(vmax, v)
-            pa, pb = al_a + be_a * v, al_b + be_b * v
+            pa, ra, pb, rb = _at_speed(P, fa, fb, da, db, v)
         if not stopped and S[S_LEFT] * v > 0.0 and load == load:
             # the sample after leaving the end stop: speed taken up with the mass (_chambers.c)
             al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
@@ -461,7 +468,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
             vd = _rod_speed(P, al_a, be_a, al_b, be_b, S[S_V], hn, load + sg * P[P_FRIC_C])
             if sg * vd > 0.0 and sg * v > sg * vd:
                 v = vd
-                pa, pb = al_a + be_a * v, al_b + be_b * v
+                pa, ra, pb, rb = _at_speed(P, fa, fb, da, db, v)
         if not stopped and beyond <= 0.0 and abs(S[S_V]) <= REST_SPEED:
             # a rod at rest starts with the force that starts it (_chambers.c)
             al_a, be_a, al_b, be_b = _linear(P, ra, rb, fa, fb, da, db)
