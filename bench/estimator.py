@@ -23,7 +23,7 @@ def _signals(count: int, seed: int) -> tuple[np.ndarray, ...]:
     t = np.arange(count) * 1e-3
     speed = 4000 * np.sin(2 * np.pi * t / 8.0) + rng.normal(0, 5, count)
     torque = 20 + 5 * np.sin(2 * np.pi * t / 3.0)
-    temp = 27 + 0.001 * t
+    temp = np.round(27 + 0.001 * t, 1)          # the bus's resolution (OilTemp, 0.1 degC)
     mid = (np.sin(2 * np.pi * t / 8.0) > 0.95)
     return t, speed, torque, temp, mid
 

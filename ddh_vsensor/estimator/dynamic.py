@@ -219,20 +219,13 @@ class DynamicModel:
         self.state[S_X] = math.nan if position_mm is None else position_mm * 1e-3
 
     def viscosity_pa_s(self, oil_temp_c: float) -> float:
+        """By the offline run's vectorised formula (its scalar twin differs in the last bit,
+        and a decision of the step, a valve or the pumps' friction band, can turn on that
+        bit); computed only when the temperature changes."""
         if oil_temp_c != self._temp_c:
             self._temp_c = oil_temp_c
-            self._mu = self.oil.dynamic_viscosity_scalar_pa_s(oil_temp_c)
+            self._mu = float(self.oil.dynamic_viscosity_pa_s(np.array([oil_temp_c]))[0])
         return self._mu
-
-    def _viscosities_pa_s(self, temp_c: np.ndarray) -> np.ndarray:
-        """Per sample, by the scalar formula :meth:`step` uses, once per run of equal
-        temperatures: the vectorised one differs in the last bit, and a decision of the step
-        (a valve, the pumps' friction band) can turn on that bit."""
-        if not len(temp_c):
-            return np.empty(0)
-        starts = np.concatenate([[0], np.flatnonzero(temp_c[1:] != temp_c[:-1]) + 1])
-        values = [self.oil.dynamic_viscosity_scalar_pa_s(float(c)) for c in temp_c[starts]]
-        return np.repeat(values, np.diff(np.append(starts, len(temp_c))))
 
     def step(self, h_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float) -> float:
         """One sample ``h_s`` after the last (ignored on the first): velocity in mm/s."""
@@ -251,7 +244,7 @@ class DynamicModel:
         tau = np.ascontiguousarray(torque_nm, dtype=float)
         temp = np.ascontiguousarray(oil_temp_c, dtype=float)
         temp = np.broadcast_to(temp, t.shape) if temp.ndim == 0 else temp
-        mu = self._viscosities_pa_s(temp)
+        mu = np.ascontiguousarray(self.oil.dynamic_viscosity_pa_s(temp), dtype=float)
         v = np.empty(len(t))
         if self._lib is not None:
             self._lib.chambers_run(self._p_ptr, self._s_ptr, len(t), t.ctypes.data,
