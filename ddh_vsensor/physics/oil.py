@@ -42,14 +42,6 @@ class Oil:
     def dynamic_viscosity_pa_s(self, temp_c: ArrayLike) -> np.ndarray:
         return self.kinematic_viscosity_cst(temp_c) * CST_M2S * self.density_kg_m3(temp_c)
 
-    def dynamic_viscosity_scalar_pa_s(self, temp_c: float) -> float:
-        """:meth:`dynamic_viscosity_pa_s` for one float, without numpy (the 1 kHz step)."""
-        t = math.log10(temp_c + KELVIN_OFFSET)
-        nu = 10.0 ** (10.0 ** (self._intercept + self._slope * t)) - _WALTHER_SHIFT_CST
-        rho = self.cfg.density_kg_m3_at_15c / (1.0 + self.cfg.thermal_expansion_per_k
-                                                * (temp_c - 15.0))
-        return nu * CST_M2S * rho
-
     def temperature_at_viscosity_c(self, nu_cst: float) -> float:
         """Inverse of the D341 line: the temperature where the oil has ``nu_cst``."""
         return 10.0 ** ((_loglog(nu_cst) - self._intercept) / self._slope) - KELVIN_OFFSET
