@@ -323,13 +323,17 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
          * load it held arriving (the load does not change on the stop) and the rod's static
          * friction: until then the pumps' flow (de)compresses the chambers, which the
          * torque, read as pressure, would turn into travel. Both chambers pinned by their
-         * valves are the most force they can make: the load cannot be more. */
+         * valves the way that pushes the rod off the stop (off the bottom: A on its relief,
+         * B on its anti-cavitation valve; off the top the other way) are the most force they
+         * can make that way: the load cannot be more. Pinned otherwise (both on their
+         * reliefs as the pumps reverse, the stiff chamber at the stop filling within a
+         * sample) they still press the rod onto the stop. */
         int qa, qb;
         double sa, sb;
         still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da, &qa, &sa);
         still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db, &qb, &sb);
         double force = sa * P[P_AREA_A] - sb * P[P_AREA_B];
-        int pinned = (qa == 0 || qa == 3) && (qb == 0 || qb == 3);
+        int pinned = x <= 0.0 ? qa == 3 && qb == 0 : qa == 0 && qb == 3;
         beyond = x <= 0.0 ? force - load - P[P_FRIC_S] : load - P[P_FRIC_S] - force;
         stopped = still_done = !pinned && beyond < 0.0;
         if (still_done) {

@@ -23,7 +23,8 @@ Where the torque cannot tell the rod's speed, the step does not ask it (README: 
 sweep): a rod on its end stop (the model's own position at the stroke end) stays there unless
 the motor drives it away and the chambers' force has overcome the load the rod held arriving
 there (the chamber force of its last moving step less the rod's moving friction then) and the
-rod's static friction, and then takes up speed no faster than the force beyond that gives
+rod's static friction (or both chambers sit on the valves that push it off, the most force
+they make that way), and then takes up speed no faster than the force beyond that gives
 the empty machine's mass (its first two moving samples); a rod whose chambers both sit on
 a one-way valve stays too; a rod at rest mid-stroke takes up speed only the way the
 chambers' force changed beyond its static friction, no faster than the change gives that
@@ -441,7 +442,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
         sa, qa = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
         sb, qb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)
         force = sa * P[P_AREA_A] - sb * P[P_AREA_B]
-        pinned = qa in (0, 3) and qb in (0, 3)
+        pinned = (qa, qb) == ((3, 0) if x <= 0.0 else (0, 3))
         beyond = (force - load - P[P_FRIC_S] if x <= 0.0
                   else load - P[P_FRIC_S] - force)
         stopped = still_done = not pinned and beyond < 0.0
