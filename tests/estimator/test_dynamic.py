@@ -426,6 +426,19 @@ def test_a_rod_driven_off_its_end_stop_waits_for_its_load(cfg, unit_tables, buck
     _compiled_and_python_agree(bucket, run)
 
 
+def _drawn_random_spec(cfg, cycle_seed: int, end_stop_share: float, payload_kg: float,
+                       oil_temp_c: float, seed: int, drive: tuple[float, float, float]
+                       ) -> RunSpec:
+    """A random cycle of a drawn set (`bench/accuracy.py --draw`) on a drive tuned otherwise:
+    ``drive`` its loop bandwidth (rad/s), derivative filter and torque filter (s)."""
+    bandwidth, derivative, torque_filter = drive
+    return RunSpec(cycle=random_cycle(cfg, cycle_seed, end_stop_share=end_stop_share),
+                   payload_kg=payload_kg, oil_temp_c=oil_temp_c, seed=seed,
+                   controller=PIDSettings(bandwidth_rad_s=bandwidth,
+                                          derivative_filter_s=derivative,
+                                          torque_filter_s=torque_filter))
+
+
 def test_a_rod_held_back_leaves_the_pumps_flow_to_the_valves(cfg, unit_tables, boom):
     """A drawn set's 36.7 degC boom run (819 kg, a drive tuned to a 3 rad/s loop) reverses
     off its top stop with the motor at -3500 rpm, its rod side on the 76 bar relief. In the
@@ -434,12 +447,9 @@ def test_a_rod_held_back_leaves_the_pumps_flow_to_the_valves(cfg, unit_tables, b
     the chamber force then threw the rod off the stop early: 0.59 mm worst. The pressures at
     the speed the rod is given are each chamber's own, valves included (B stays at 76 bar):
     0.44 mm. The Python step does the same."""
-    run, worst = _random_run_worst(cfg, unit_tables, "boom", RunSpec(
-        cycle=random_cycle(cfg, 200963, end_stop_share=0.5434441858713159),
-        payload_kg=819.0135398181532, oil_temp_c=36.7, seed=3,
-        controller=PIDSettings(bandwidth_rad_s=3.0331597623588498,
-                               derivative_filter_s=0.11324868953090919,
-                               torque_filter_s=0.0056277058524570696)))
+    run, worst = _random_run_worst(cfg, unit_tables, "boom", _drawn_random_spec(
+        cfg, 200963, 0.5434441858713159, 819.0135398181532, 36.7, 3,
+        (3.0331597623588498, 0.11324868953090919, 0.0056277058524570696)))
     assert worst <= 0.48
     _compiled_and_python_agree(boom, run)
 
@@ -453,12 +463,9 @@ def test_a_rod_pressed_onto_its_stop_by_both_reliefs_stays(cfg, unit_tables, buc
     pressed it onto the stop (-78 kN against a held load of -35): 0.54 mm worst. Only the
     valves that push a rod off its stop (off the bottom: A's relief, B's anti-cavitation
     valve) let it go whatever it held: 0.24 mm. The Python step does the same."""
-    run, worst = _random_run_worst(cfg, unit_tables, "bucket", RunSpec(
-        cycle=random_cycle(cfg, 200840, end_stop_share=0.5746341594830366),
-        payload_kg=607.1316666180794, oil_temp_c=27.8, seed=4,
-        controller=PIDSettings(bandwidth_rad_s=6.26046329266064,
-                               derivative_filter_s=0.14129696975089423,
-                               torque_filter_s=0.005507652580571883)))
+    run, worst = _random_run_worst(cfg, unit_tables, "bucket", _drawn_random_spec(
+        cfg, 200840, 0.5746341594830366, 607.1316666180794, 27.8, 4,
+        (6.26046329266064, 0.14129696975089423, 0.005507652580571883)))
     assert worst <= 0.3
     _compiled_and_python_agree(bucket, run)
 
