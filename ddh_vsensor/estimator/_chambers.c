@@ -239,7 +239,8 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * (the drive's loop swinging faster than it is sampled): the trapezoid is the step's
      * mean where the torque changes linearly, and off by a share of the bend where it does
      * not. The bend is the second difference of the last three samples; within P_CURVATURE
-     * of it (never beyond the step's ends) the mean is again the value nearest the last.
+     * of it the mean is again the value nearest the last (a bend is a peak between the
+     * samples as often as not: a braking motor's torque 7, 59, 62 N m peaked past 62).
      * The speed has a say too: it integrates the motor torque, so its second difference is
      * the change of the steps' mean motor torque from the last step to this one, wherever the
      * pump torque stays (as it mostly does); the trapezoids say (tau - tau'')/2. Where they
@@ -248,7 +249,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * whole change past the trapezoid, as a swing between the samples may peak beyond both,
      * this step's change or the last one's, whichever is larger (samples either side of a
      * peak change little however large the swing: a torque ringing at a quarter of the
-     * sampling rate); the bend's band stays within the step's ends. */
+     * sampling rate); the bend's band too. */
     double jump = fabs(tau - S[S_TAU]);
     double excess = 0.0;
     if (count > 0) {                    /* the last step: its length (a frame may have been
@@ -259,9 +260,8 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
         excess = fabs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR];
     }
     double swing = fmax(jump, fabs(S[S_TAU] - S[S_TAU2]));
-    double band = fmax(fmin(P[P_CURVATURE] * fabs(tau - 2.0 * S[S_TAU] + S[S_TAU2]),
-                            0.5 * jump),
-                       fmin(P[P_DISAGREE] * excess, swing));
+    double band = fmin(fmax(P[P_CURVATURE] * fabs(tau - 2.0 * S[S_TAU] + S[S_TAU2]),
+                            P[P_DISAGREE] * excess), swing);
     if (jump > P[P_TORQUE_STEP] || limit_edge)
         band = fmax(band, 0.5 * jump);
     if (band > 0.0) {

@@ -39,9 +39,9 @@ shape, so the step's mean pump torque is taken nearest the last one; below that,
 within ``torque_curvature`` of the samples' second difference (a torque bending between its
 samples, the trapezoid off by a share of the bend), or within ``speed_disagreement`` of how
 far the speed's second difference (the change of the steps' mean motor torque where the pump
-torque stays) disagrees with the samples beyond ``speed_disagreement_floor_nm`` (up to this
-step's or the last step's change past the samples' trapezoid, whichever is larger: a swing
-may peak between its samples).
+torque stays) disagrees with the samples beyond ``speed_disagreement_floor_nm`` (either band
+up to this step's or the last step's change past the samples' trapezoid, whichever is
+larger: a swing may peak between its samples).
 
 The step is compiled C (``_chambers.c``, built with the package as an optional extension and
 loaded with ctypes): the online face calls it per sample, the offline face runs the same
@@ -399,8 +399,8 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
                                / S[S_RING + 2 * RING + last])
         excess = abs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR]
     swing = max(jump, abs(S[S_TAU] - S[S_TAU2]))      # this step's change or the last one's
-    band = max(min(P[P_CURVATURE] * abs(tau - 2.0 * S[S_TAU] + S[S_TAU2]), 0.5 * jump),
-               min(P[P_DISAGREE] * excess, swing))
+    band = min(max(P[P_CURVATURE] * abs(tau - 2.0 * S[S_TAU] + S[S_TAU2]),
+                   P[P_DISAGREE] * excess), swing)
     if jump > P[P_TORQUE_STEP] or edge:
         band = max(band, 0.5 * jump)
     if band > 0.0:
