@@ -103,7 +103,7 @@ def test_heartbeats_of_unconfigured_nodes_arm_nothing(cfg, unit_tables) -> None:
                 feeder.send(codec.encode_oil_temp(30.0, 600.0))
                 await _feed(feeder, codec, 600.0, 0, 10, heartbeat=4)      # "stopped", spoofed
                 await _feed(feeder, codec, 600.0, 10, 10)
-                return _boom(service), service.units["boom"]
+                return await _boom_as_received(service, 20), service.units["boom"]
             finally:
                 feeder.shutdown()
 
