@@ -232,8 +232,10 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * unknown instant of the last step, and the torque settles to its new course within
      * this one, so the trapezoid of its samples is no better a mean. */
     int limit_edge = limit_zone(P, n) != limit_zone(P, S[S_N]);
-    /* the speed before the last step, from the ring (the speed now where there is none) */
-    double n_before = count > 0 ? S[S_RING + RING + (at - 1 + RING) % RING] : S[S_N];
+    /* the last step, from the ring: its length (a frame may have been lost) and the speed
+     * before it (the speed now where there is none) */
+    int last = (at - 1 + RING) % RING;
+    double n_before = count > 0 ? S[S_RING + RING + last] : S[S_N];
     limit_edge |= limit_zone(P, S[S_N]) != limit_zone(P, n_before);
     /* Below that, the samples are instants of a torque that may still bend between them
      * (the drive's loop swinging faster than it is sampled): the trapezoid is the step's
@@ -252,9 +254,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * sampling rate); the bend's band too. */
     double jump = fabs(tau - S[S_TAU]);
     double excess = 0.0;
-    if (count > 0) {                    /* the last step: its length (a frame may have been
-                                           lost) and the speed before it, from the ring */
-        int last = (at - 1 + RING) % RING;
+    if (count > 0) {
         double said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - n_before)
                                                           / S[S_RING + 2 * RING + last]);
         excess = fabs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR];
@@ -330,8 +330,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
          * sample) they still press the rod onto the stop. */
         int qa, qb;
         double sa, sb;
-        still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da, &qa, &sa);
-        still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db, &qb, &sb);
+        at_speed(P, fa, fb, da, db, 0.0, &qa, &qb, &sa, &sb);
         double force = sa * P[P_AREA_A] - sb * P[P_AREA_B];
         int pinned = x <= 0.0 ? qa == 3 && qb == 0 : qa == 0 && qb == 3;
         beyond = x <= 0.0 ? force - load - P[P_FRIC_S] : load - P[P_FRIC_S] - force;
@@ -394,10 +393,8 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
             }
         }
     }
-    if (stopped && !still_done) {
-        still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da, &ra, &pa);
-        still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db, &rb, &pb);
-    }
+    if (stopped && !still_done)
+        at_speed(P, fa, fb, da, db, 0.0, &ra, &rb, &pa, &pb);
     if (stopped)
         v = 0.0;
     double x_new = x + 0.5 * h * (S[S_V] + v);

@@ -20,28 +20,28 @@ constant C/g. ``blend_s`` > 0 adds a pull towards the steady state with that tim
 value was chosen and why.
 
 Where the torque cannot tell the rod's speed, the step does not ask it (README: temperature
-sweep): a rod on its end stop (the model's own position at the stroke end) stays there unless
-the motor drives it away and the chambers' force has overcome the load the rod held arriving
-there (the chamber force of its last moving step less the rod's moving friction then) and the
-rod's static friction (or both chambers sit on the valves that push it off, the most force
-they make that way), and then takes up speed no faster than the force beyond that gives
-the empty machine's mass (its first two moving samples); a rod whose chambers both sit on
-a one-way valve stays too; a rod at rest mid-stroke takes up speed only the way the
-chambers' force changed beyond its static friction, no faster than the change gives that
-mass (plus ``start_tolerance_m_s2``);
-where the pumps stand at either end of a step or reverse within it, their static friction
-lets any torque between the motoring and the pumping one hold the pressures; and a torque step within one sample larger than
+sweep): a rod on its end stop (the model's own position at the stroke end) stays there
+unless the motor drives it away and the chambers' force has overcome the load the rod held
+arriving there (the chamber force of its last moving step less the rod's moving friction
+then) and the rod's static friction (or both chambers sit on the valves that push it off,
+the most force they make that way), and then takes up speed no faster than the force beyond
+that gives the empty machine's mass (its first two moving samples); a rod whose chambers
+both sit on a one-way valve stays too; a rod at rest mid-stroke takes up speed only the way
+the chambers' force changed beyond its static friction, no faster than the change gives that
+mass (plus ``start_tolerance_m_s2``); where the pumps stand at either end of a step or
+reverse within it, their static friction lets any torque between the motoring and the
+pumping one hold the pressures; and a torque step within one sample larger than
 ``torque_step_nm``, or any where the speed reaches or leaves the motor's speed limit or did
 in the step before (the drive's limiter takes over from the torque command there, and its
 torque settles in the next step; a reading one rpm below the limit is a zone of its own, as
-the limit may be reached in the sample after it), has an unknown
-shape, so the step's mean pump torque is taken nearest the last one; below that, so is one
-within ``torque_curvature`` of the samples' second difference (a torque bending between its
-samples, the trapezoid off by a share of the bend), or within ``speed_disagreement`` of how
-far the speed's second difference (the change of the steps' mean motor torque where the pump
-torque stays) disagrees with the samples beyond ``speed_disagreement_floor_nm`` (either band
-up to this step's or the last step's change past the samples' trapezoid, whichever is
-larger: a swing may peak between its samples).
+the limit may be reached in the sample after it), has an unknown shape, so the step's mean
+pump torque is taken nearest the last one; below that, so is one within ``torque_curvature``
+of the samples' second difference (a torque bending between its samples, the trapezoid off
+by a share of the bend), or within ``speed_disagreement`` of how far the speed's second
+difference (the change of the steps' mean motor torque where the pump torque stays)
+disagrees with the samples beyond ``speed_disagreement_floor_nm`` (either band up to this
+step's or the last step's change past the samples' trapezoid, whichever is larger: a swing
+may peak between its samples).
 
 The step is compiled C (``_chambers.c``, built with the package as an optional extension and
 loaded with ctypes): the online face calls it per sample, the offline face runs the same
@@ -389,12 +389,12 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     mean = 0.5 * (tau + S[S_TAU])
     torque = earlier + w * mean - inertia
     edge = _limit_zone(P, n) != _limit_zone(P, float(S[S_N]))
-    n_before = float(S[S_RING + RING + (at - 1) % RING]) if count > 0 else float(S[S_N])
+    last = (at - 1) % RING              # the last step: its length, the speed before it
+    n_before = float(S[S_RING + RING + last]) if count > 0 else float(S[S_N])
     edge = edge or _limit_zone(P, float(S[S_N])) != _limit_zone(P, n_before)
     jump = abs(tau - S[S_TAU])
     excess = 0.0
-    if count > 0:                       # the last step: its length, the speed before it
-        last = (at - 1) % RING
+    if count > 0:
         said = P[P_INERTIA] * ((n - S[S_N]) / hn - (S[S_N] - n_before)
                                / S[S_RING + 2 * RING + last])
         excess = abs(said - 0.5 * (tau - S[S_TAU2])) - P[P_DISAGREE_FLOOR]
@@ -439,8 +439,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
     still_done = False
     stopped = known and ((x <= 0.0 and n <= 0.0) or (x >= stroke and n >= 0.0))
     if not stopped and known and (x <= 0.0 or x >= stroke) and load == load:
-        sa, qa = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
-        sb, qb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)
+        sa, qa, sb, qb = _at_speed(P, fa, fb, da, db, 0.0)
         force = sa * P[P_AREA_A] - sb * P[P_AREA_B]
         pinned = (qa, qb) == ((3, 0) if x <= 0.0 else (0, 3))
         beyond = (force - load - P[P_FRIC_S] if x <= 0.0
@@ -476,8 +475,7 @@ def _py_step(P: list[float], S: np.ndarray, h: float, n: float, tau: float, mu: 
                 v = lo if v < lo else hi
                 pa, pb = al_a + be_a * v, al_b + be_b * v
     if stopped and not still_done:
-        pa, ra = _still(P, P_G_A, P_GE_A, P[P_RELIEF_A], fa, da)
-        pb, rb = _still(P, P_G_B, P_GE_B, P[P_RELIEF_B], fb, db)
+        pa, ra, pb, rb = _at_speed(P, fa, fb, da, db, 0.0)
     if stopped:
         v = 0.0
     x_new = x + 0.5 * h * (S[S_V] + v)

@@ -266,9 +266,8 @@ def test_a_torque_bending_between_its_samples_may_peak_past_them(cfg, unit_table
     between the samples. Within the step's ends the bend's band let the model read 5 N*m of
     it as pump torque, B 10 bar high, the rod thrown +31 mm/s for a sample: 0.67 mm worst.
     Past the ends as far as the last step's change, as the speed's band may: 0.19 mm."""
-    _, worst = _random_run_worst(cfg, unit_tables, "bucket", RunSpec(
-        cycle=random_cycle(cfg, 200554, end_stop_share=0.10226373223388749),
-        payload_kg=568.7333611096577, oil_temp_c=27.9, seed=6))
+    _, worst = _random_run_worst(cfg, unit_tables, "bucket", _drawn_random_spec(
+        cfg, 200554, 0.10226373223388749, 568.7333611096577, 27.9, 6))
     assert worst <= 0.25
 
 
@@ -317,8 +316,7 @@ def test_a_torque_ringing_between_its_samples_may_peak_by_its_last_change(cfg, u
     Samples either side of a peak change little however large the swing: the band reaches
     the last step's change too (42 N*m here): 0.28 mm; without the speed's say, 1.00 (the
     bend's band, which may reach as far, reads part of it)."""
-    spec = RunSpec(cycle=random_cycle(cfg, 119045, end_stop_share=0.15414745651373654),
-                   payload_kg=884.9807344225874, oil_temp_c=51.3, seed=9)
+    spec = _drawn_random_spec(cfg, 119045, 0.15414745651373654, 884.9807344225874, 51.3, 9)
     worst, deaf = _with_and_without(cfg, unit_tables, "bucket", spec,
                                     dynamic_speed_disagreement=0.0)
     assert worst <= 0.4
@@ -375,8 +373,7 @@ def test_a_rod_at_rest_starts_with_the_force_that_starts_it(cfg, unit_tables):
     travel where the rod crept at 1-3 mm/s: 0.64 mm worst. A rod at rest takes up speed
     only the way the chambers' force changed beyond its static friction, no faster than
     that gives the empty machine's mass: 0.41 mm."""
-    spec = RunSpec(cycle=random_cycle(cfg, 200365, end_stop_share=0.2826108396234964),
-                   payload_kg=624.8852641953704, oil_temp_c=34.5, seed=5)
+    spec = _drawn_random_spec(cfg, 200365, 0.2826108396234964, 624.8852641953704, 34.5, 5)
     worst, unbound = _with_and_without(cfg, unit_tables, "bucket", spec,
                                        dynamic_start_tolerance_m_s2=1000.0)
     assert worst <= 0.47
@@ -441,16 +438,14 @@ def test_a_rod_driven_off_its_end_stop_waits_for_its_load(cfg, unit_tables, buck
 
 
 def _drawn_random_spec(cfg, cycle_seed: int, end_stop_share: float, payload_kg: float,
-                       oil_temp_c: float, seed: int, drive: tuple[float, float, float]
-                       ) -> RunSpec:
-    """A random cycle of a drawn set (`bench/accuracy.py --draw`) on a drive tuned otherwise:
-    ``drive`` its loop bandwidth (rad/s), derivative filter and torque filter (s)."""
-    bandwidth, derivative, torque_filter = drive
+                       oil_temp_c: float, seed: int,
+                       drive: tuple[float, float, float] | None = None) -> RunSpec:
+    """A random cycle of a drawn set (`bench/accuracy.py --draw`), on the usual drive or one
+    tuned otherwise: ``drive`` its loop bandwidth (rad/s), derivative and torque filter (s)."""
+    tuned = {} if drive is None else {"controller": PIDSettings(
+        bandwidth_rad_s=drive[0], derivative_filter_s=drive[1], torque_filter_s=drive[2])}
     return RunSpec(cycle=random_cycle(cfg, cycle_seed, end_stop_share=end_stop_share),
-                   payload_kg=payload_kg, oil_temp_c=oil_temp_c, seed=seed,
-                   controller=PIDSettings(bandwidth_rad_s=bandwidth,
-                                          derivative_filter_s=derivative,
-                                          torque_filter_s=torque_filter))
+                   payload_kg=payload_kg, oil_temp_c=oil_temp_c, seed=seed, **tuned)
 
 
 def test_a_rod_held_back_leaves_the_pumps_flow_to_the_valves(cfg, unit_tables, boom):
