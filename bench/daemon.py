@@ -74,7 +74,7 @@ from _results import publish  # noqa: E402
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name  # noqa: E402
 from ddh_vsensor.config import DEFAULT_BUS, load_config  # noqa: E402
 from ddh_vsensor.service import Service, ServiceOptions  # noqa: E402
-from ddh_vsensor.service.client import clients, sdo_network  # noqa: E402
+from ddh_vsensor.master.client import clients, sdo_network  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
 INPUT_HZ = 1000.0

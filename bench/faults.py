@@ -47,7 +47,7 @@ from ddh_vsensor.canbus.dbc import FrameCodec, message_name  # noqa: E402
 from ddh_vsensor.config import Config, load_config  # noqa: E402
 from ddh_vsensor.estimator.flags import Flags  # noqa: E402
 from ddh_vsensor.service import Service, ServiceOptions  # noqa: E402
-from ddh_vsensor.service.replay import machine_frames  # noqa: E402
+from ddh_vsensor.master.replay import machine_frames  # noqa: E402
 from ddh_vsensor.sim import RunSpec, simulate_with_truth  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 

@@ -73,7 +73,7 @@ def stages(logs: list[Path], cfg) -> dict:
     holding speeds and the Parquet files included)."""
     import can
 
-    from ddh_vsensor.canbus.fastblf import frames_to_runs, read_frames
+    from ddh_vsensor.io.blf import frames_to_runs, read_frames
     from ddh_vsensor.fleet.ingest import _features, ingest_batch
     t = {"python-can BLFReader": 0.0, "fast reader": 0.0, "decode": 0.0,
          "references and holds": 0.0, "whole ingestion (batch)": 0.0}

@@ -16,7 +16,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-__version__ = "0.1.0"
+from ddh_vsensor.version import __version__
 
 # public name -> module that defines it
 _FACE = {
@@ -25,22 +25,23 @@ _FACE = {
     "Estimator": ".estimator.estimator", "RunEstimate": ".estimator.estimator",
     "Step": ".estimator.estimator",
     "Flags": ".estimator.flags", "flag_text": ".estimator.flags",
-    "Run": ".measured", "read_csv": ".measured", "write_csv": ".measured",
-    "read_run": ".reader",
+    "Run": ".measured", "read_csv": ".io.csv", "write_csv": ".io.csv",
+    "read_run": ".io.reader",
     "UnitTables": ".tables.lookup", "build_unit_tables": ".tables.build",
 }
 
 __all__ = sorted(_FACE) + ["__version__"]
 
 if TYPE_CHECKING:
-    from .config import Config, ConfigError, load_config
-    from .errors import UserError
-    from .estimator.estimator import Estimator, RunEstimate, Step
-    from .estimator.flags import Flags, flag_text
-    from .measured import Run, read_csv, write_csv
-    from .reader import read_run
-    from .tables.build import build_unit_tables
-    from .tables.lookup import UnitTables
+    from ddh_vsensor.config import Config, ConfigError, load_config
+    from ddh_vsensor.errors import UserError
+    from ddh_vsensor.estimator.estimator import Estimator, RunEstimate, Step
+    from ddh_vsensor.estimator.flags import Flags, flag_text
+    from ddh_vsensor.measured import Run
+    from ddh_vsensor.io.csv import read_csv, write_csv
+    from ddh_vsensor.io.reader import read_run
+    from ddh_vsensor.tables.build import build_unit_tables
+    from ddh_vsensor.tables.lookup import UnitTables
 
 
 def __getattr__(name: str) -> Any:

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
 
-from .errors import UserError
+from ddh_vsensor.errors import UserError
 
 
 def _fsync_dir(directory: Path) -> None:

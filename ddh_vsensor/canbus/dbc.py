@@ -15,9 +15,9 @@ import can
 import cantools
 from cantools.database.can import Database, Message
 
-from ..config import Config
-from ..estimator.flags import Flags
-from .layout import (IO_MODULE, NMT_COMMAND, OIL_TEMP, RESERVED_FLAG_BIT, all_message_names,
+from ddh_vsensor.config import Config
+from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.canbus.layout import (IO_MODULE, NMT_COMMAND, OIL_TEMP, RESERVED_FLAG_BIT, all_message_names,
                      flag_signal, frame_ids, machine_database, message_name)
 
 __all__ = ["IO_MODULE", "NMT_COMMAND", "OIL_TEMP", "FrameCodec", "all_message_names",

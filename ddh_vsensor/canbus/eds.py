@@ -18,7 +18,7 @@ import canopen
 from canopen.objectdictionary import ODVariable, ObjectDictionary
 from canopen.objectdictionary import eds as canopen_eds
 
-from ..config import Config
+from ddh_vsensor.config import Config
 
 TEMPLATE_EDS = Path(__file__).resolve().parent.parent / "data" / "cia406_position_sensor.eds"
 

@@ -23,9 +23,9 @@ from cantools.database.can.formats.dbc import (DbcAttribute, DbcAttributeDefinit
                                                DbcSpecifics)
 from cantools.database.conversion import BaseConversion
 
-from ..config import Config, ConfigError
-from ..estimator.flags import Flags
-from .eds import template_od
+from ddh_vsensor.config import Config, ConfigError
+from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.canbus.eds import template_od
 
 VERSION = "ddh-vsensor 2"
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from .common import add_actuator_arg, add_config_arg, config_from
-from .progress import ProgressBar
+from ddh_vsensor.cli.common import add_actuator_arg, add_config_arg, config_from
+from ddh_vsensor.cli.progress import ProgressBar
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,16 +41,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..diagnosis.analyze import diagnose
-    from ..diagnosis.report import prepare_report_dir, write_report
-    from ..diagnosis.runs import load_analysis_run
-    from ..diagnosis.selection import separation
-    from ..diagnosis.workbench import resolve_mode
+    from ddh_vsensor.diagnosis.analyze import diagnose
+    from ddh_vsensor.diagnosis.report import prepare_report_dir, write_report
+    from ddh_vsensor.diagnosis.runs import load_analysis_run
+    from ddh_vsensor.diagnosis.selection import separation
+    from ddh_vsensor.diagnosis.workbench import resolve_mode
 
     cfg = config_from(args)
     mode = resolve_mode(cfg, args.mode)
     if args.truth != "position":
-        from .analyze_references import lacks_position, read_any, run_references
+        from ddh_vsensor.cli.analyze_references import lacks_position, read_any, run_references
         raw = [read_any(path, args.actuator, cfg) for path in args.runs]
         if args.truth == "references" or lacks_position(raw):
             return run_references(args, cfg, mode, raw)

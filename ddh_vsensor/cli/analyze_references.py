@@ -6,16 +6,17 @@ import argparse
 import json
 from pathlib import Path
 
-from ..config import Config
-from ..measured import Run, read_csv
-from .progress import ProgressBar
+from ddh_vsensor.config import Config
+from ddh_vsensor.measured import Run
+from ddh_vsensor.io.csv import read_csv
+from ddh_vsensor.cli.progress import ProgressBar
 
 
 def read_any(path: str, actuator: str, cfg: Config) -> Run:
     """A CSV of the measured-data format or a CAN log, position optional."""
     if path.lower().endswith(".csv"):
         return read_csv(path)
-    from ..canbus.log import read_can_log
+    from ddh_vsensor.io.log import read_can_log
     return read_can_log(path, actuator, cfg)
 
 
@@ -26,9 +27,9 @@ def lacks_position(runs: list[Run]) -> bool:
 
 def run_references(args: argparse.Namespace, cfg: Config, mode: str,
                    runs: list[Run]) -> int:
-    from ..diagnosis.reference_fit import diagnose_references
-    from ..diagnosis.reference_report import write_reference_report
-    from ..diagnosis.references import reference_run
+    from ddh_vsensor.diagnosis.reference_fit import diagnose_references
+    from ddh_vsensor.diagnosis.reference_report import write_reference_report
+    from ddh_vsensor.diagnosis.references import reference_run
 
     rruns = [reference_run(cfg, args.actuator, r) for r in runs]
     bar = ProgressBar("analyze")

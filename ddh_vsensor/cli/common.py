@@ -6,11 +6,11 @@ import argparse
 
 from typing import TYPE_CHECKING
 
-from ..config import Config, load_config
+from ddh_vsensor.config import Config, load_config
 
 if TYPE_CHECKING:
-    from ..estimator.extension import Extension
-    from ..tables.lookup import UnitTables
+    from ddh_vsensor.estimator.extension import Extension
+    from ddh_vsensor.tables.lookup import UnitTables
 
 
 def add_config_arg(parser: argparse.ArgumentParser) -> None:
@@ -34,8 +34,8 @@ def config_from(args: argparse.Namespace) -> Config:
 def load_tables_for(args: argparse.Namespace, cfg: Config, actuator: str) -> "UnitTables":
     """Tables from ``--tables DIR`` (refused if built for another config), else built now
     from the config (well under a second)."""
-    from ..tables.build import build_unit_tables
-    from ..tables.store import load_unit_tables
+    from ddh_vsensor.tables.build import build_unit_tables
+    from ddh_vsensor.tables.store import load_unit_tables
     if getattr(args, "tables", None):
         return load_unit_tables(args.tables, actuator, cfg)
     return build_unit_tables(cfg, actuator)
@@ -49,8 +49,8 @@ def add_extension_arg(parser: argparse.ArgumentParser) -> None:
 
 def extensions_from(args: argparse.Namespace, cfg: Config) -> dict[str, "Extension"]:
     """The ``--extension`` files by actuator (each file says which actuator it is for)."""
-    from ..estimator.extension import Extension
-    from ..errors import UserError
+    from ddh_vsensor.estimator.extension import Extension
+    from ddh_vsensor.errors import UserError
     out: dict[str, Extension] = {}
     for path in args.extension:
         ext = Extension.load(path, cfg)

@@ -10,8 +10,8 @@ import types
 import typing
 from pathlib import Path
 
-from ..config import DEFAULT_BUS, DEFAULT_CONFIG, Config, load_config
-from ..errors import UserError
+from ddh_vsensor.config import DEFAULT_BUS, DEFAULT_CONFIG, Config, load_config
+from ddh_vsensor.errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,9 +6,9 @@ import argparse
 
 import cantools
 
-from ..atomic import atomic_path
-from ..errors import UserError
-from .common import add_config_arg, config_from
+from ddh_vsensor.atomic import atomic_path
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.common import add_config_arg, config_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..canbus.layout import machine_database
+    from ddh_vsensor.canbus.layout import machine_database
     cfg = config_from(args)
     db = machine_database(cfg)
     try:

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError
-from .common import add_config_arg, add_extension_arg, config_from, extensions_from
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.common import add_config_arg, add_extension_arg, config_from, extensions_from
 
 PAPER_MAX_ERROR_MM = 30.0     # the source paper: about 30 mm maximum error per work cycle
 HEARTBEAT_PERIOD_S = 0.1      # the simulated controllers' heartbeat
@@ -92,10 +92,10 @@ class _Pairing:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..service.replay import machine_frames
-    from ..sim import RunSpec, simulate_with_truth
-    from ..sim.cycles import WORK, require_cycle
-    from .progress import ProgressBar
+    from ddh_vsensor.master.replay import machine_frames
+    from ddh_vsensor.sim import RunSpec, simulate_with_truth
+    from ddh_vsensor.sim.cycles import WORK, require_cycle
+    from ddh_vsensor.cli.progress import ProgressBar
 
     if not 0.05 <= args.rate <= 1000:
         raise UserError(f"--rate {args.rate}: outside 0.05..1000")
@@ -167,13 +167,13 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
                 ) -> dict[str, _Pairing]:
     import can
 
-    from ..canbus.dbc import FrameCodec, message_name
-    from ..config import DEFAULT_BUS
-    from ..service import Service, ServiceOptions
-    from ..service.client import sdo_network
-    from ..service.replay import replay
-    from ..service.watch import OutputWatcher, flag_text
-    from ..tables.build import build_unit_tables
+    from ddh_vsensor.canbus.dbc import FrameCodec, message_name
+    from ddh_vsensor.config import DEFAULT_BUS
+    from ddh_vsensor.service import Service, ServiceOptions
+    from ddh_vsensor.master.client import sdo_network
+    from ddh_vsensor.master.replay import replay
+    from ddh_vsensor.master.watch import OutputWatcher, flag_text
+    from ddh_vsensor.tables.build import build_unit_tables
 
     channel = f"ddh-vsensor-demo-{os.getpid()}"
     tables = {a: build_unit_tables(cfg, a) for a in cfg.can.units}
@@ -259,7 +259,7 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
 def _commission(network, cfg, truths: dict) -> None:
     import canopen
 
-    from ..service.client import clients
+    from ddh_vsensor.master.client import clients
     for unit, client in clients(network, cfg).items():
         try:
             client.diag_timer_ms = client.event_timer_ms

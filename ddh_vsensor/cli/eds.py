@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..atomic import atomic_write
-from ..errors import UserError
-from .common import add_config_arg, config_from
+from ddh_vsensor.atomic import atomic_write
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.common import add_config_arg, config_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..canbus.eds import write_unit_eds
+    from ddh_vsensor.canbus.eds import write_unit_eds
     cfg = config_from(args)
     unit = cfg.require_unit(args.unit)
     try:

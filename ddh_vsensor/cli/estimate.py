@@ -7,12 +7,13 @@ import json
 
 import numpy as np
 
-from ..config import Config
-from ..estimator.accuracy import accuracy
-from ..estimator.estimator import Estimator
-from ..measured import Run, write_csv
-from ..reader import read_run
-from .common import add_actuator_arg, add_config_arg, config_from, load_tables_for
+from ddh_vsensor.config import Config
+from ddh_vsensor.estimator.accuracy import accuracy
+from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.measured import Run
+from ddh_vsensor.io.csv import write_csv
+from ddh_vsensor.io.reader import read_run
+from ddh_vsensor.cli.common import add_actuator_arg, add_config_arg, config_from, load_tables_for
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -49,7 +50,7 @@ def estimate_run(args: argparse.Namespace, cfg: Config, run: Run, actuator: str)
     """Estimator and result for one run, as the CLI options say."""
     extension = None
     if getattr(args, "extension", None):
-        from ..estimator.extension import Extension
+        from ddh_vsensor.estimator.extension import Extension
         extension = Extension.load(args.extension, cfg, actuator)
     tables = (load_tables_for(args, cfg, actuator)
               if extension is None or not extension.changes_tables() else None)
@@ -79,7 +80,7 @@ def _run(args: argparse.Namespace) -> int:
                                      "flags": res.flags.astype(float),
                                      "reference_mm": run.position_mm})
     if args.plot:
-        from ..estimator.plot import plot_estimate
+        from ddh_vsensor.estimator.plot import plot_estimate
         plot_estimate(run.time_s, run.position_mm, res.position_mm, res.uncertainty_mm,
                       f"{args.actuator}, {est.model.mode} mode: {args.run}", args.plot)
     if score is None:

@@ -10,9 +10,9 @@ import argparse
 import time
 from pathlib import Path
 
-from ..errors import UserError
-from .common import add_config_arg
-from .progress import ProgressBar
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.common import add_config_arg
+from ddh_vsensor.cli.progress import ProgressBar
 
 LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc", ".csv")
 
@@ -82,10 +82,10 @@ def _expand(items: list[str]) -> list[str]:
 
 
 def _ingest(args: argparse.Namespace) -> int:
-    from ..config import load_config
-    from ..fleet.cluster import dask_client, run_batched, run_tasks
-    from ..fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, compile_pattern, ingest_batch
-    from ..fleet.store import Store
+    from ddh_vsensor.config import load_config
+    from ddh_vsensor.fleet.cluster import dask_client, run_batched
+    from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, compile_pattern, ingest_batch
+    from ddh_vsensor.fleet.store import Store
     pattern = args.name_pattern or DEFAULT_NAME_PATTERN
     compile_pattern(pattern)
     load_config(args.config)                      # a bad config fails here, once
@@ -117,12 +117,12 @@ def _ingest(args: argparse.Namespace) -> int:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from ..config import load_config
-    from ..fleet.analysis import analyse_machine
-    from ..fleet.cluster import dask_client, run_batched, run_tasks
-    from ..fleet.report import write_report
-    from ..fleet.store import Store
-    from ..fleet.trend import unit_trend
+    from ddh_vsensor.config import load_config
+    from ddh_vsensor.fleet.analysis import analyse_machine
+    from ddh_vsensor.fleet.cluster import dask_client, run_tasks
+    from ddh_vsensor.fleet.report import write_report
+    from ddh_vsensor.fleet.store import Store
+    from ddh_vsensor.fleet.trend import unit_trend
     if not args.tolerance_mm > 0 or not args.horizon_days > 0:
         raise UserError("--tolerance-mm and --horizon-days must be positive")
     out = Path(args.out)
@@ -160,8 +160,8 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from ..config import load_config
-    from ..sim.fleet import LOG_S, plan_fleet, simulate_fleet
+    from ddh_vsensor.config import load_config
+    from ddh_vsensor.sim.fleet import LOG_S, plan_fleet, simulate_fleet
     cfg = load_config(args.config)
     plan = plan_fleet(cfg, args.machines, args.days, args.seed, args.log_s or LOG_S)
     bar = ProgressBar("simulate fleet")

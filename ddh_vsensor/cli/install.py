@@ -15,9 +15,9 @@ import os
 import sys
 from pathlib import Path, PurePosixPath
 
-from ..config import DEFAULT_CONFIG, ConfigError, load_config
-from ..errors import UserError
-from .config import describe, write_default
+from ddh_vsensor.config import DEFAULT_CONFIG, ConfigError, load_config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.config import describe, write_default
 
 DATA = DEFAULT_CONFIG.parent
 UNIT_NAME = "ddh-vsensor@.service"

@@ -7,9 +7,9 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from .. import __version__
-from ..errors import UserError
-from .logs import configure_logging
+from ddh_vsensor.version import __version__
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.logs import configure_logging
 
 # Subcommand modules under ddh_vsensor.cli, each exposing register(subparsers).
 SUBCOMMANDS = ("tables", "steady", "simulate", "estimate", "analyze",

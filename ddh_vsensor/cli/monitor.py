@@ -8,9 +8,9 @@ import sys
 import time
 from typing import TextIO
 
-from ..errors import UserError
-from .common import add_config_arg, config_from
-from .run import add_bus_args, bus_from_args
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.common import add_config_arg, config_from
+from ddh_vsensor.cli.run import add_bus_args, bus_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -50,7 +50,7 @@ class _Screen:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..service.watch import OutputWatcher
+    from ddh_vsensor.master.watch import OutputWatcher
     cfg = config_from(args)
     if args.every <= 0:
         raise UserError(f"--every {args.every}: must be positive")
@@ -64,7 +64,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _from_log(args: argparse.Namespace, watcher, screen: _Screen) -> int:
-    from ..service.replay import read_log
+    from ddh_vsensor.master.replay import read_log
     frames = read_log(args.log)
     t0 = frames[0].timestamp
     next_show = args.every
@@ -83,8 +83,8 @@ def _from_log(args: argparse.Namespace, watcher, screen: _Screen) -> int:
 def _from_bus(args: argparse.Namespace, cfg, watcher, screen: _Screen) -> int:
     import can
 
-    from ..service.bus import exact_filters, open_bus
-    from ..service.buses import machine_buses
+    from ddh_vsensor.service.bus import exact_filters, open_bus
+    from ddh_vsensor.service.buses import machine_buses
     buses: list[can.BusABC] = []
     try:
         for settings in machine_buses(cfg, bus_from_args(args, cfg)).values():

@@ -6,10 +6,10 @@ import argparse
 import asyncio
 import sys
 
-from ..errors import UserError
-from .common import add_config_arg, config_from
-from .progress import ProgressBar
-from .run import add_bus_args, bus_from_args
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.common import add_config_arg, config_from
+from ddh_vsensor.cli.progress import ProgressBar
+from ddh_vsensor.cli.run import add_bus_args, bus_from_args
 
 # python-can interfaces that deliver the sender's timestamp (preserve_timestamps=True)
 STAMP_KEEPING_INTERFACES = ("virtual", "remote")
@@ -56,9 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     import can
 
-    from ..canbus.dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
-    from ..service.bus import open_bus
-    from ..service.replay import bus_sender, read_log, replay
+    from ddh_vsensor.canbus.dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
+    from ddh_vsensor.service.bus import open_bus
+    from ddh_vsensor.master.replay import bus_sender, read_log, replay
 
     cfg = config_from(args)
     if args.rate < 0:
@@ -70,8 +70,8 @@ def _run(args: argparse.Namespace) -> int:
         keep = {codec.ids[OIL_TEMP], codec.ids[IO_MODULE]} | {
             codec.ids[message_name(k, a)] for a in cfg.can.units for k in ("sevcon", "heartbeat")}
         skip |= {m.arbitration_id for m in frames} - keep
-    from ..config import DEFAULT_BUS
-    from ..service.buses import frame_buses, machine_buses
+    from ddh_vsensor.config import DEFAULT_BUS
+    from ddh_vsensor.service.buses import frame_buses, machine_buses
     all_settings = machine_buses(cfg, bus_from_args(args, cfg))
     if args.stamp == "log":
         for settings in all_settings.values():

@@ -11,9 +11,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..config import Config
-from ..errors import UserError
-from .common import (add_config_arg, add_extension_arg, config_from, extensions_from,
+from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.common import (add_config_arg, add_extension_arg, config_from, extensions_from,
                      load_tables_for)
 
 
@@ -34,7 +34,7 @@ def add_bus_args(p: argparse.ArgumentParser) -> None:
 
 def bus_from_args(args: argparse.Namespace, cfg: Config) -> dict[str, Any]:
     """The default bus's settings (``bus:``) with the command line's overrides."""
-    from ..service.bus import bus_settings
+    from ddh_vsensor.service.bus import bus_settings
     return bus_settings(cfg.bus, args.interface, args.channel)
 
 
@@ -75,7 +75,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..service import ServiceOptions
+    from ddh_vsensor.service import ServiceOptions
     setup_logging(args.log_level)
     cfg = config_from(args)
     bus = bus_from_args(args, cfg)
@@ -91,7 +91,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 async def _serve(cfg: Config, tables: dict, bus: dict[str, Any], options: Any) -> int:
-    from ..service import Service
+    from ddh_vsensor.service import Service
     service = Service(cfg, tables, bus, options)
     loop = asyncio.get_running_loop()
     for sig in STOP_SIGNALS:

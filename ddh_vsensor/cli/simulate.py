@@ -8,15 +8,15 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from ..config import Config
-from ..errors import UserError
-from ..sim.control import PIDSettings
-from ..sim.cycles import RANDOM, WORK, Profile, cycle_names, random_cycle, require_cycle
-from ..sim.effects import EFFECTS, build_effects, describe
-from ..sim.run import DEFAULT_STEP_S, RunSpec, simulate, write_run_dir
-from ..sim.sensors import SensorSettings
-from .common import add_config_arg, config_from
-from .progress import ProgressBar
+from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.sim.control import PIDSettings
+from ddh_vsensor.sim.cycles import RANDOM, WORK, Profile, cycle_names, random_cycle, require_cycle
+from ddh_vsensor.sim.effects import EFFECTS, build_effects, describe
+from ddh_vsensor.sim.run import DEFAULT_STEP_S, RunSpec, simulate, write_run_dir
+from ddh_vsensor.sim.sensors import SensorSettings
+from ddh_vsensor.cli.common import add_config_arg, config_from
+from ddh_vsensor.cli.progress import ProgressBar
 
 
 def register(sub: argparse._SubParsersAction) -> None:

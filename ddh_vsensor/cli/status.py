@@ -6,9 +6,9 @@ import argparse
 import json
 from typing import Any
 
-from ..errors import UserError
-from .common import add_config_arg, config_from
-from .run import add_bus_args, bus_from_args
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.cli.common import add_config_arg, config_from
+from ddh_vsensor.cli.run import add_bus_args, bus_from_args
 
 
 def _preset(text: str) -> tuple[str, float]:
@@ -41,9 +41,9 @@ def _run(args: argparse.Namespace) -> int:
     import can
     import canopen
 
-    from ..service.bus import open_bus
-    from ..service.buses import machine_buses
-    from ..service.client import clients, sdo_network
+    from ddh_vsensor.service.bus import open_bus
+    from ddh_vsensor.service.buses import machine_buses
+    from ddh_vsensor.master.client import clients, sdo_network
 
     cfg = config_from(args)
     presets = [(cfg.require_unit(unit), mm) for unit, mm in args.preset]

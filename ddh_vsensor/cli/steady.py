@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..errors import UserError
-from ..physics.steady import holding_speed, steady_state
-from ..physics.unit import DDHUnit
-from .common import add_actuator_arg, add_config_arg, config_from
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.physics.steady import holding_speed, steady_state
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.cli.common import add_actuator_arg, add_config_arg, config_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,10 +6,10 @@ import argparse
 import time
 from pathlib import Path
 
-from ..tables.build import build_unit_tables
-from ..tables.store import load_tables, save_unit_tables
-from .common import add_config_arg, config_from
-from .progress import ProgressBar
+from ddh_vsensor.tables.build import build_unit_tables
+from ddh_vsensor.tables.store import load_tables, save_unit_tables
+from ddh_vsensor.cli.common import add_config_arg, config_from
+from ddh_vsensor.cli.progress import ProgressBar
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -45,7 +45,7 @@ def _build(args: argparse.Namespace) -> int:
 
 
 def _plot(args: argparse.Namespace) -> int:
-    from ..tables.plot import plot_figure5     # matplotlib only when plotting
+    from ddh_vsensor.tables.plot import plot_figure5     # matplotlib only when plotting
     cfg = config_from(args)
     plot_figure5(load_tables(args.tables, cfg), cfg, args.out, speed_rpm=args.speed_rpm)
     print(f"wrote {args.out}")

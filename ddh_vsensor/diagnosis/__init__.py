@@ -5,10 +5,10 @@ extensions fitted and cross-validated), and the extended model (see README.md he
 ``Extension.load(path, cfg, actuator).estimator(cfg, tables, ...)`` applies a saved one.
 """
 
-from .analyze import Diagnosis, diagnose
-from .causes import CAUSE_NAMES
-from ..estimator.extension import ExtendedEstimator, Extension, ExtensionError
-from .runs import AnalysisRun, load_analysis_run, prepare_run
+from ddh_vsensor.diagnosis.analyze import Diagnosis, diagnose
+from ddh_vsensor.diagnosis.causes import CAUSE_NAMES
+from ddh_vsensor.estimator.extension import ExtendedEstimator, Extension, ExtensionError
+from ddh_vsensor.diagnosis.runs import AnalysisRun, load_analysis_run, prepare_run
 
 __all__ = ["AnalysisRun", "CAUSE_NAMES", "Diagnosis", "ExtendedEstimator", "Extension",
            "ExtensionError", "diagnose", "load_analysis_run", "prepare_run"]

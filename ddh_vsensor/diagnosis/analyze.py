@@ -9,18 +9,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import Config
-from ..errors import UserError
-from .causes import ALL_CAUSES, Cause
-from .fit import CauseFit, fit_cause, rescore
-from .joint import SetFit, fit_set, screen
-from .pressures import TorqueEvidence, torque_evidence
-from .residual import ResidualFit, fit_residual
-from .runs import AnalysisRun
-from .selection import (AMBIGUITY_RATIO, GROWTH_FLOOR_RMS_MM, MAX_CAUSES, MAX_HETEROGENEITY,
+from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.diagnosis.causes import ALL_CAUSES, Cause
+from ddh_vsensor.diagnosis.fit import CauseFit, fit_cause, rescore
+from ddh_vsensor.diagnosis.joint import SetFit, fit_set, screen
+from ddh_vsensor.diagnosis.pressures import TorqueEvidence, torque_evidence
+from ddh_vsensor.diagnosis.residual import ResidualFit, fit_residual
+from ddh_vsensor.diagnosis.runs import AnalysisRun
+from ddh_vsensor.diagnosis.selection import (AMBIGUITY_RATIO, GROWTH_FLOOR_RMS_MM, MAX_CAUSES, MAX_HETEROGENEITY,
                         MIN_ADDED, MIN_SCORE, OWN_ERROR_RMS_MM, RESIDUAL_SHARE, Decision,
                         bound, rms)
-from .workbench import Workbench, resolve_mode
+from ddh_vsensor.diagnosis.workbench import Workbench, resolve_mode
 
 Progress = Callable[[str, float], None]
 CANDIDATES_PER_STEP = (8, 2)   # exact fits tried: every other cause as the second, two as the third

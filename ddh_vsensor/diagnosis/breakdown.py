@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .runs import AnalysisRun
+from ddh_vsensor.diagnosis.runs import AnalysisRun
 
 HOLD_FRACTION = 0.02          # |v| below this share of the run's peak (and 0.5 mm/s): holding
 HOLD_MIN_MM_S = 0.5

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .workbench import Workbench
+from ddh_vsensor.diagnosis.workbench import Workbench
 
 Deltas = list[list[np.ndarray]]          # [parameter value][run] -> mm per sample
 

@@ -12,8 +12,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .breakdown import ClassStats  # noqa: E402
-from .signatures import Signature  # noqa: E402
+from ddh_vsensor.diagnosis.breakdown import ClassStats  # noqa: E402
+from ddh_vsensor.diagnosis.signatures import Signature  # noqa: E402
 
 BEFORE, AFTER = "tab:red", "tab:blue"
 

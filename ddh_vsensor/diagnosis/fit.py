@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .causes import Cause
-from .workbench import Workbench
+from ddh_vsensor.diagnosis.causes import Cause
+from ddh_vsensor.diagnosis.workbench import Workbench
 
 PENALTY_PER_PARAMETER = 0.02
 REFINE_ROUNDS = 1

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..physics.steady import holding_speed, steady_state_at_torque
-from ..physics.unit import DDHUnit
+from ddh_vsensor.physics.steady import holding_speed, steady_state_at_torque
+from ddh_vsensor.physics.unit import DDHUnit
 
 HOLD_MAX_MM_S = 4.0          # |nominal estimated velocity| of a hold (creep of worn pumps fits)
 HOLD_MAX_RPM = 800.0         # |motor speed| of a hold (leakage speeds are below ~300 rpm)

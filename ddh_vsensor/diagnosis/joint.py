@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .causes import Cause
-from .fit import PENALTY_PER_PARAMETER, Z90, CauseFit
-from .workbench import Params, Workbench
+from ddh_vsensor.diagnosis.causes import Cause
+from ddh_vsensor.diagnosis.fit import PENALTY_PER_PARAMETER, Z90, CauseFit
+from ddh_vsensor.diagnosis.workbench import Params, Workbench
 
 ITERATIONS = 4
 RIDGE = 1e-9

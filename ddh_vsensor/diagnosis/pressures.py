@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .workbench import Workbench
+from ddh_vsensor.diagnosis.workbench import Workbench
+from ddh_vsensor.physics.conversions import RPM_RAD_S
 
-RPM_RAD_S = 2.0 * np.pi / 60.0
 MAX_ACCEL_RPM_S = 2000.0       # quasi-steady: the rotor's inertia torque is small
 # A standing motor's pumps hold their pressures with any torque between the motoring and the
 # pumping one (static friction): no line there. Without this the boom's loaded holds at 0 rpm

@@ -19,13 +19,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import t as student_t
 
-from ..config import Config
-from ..errors import UserError
-from .causes import ALL_CAUSES, Cause
-from .fit import CauseFit, fit_cause, rescore
-from .references import ReferenceRun
-from .selection import Decision, decide_single
-from .workbench import Workbench, resolve_mode
+from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.diagnosis.causes import ALL_CAUSES, Cause
+from ddh_vsensor.diagnosis.fit import CauseFit, fit_cause, rescore
+from ddh_vsensor.diagnosis.references import ReferenceRun
+from ddh_vsensor.diagnosis.selection import Decision, decide_single
+from ddh_vsensor.diagnosis.workbench import Workbench, resolve_mode
 
 Progress = Callable[[str, float], None]
 # RMS of the increments, mm, beyond which an error no cause explains is called unexplained.

@@ -11,13 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from ..atomic import output_dir
-from .causes import ALL_CAUSES
-from ..estimator.extension import Extension
-from .figures import ranking_figure
-from .reference_fit import ReferenceDiagnosis
-from .report import _img, _table
-from .selection import MIN_SCORE
+from ddh_vsensor.atomic import output_dir
+from ddh_vsensor.diagnosis.causes import ALL_CAUSES
+from ddh_vsensor.estimator.extension import Extension
+from ddh_vsensor.diagnosis.figures import ranking_figure
+from ddh_vsensor.diagnosis.reference_fit import ReferenceDiagnosis
+from ddh_vsensor.diagnosis.report import _img, _table
+from ddh_vsensor.diagnosis.selection import MIN_SCORE
 
 
 def _split(diag: ReferenceDiagnosis, obs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

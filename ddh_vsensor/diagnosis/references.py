@@ -18,16 +18,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 import numpy as np
 
-from ..config import Config
-from ..estimator.estimator import Estimator
-from ..estimator.references import (DIRECTION_SPEED_MM_S, accepted_edges,
+from ddh_vsensor.config import Config
+from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, accepted_edges,
                                     share_after_crossing, switches_from_config)
-from ..measured import MeasuredDataError, Run
-from ..physics.unit import DDHUnit
-from ..tables.build import build_unit_tables
-from ..tables.lookup import UnitTables
-from .holds import Hold, describe_holds, find_holds
-from .runs import AnalysisRun
+from ddh_vsensor.measured import MeasuredDataError, Run
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.tables.build import build_unit_tables
+from ddh_vsensor.tables.lookup import UnitTables
+from ddh_vsensor.diagnosis.holds import Hold, describe_holds, find_holds
+from ddh_vsensor.diagnosis.runs import AnalysisRun
 
 # A hold's creep rate counts as the mm it would creep in this long. A hold's truth is not
 # exactly 0: the loop that holds the rod (the operator's, a controller's) lets it move while it

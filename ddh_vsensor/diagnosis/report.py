@@ -13,15 +13,15 @@ from typing import Any
 
 import numpy as np
 
-from ..atomic import output_dir
-from .analyze import Diagnosis
-from .breakdown import breakdown
-from .causes import ALL_CAUSES
-from ..estimator.extension import Extension
-from .figures import breakdown_figure, errors_per_run, ranking_figure, signature_figure
-from .selection import MIN_SCORE, separation
-from .fit import PENALTY_PER_PARAMETER
-from .signatures import signature, signature_errors
+from ddh_vsensor.atomic import output_dir
+from ddh_vsensor.diagnosis.analyze import Diagnosis
+from ddh_vsensor.diagnosis.breakdown import breakdown
+from ddh_vsensor.diagnosis.causes import ALL_CAUSES
+from ddh_vsensor.estimator.extension import Extension
+from ddh_vsensor.diagnosis.figures import breakdown_figure, errors_per_run, ranking_figure, signature_figure
+from ddh_vsensor.diagnosis.selection import MIN_SCORE, separation
+from ddh_vsensor.diagnosis.fit import PENALTY_PER_PARAMETER
+from ddh_vsensor.diagnosis.signatures import signature, signature_errors
 
 
 def _full(mask: np.ndarray, masked: np.ndarray) -> np.ndarray:

@@ -16,10 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..estimator.estimator import Estimator
-from ..estimator.extension import (RESIDUAL_FEATURES, ResidualModel, corrected_inputs,
+from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.estimator.extension import (RESIDUAL_FEATURES, ResidualModel, corrected_inputs,
                                    integrate_rate, residual_features)
-from .workbench import Workbench
+from ddh_vsensor.diagnosis.workbench import Workbench
 
 ALPHAS = (1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1)
 KNOT_QUANTILES = (0.25, 0.5, 0.75)

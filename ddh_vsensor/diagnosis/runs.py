@@ -1,6 +1,6 @@
 """Measured runs as the diagnosis needs them: validated, named, starting at a known position.
 
-Reading is the project's own (``measured.read_csv``, ``canbus.log.read_can_log``); this adds
+Reading is the project's own (``io.csv.read_csv``, ``io.log.read_can_log``); this adds
 what a diagnosis needs on top: a reference position to compare with, and enough of it to say
 anything. Every problem names the file and, where one row is at fault, its line.
 """
@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config
-from ..measured import MeasuredDataError, Run, read_csv
+from ddh_vsensor.config import Config
+from ddh_vsensor.measured import MeasuredDataError, Run
+from ddh_vsensor.io.csv import read_csv
 
 MIN_DURATION_S = 2.0            # shorter runs cannot separate creep from noise
 MIN_POSITION_SAMPLES = 20       # reference positions needed to score an estimate
@@ -122,5 +123,5 @@ def load_analysis_run(path: str | Path, actuator: str, cfg: Config) -> AnalysisR
     if path.lower().endswith(".csv"):
         run = read_csv(path, require_position=True)
         return prepare_run(run, _data_lines(path))
-    from ..canbus.log import read_can_log
+    from ddh_vsensor.io.log import read_can_log
     return prepare_run(read_can_log(path, actuator, cfg))

@@ -89,7 +89,7 @@ SEPARATE: dict[frozenset[str], str] = {
 
 
 def separation(a: str, b: str) -> str:
-    from .causes import ALL_CAUSES
+    from ddh_vsensor.diagnosis.causes import ALL_CAUSES
     hint = SEPARATE.get(frozenset({a, b}))
     if hint:
         return hint

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .breakdown import motion
-from .causes import ALL_CAUSES
-from .workbench import Workbench
+from ddh_vsensor.diagnosis.breakdown import motion
+from ddh_vsensor.diagnosis.causes import ALL_CAUSES
+from ddh_vsensor.diagnosis.workbench import Workbench
 
 WINDOW_S = 0.5
 

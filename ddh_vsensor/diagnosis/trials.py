@@ -22,8 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config
-from ..measured import Run, write_csv
+from ddh_vsensor.config import Config
+from ddh_vsensor.measured import Run
+from ddh_vsensor.io.csv import write_csv
 
 EFFECT_NAMES = ("none", "pump_leakage", "compressibility", "belt_slip", "displacement",
                 "time_offset", "oil_temp_offset", "torque_gain", "torque_offset", "position_scale")
@@ -128,7 +129,7 @@ def random_cycle(cfg: Config, rng: np.random.Generator, duration_s: float = 40.0
     to random targets within its configured ``work_range_mm``, at 30-100 % of its
     ``work_speed_mm_s`` (reference loader: boom 80 mm/s, bucket 160 mm/s, about what the
     motors reach near 5000 rpm)."""
-    from ..sim.cycles import Profile, Trajectory, work_unit
+    from ddh_vsensor.sim.cycles import Profile, Trajectory, work_unit
     knots = {}
     for a in cfg.unit_names:
         work = work_unit(cfg, a)
@@ -150,8 +151,8 @@ def random_cycle(cfg: Config, rng: np.random.Generator, duration_s: float = 40.0
 
 def simulate_trial(cfg: Config, trial: Trial) -> list[dict[str, Run]]:
     """The campaign: every speed x payload x oil temperature, one run each (every unit)."""
-    from ..sim.cycles import WORK
-    from ..sim.run import RunSpec, simulate_campaign
+    from ddh_vsensor.sim.cycles import WORK
+    from ddh_vsensor.sim.run import RunSpec, simulate_campaign
     rng = np.random.default_rng([trial.seed, 1])
     cycles = {s: WORK if trial.cycle == "paper" else random_cycle(cfg, rng)
               for s in trial.speeds}

@@ -16,18 +16,18 @@ from typing import get_args
 
 import numpy as np
 
-from ..config import Config
-from ..errors import UserError
-from ..estimator.estimator import Estimator
-from ..estimator.model import Mode
-from ..physics.unit import DDHUnit
-from ..tables.build import build_unit_tables
-from ..tables.lookup import UnitTables
-from ..estimator.chambers import ChamberRow, track_chambers
-from ..estimator.timing import torque_at_speed_instants
-from ..estimator.extension import (NEUTRAL, corrected_inputs, shift_signal,
+from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.estimator.model import Mode
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.tables.build import build_unit_tables
+from ddh_vsensor.tables.lookup import UnitTables
+from ddh_vsensor.estimator.chambers import ChamberRow, track_chambers
+from ddh_vsensor.estimator.timing import torque_at_speed_instants
+from ddh_vsensor.estimator.extension import (NEUTRAL, corrected_inputs, shift_signal,
                                    with_inertia_compensation)
-from .runs import AnalysisRun
+from ddh_vsensor.diagnosis.runs import AnalysisRun
 
 Params = dict[str, float]
 

@@ -34,13 +34,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..physics.steady import steady_state_at_torque
-from ..physics.unit import DDHUnit
-from ..physics.air import log_density_and_compliance
-from .compiled import package_library
-from .dynamic import parameters
+from ddh_vsensor.estimator.compiled import package_library
+from ddh_vsensor.estimator.dynamic import parameters
+from ddh_vsensor.physics.air import log_density_and_compliance
+from ddh_vsensor.physics.conversions import RPM_RAD_S
+from ddh_vsensor.physics.steady import steady_state_at_torque
+from ddh_vsensor.physics.unit import DDHUnit
 
-RPM_RAD_S = 2.0 * np.pi / 60.0
 _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valve regime
 SECANT_MIN_PA = 100.0                               # below: the tangent is the secant
 # the state vector of the compiled step (A_* of _air_chambers.c)

@@ -65,13 +65,13 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..physics.oil import Oil
-from ..physics.unit import DDHUnit
-from .compiled import package_library
+from ddh_vsensor.estimator.compiled import package_library
+from ddh_vsensor.physics.conversions import RPM_RAD_S
+from ddh_vsensor.physics.oil import Oil
+from ddh_vsensor.physics.unit import DDHUnit
 
 log = logging.getLogger(__name__)
 
-RPM_RAD_S = 2.0 * math.pi / 60.0
 _P_SIGN = np.array([-1.0, -1.0, 1.0, 1.0])          # pressure sign of each valve regime
 # indices of the parameter and state vectors (the P_* / S_* enums of _chambers.c)
 (P_AREA_A, P_AREA_B, P_STROKE, P_DEAD_A, P_DEAD_B, P_Q_A, P_Q_B, P_LEAK_A, P_LEAK_B,

@@ -18,19 +18,19 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..config import Config
-from ..measured import Run
-from ..physics.unit import DDHUnit
-from ..tables.lookup import UnitTables
-from .adaptation import DirectionalGain
-from .bounded import bounded_cumsum
-from .dynamic import DynamicModel
-from .model import Mode, VelocityModel
-from .flags import Flags
-from .references import (Debouncer, Switch, accepted_edges, share_after_crossing,
+from ddh_vsensor.config import Config
+from ddh_vsensor.measured import Run
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.tables.lookup import UnitTables
+from ddh_vsensor.estimator.adaptation import DirectionalGain
+from ddh_vsensor.estimator.bounded import bounded_cumsum
+from ddh_vsensor.estimator.dynamic import DynamicModel
+from ddh_vsensor.estimator.model import Mode, VelocityModel
+from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.estimator.references import (Debouncer, Switch, accepted_edges, share_after_crossing,
                          switches_from_config)
-from .state import EstimatorState
-from .timing import torque_at_speed_instant, torque_at_speed_instants
+from ddh_vsensor.estimator.state import EstimatorState
+from ddh_vsensor.estimator.timing import torque_at_speed_instant, torque_at_speed_instants
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
 LATE_EDGE_MAX_S = 0.1       # an I/O frame read later than this: its edge is taken where seen
@@ -168,9 +168,9 @@ class Estimator:
         ``tables``: a table set, the directory ``ddh-vsensor tables build`` wrote (refused if
         built for another configuration), or None to build them now (well under a second).
         ``options`` are the constructor's (mode, references, adaptation, initial_position_mm)."""
-        from ..config import load_config
-        from ..tables.build import build_unit_tables
-        from ..tables.store import load_unit_tables
+        from ddh_vsensor.config import load_config
+        from ddh_vsensor.tables.build import build_unit_tables
+        from ddh_vsensor.tables.store import load_unit_tables
         cfg = cfg if cfg is not None else load_config()
         cfg.require_unit(unit)
         if tables is None:

@@ -45,15 +45,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..config import Config
-from ..errors import UserError
-from ..physics.unit import DDHUnit
-from ..tables.build import build_unit_tables
-from ..tables.lookup import UnitTables
-from . import chambers
-from .estimator import Estimator, RunEstimate, Step
-from .state import EstimatorState
-from .timing import torque_at_speed_instant, torque_at_speed_instants
+from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.tables.build import build_unit_tables
+from ddh_vsensor.tables.lookup import UnitTables
+from ddh_vsensor.estimator import chambers
+from ddh_vsensor.estimator.estimator import Estimator, RunEstimate, Step
+from ddh_vsensor.estimator.state import EstimatorState
+from ddh_vsensor.estimator.timing import torque_at_speed_instant, torque_at_speed_instants
 
 FORMAT = "ddh-vsensor-extension"
 FORMAT_VERSION = 2

@@ -7,7 +7,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..tables.lookup import UnitTables
+from ddh_vsensor.tables.lookup import UnitTables
 
 Mode = Literal["full", "paper", "dynamic"]
 

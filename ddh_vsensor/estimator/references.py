@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import UnitConfig
+from ddh_vsensor.config import UnitConfig
 
 # Below this |velocity| (mm/s) the direction is taken from the estimate instead.
 DIRECTION_SPEED_MM_S = 0.5

@@ -24,7 +24,7 @@ import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-from ..atomic import atomic_write
+from ddh_vsensor.atomic import atomic_write
 
 log = logging.getLogger(__name__)
 

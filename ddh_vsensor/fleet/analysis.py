@@ -25,17 +25,17 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy.special import huber
 
-from ..config import Config
-from ..diagnosis.causes import ALL_CAUSES
-from ..diagnosis.references import ReferenceRun, reference_run
-from ..diagnosis.workbench import Workbench
-from ..measured import MeasuredDataError
-from ..physics.unit import DDHUnit
-from ..tables.build import build_unit_tables
-from ..tables.lookup import UnitTables
-from ..tables.store import TableError, load_unit_tables, save_unit_tables
-from .ingest import config_of, run_of
-from .store import Store
+from ddh_vsensor.config import Config
+from ddh_vsensor.diagnosis.causes import ALL_CAUSES
+from ddh_vsensor.diagnosis.references import ReferenceRun, reference_run
+from ddh_vsensor.diagnosis.workbench import Workbench
+from ddh_vsensor.measured import MeasuredDataError
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.tables.build import build_unit_tables
+from ddh_vsensor.tables.lookup import UnitTables
+from ddh_vsensor.tables.store import TableError, load_unit_tables, save_unit_tables
+from ddh_vsensor.fleet.ingest import config_of, run_of
+from ddh_vsensor.fleet.store import Store
 
 # Fixed grids (include neutral); wide enough to extrapolate the trends they feed.
 GRIDS: dict[str, tuple[float, ...]] = {

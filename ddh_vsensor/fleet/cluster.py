@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
-from ..errors import UserError
+from ddh_vsensor.errors import UserError
 
 Progress = Callable[[int, int, Any], None]
 DEFAULT_WORKERS = 2

@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from ..config import Config, load_config
-from ..diagnosis.holds import model_holding_speeds_rpm
-from ..estimator.estimator import Estimator
-from ..measured import MeasuredDataError, Run
-from .store import Store, log_id_of
+from ddh_vsensor.config import Config, load_config
+from ddh_vsensor.diagnosis.holds import model_holding_speeds_rpm
+from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.measured import MeasuredDataError, Run
+from ddh_vsensor.fleet.store import Store, log_id_of
 
 DEFAULT_NAME_PATTERN = r"^(?P<machine>[A-Za-z0-9-]+)_(?P<date>\d{4}-\d{2}-\d{2})_(?P<hours>[0-9.]+)h"
 _EPOCH_1990_S = 631152000.0
@@ -46,7 +46,7 @@ def config_of(path: str | None) -> Config:
 
 
 def compile_pattern(pattern: str) -> re.Pattern:
-    from ..errors import UserError
+    from ddh_vsensor.errors import UserError
     try:
         rx = re.compile(pattern)
     except re.error as exc:
@@ -60,12 +60,12 @@ def read_log(path: str, cfg: Config, raw: bytes | None = None
              ) -> tuple[dict[str, Run], int, float | None]:
     """Runs per actuator, the number of frames and the log's wall-clock start (if any)."""
     if path.lower().endswith(".blf"):
-        from ..canbus.fastblf import frames_to_runs, read_frames
+        from ddh_vsensor.io.blf import frames_to_runs, read_frames
         frames = read_frames(path, raw)
         runs = frames_to_runs(frames, cfg, path)
         t0 = float(frames.timestamp_s.min()) if len(frames) else None
         return runs, len(frames), t0
-    from ..canbus.log import _frames, read_can_log
+    from ddh_vsensor.io.log import _frames, read_can_log
     runs = {a: read_can_log(path, a, cfg) for a in cfg.can.units}
     n = sum(1 for _ in _frames(path))
     return runs, n, float(min(r.time_s[0] for r in runs.values()))
@@ -97,7 +97,7 @@ def _features(cfg: Config, machine: str, log_id: str, actuator: str, run: Run,
     """Reference events of one actuator, with the nominal model's errors there, and its
     holds' columns (the modelled holding speed NaN: :func:`ingest_batch` computes every
     log's of a batch at once)."""
-    from ..diagnosis.references import _nominal_tables, reference_run
+    from ddh_vsensor.diagnosis.references import _nominal_tables, reference_run
     try:
         rr = reference_run(cfg, actuator, run, model_speeds=False)
     except MeasuredDataError:                 # too few edges today: nothing to observe
@@ -216,7 +216,7 @@ def _extract(job: IngestJob) -> dict | _Extracted:
 def _fill_model_speeds(cfg_of_job: list[Config], logs: list[_Extracted]) -> None:
     """Every hold's modelled holding speed, one vectorised call per config and unit for
     the whole batch (row by row: the numbers one log at a time would give)."""
-    from ..physics.unit import DDHUnit
+    from ddh_vsensor.physics.unit import DDHUnit
     groups: dict[tuple[int, str], list[dict[str, np.ndarray]]] = {}
     cfgs: dict[int, Config] = {}
     for cfg, log in zip(cfg_of_job, logs):

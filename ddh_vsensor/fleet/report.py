@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from ..config import Config
-from ..diagnosis.causes import ALL_CAUSES
-from ..estimator.extension import Extension
-from .trend import DAY_S, UnitTrend, from_u
+from ddh_vsensor.config import Config
+from ddh_vsensor.diagnosis.causes import ALL_CAUSES
+from ddh_vsensor.estimator.extension import Extension
+from ddh_vsensor.fleet.trend import DAY_S, UnitTrend, from_u
 
 
 def _date(t: float) -> str:

@@ -22,7 +22,7 @@ import duckdb
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..errors import UserError
+from ddh_vsensor.errors import UserError
 
 TABLES = ("meta", "samples", "events", "holds")
 # The samples are read back whole, log by log: no dictionaries or statistics to build

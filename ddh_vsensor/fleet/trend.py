@@ -37,8 +37,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy.stats import f as f_dist
 
-from ..diagnosis.causes import ALL_CAUSES
-from ..diagnosis.selection import MIN_SCORE
+from ddh_vsensor.diagnosis.causes import ALL_CAUSES
+from ddh_vsensor.diagnosis.selection import MIN_SCORE
 
 WINDOW = 10                     # logs the naming and the trend look back over
 MIN_LOGS = 7                    # a week of daily logs before anything is named (README)

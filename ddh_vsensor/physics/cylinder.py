@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..config import UnitConfig
-from .units import MM2_M2
+from ddh_vsensor.config import UnitConfig
+from ddh_vsensor.physics.conversions import MM2_M2
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..config import OilConfig
-from .units import CST_M2S, KELVIN_OFFSET
+from ddh_vsensor.config import OilConfig
+from ddh_vsensor.physics.conversions import CST_M2S, KELVIN_OFFSET
 
 _WALTHER_SHIFT_CST = 0.7
 

@@ -14,9 +14,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..config import HydraulicsConfig, PumpConfig
-from .oil import Oil
-from .units import BAR_PA, CM3_M3, CST_M2S, RPM_REV_S
+from ddh_vsensor.config import HydraulicsConfig, PumpConfig
+from ddh_vsensor.physics.oil import Oil
+from ddh_vsensor.physics.conversions import BAR_PA, CM3_M3, CST_M2S, RPM_REV_S
 
 
 @dataclass(frozen=True)

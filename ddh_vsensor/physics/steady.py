@@ -18,8 +18,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import brentq
 
-from .unit import DDHUnit, Side
-from .units import BAR_PA, LPM_M3S
+from ddh_vsensor.physics.unit import DDHUnit, Side
+from ddh_vsensor.physics.conversions import BAR_PA, LPM_M3S
 
 AC, CLOSED_NEG, CLOSED_POS, RELIEF = range(4)
 REGIME_NAMES = ("anticav", "closed", "closed", "relief")

@@ -16,12 +16,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..config import Config, LoadConfig, MotorConfig
-from .cylinder import Cylinder
-from .oil import Oil
-from .pump import Pump
-from .units import BAR_PA
-from .valves import AntiCavitationValve, ReliefValve
+from ddh_vsensor.config import Config, LoadConfig, MotorConfig
+from ddh_vsensor.physics.cylinder import Cylinder
+from ddh_vsensor.physics.oil import Oil
+from ddh_vsensor.physics.pump import Pump
+from ddh_vsensor.physics.conversions import BAR_PA
+from ddh_vsensor.physics.valves import AntiCavitationValve, ReliefValve
 
 
 @dataclass(frozen=True)

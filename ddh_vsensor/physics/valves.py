@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..config import HydraulicsConfig
-from .units import BAR_PA, LPM_M3S
+from ddh_vsensor.config import HydraulicsConfig
+from ddh_vsensor.physics.conversions import BAR_PA, LPM_M3S
 
 
 @dataclass(frozen=True)

@@ -33,8 +33,8 @@ from typing import Any
 
 import can
 
-from ..errors import UserError
-from .inputs import RateLimitedLog
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.service.limits import RateLimitedLog
 
 log = logging.getLogger(__name__)
 

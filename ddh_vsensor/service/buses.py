@@ -6,9 +6,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..canbus.dbc import FrameCodec, message_name
-from ..config import DEFAULT_BUS, Config
-from .bus import bus_settings
+from ddh_vsensor.canbus.dbc import FrameCodec, message_name
+from ddh_vsensor.config import DEFAULT_BUS, Config
+from ddh_vsensor.service.bus import bus_settings
 
 # A unit's own frames: its controller's and its emulated sensor's; they travel on its bus.
 UNIT_FRAME_KINDS = ("sevcon", "heartbeat", "position", "diag", "sensor_heartbeat", "emcy",

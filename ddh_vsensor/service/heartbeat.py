@@ -17,7 +17,7 @@ import canopen
 from canopen.nmt import NMT_STATES
 from canopen.objectdictionary import ObjectDictionary
 
-from .inputs import RateLimitedLog
+from ddh_vsensor.service.limits import RateLimitedLog
 
 log = logging.getLogger(__name__)
 

@@ -25,11 +25,12 @@ from typing import Any
 
 import can
 
-from ..config import DEFAULT_BUS, FaultsConfig
-from .inputs import Inputs, RateLimitedLog, RateLimiter
-from .network import ServiceNetwork
-from .node import SYNC_COB_ID
-from .units import Unit
+from ddh_vsensor.config import DEFAULT_BUS, FaultsConfig
+from ddh_vsensor.service.inputs import Inputs
+from ddh_vsensor.service.limits import RateLimitedLog, RateLimiter
+from ddh_vsensor.device.network import ServiceNetwork
+from ddh_vsensor.device.node import SYNC_COB_ID
+from ddh_vsensor.service.unit_state import Unit
 
 log = logging.getLogger(__name__)
 

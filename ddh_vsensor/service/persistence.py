@@ -15,11 +15,11 @@ import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-from ..atomic import remove_temp_files
-from ..config import Config
-from ..estimator.state import EstimatorState, load_state, save_state
-from .objects import Published
-from .units import Unit
+from ddh_vsensor.atomic import remove_temp_files
+from ddh_vsensor.config import Config
+from ddh_vsensor.estimator.state import EstimatorState, load_state, save_state
+from ddh_vsensor.device.objects import Published
+from ddh_vsensor.service.unit_state import Unit
 
 log = logging.getLogger(__name__)
 

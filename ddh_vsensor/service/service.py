@@ -40,24 +40,25 @@ from typing import Any
 
 import can
 
-from ..canbus.dbc import FrameCodec
-from ..config import DEFAULT_BUS, Config
-from ..estimator.estimator import Estimator
-from ..estimator.extension import Extension
-from ..estimator.flags import flag_text
-from ..tables.lookup import UnitTables
-from .bus import BusLink, exact_filters
-from .buses import machine_buses
-from .heartbeat import HeartbeatConsumer
-from .ingest import Ingest
-from .inputs import Inputs, LogLimiter, RateLimitedLog
-from .network import ServiceNetwork
-from .node import SensorNode
-from .objects import Published
-from .persistence import StateStore, write_states
-from .scheduler import Tick, Ticker
-from .sdnotify import SystemdNotifier
-from .units import STALE_PERIODS, Unit
+from ddh_vsensor.canbus.dbc import FrameCodec
+from ddh_vsensor.config import DEFAULT_BUS, Config
+from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.estimator.extension import Extension
+from ddh_vsensor.estimator.flags import flag_text
+from ddh_vsensor.tables.lookup import UnitTables
+from ddh_vsensor.service.bus import BusLink, exact_filters
+from ddh_vsensor.service.buses import machine_buses
+from ddh_vsensor.service.heartbeat import HeartbeatConsumer
+from ddh_vsensor.service.ingest import Ingest
+from ddh_vsensor.service.inputs import Inputs
+from ddh_vsensor.service.limits import LogLimiter, RateLimitedLog
+from ddh_vsensor.device.network import ServiceNetwork
+from ddh_vsensor.device.node import SensorNode
+from ddh_vsensor.device.objects import Published
+from ddh_vsensor.service.persistence import StateStore, write_states
+from ddh_vsensor.service.scheduler import Tick, Ticker
+from ddh_vsensor.service.sdnotify import SystemdNotifier
+from ddh_vsensor.service.unit_state import STALE_PERIODS, Unit
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +69,8 @@ STATUS_INTERVAL_S = 2.0
 DRAIN_ROUNDS = 3
 # a held unit (can.fresh_input_ms) is published by the next tick's half period at the latest
 HOLD_MAX_TICKS = 0.5
-BUS_PATH_LOGGERS = ("canopen", "ddh_vsensor.service.node", "ddh_vsensor.service.pdo",
-                    "ddh_vsensor.service.emcy", "can")
+BUS_PATH_LOGGERS = ("canopen", "ddh_vsensor.device.node", "ddh_vsensor.device.pdo",
+                    "ddh_vsensor.device.emcy", "can")
 
 
 @dataclass

@@ -5,8 +5,8 @@ profiles), ``effects`` (plant changes the tables do not know), ``sensors`` (what
 records), ``run`` (specs in, runs and files out).
 """
 
-from .effects import EFFECTS, UnitEffects, build_effects
-from .run import RunSpec, simulate, simulate_campaign, simulate_with_truth, write_run_dir
+from ddh_vsensor.sim.effects import EFFECTS, UnitEffects, build_effects
+from ddh_vsensor.sim.run import RunSpec, simulate, simulate_campaign, simulate_with_truth, write_run_dir
 
 __all__ = ["EFFECTS", "RunSpec", "UnitEffects", "build_effects", "simulate",
            "simulate_campaign", "simulate_with_truth", "write_run_dir"]

@@ -27,7 +27,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..physics.unit import DDHUnit
+from ddh_vsensor.physics.unit import DDHUnit
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config, CycleConfig, WorkUnitConfig
-from ..errors import UserError
+from ddh_vsensor.config import Config, CycleConfig, WorkUnitConfig
+from ddh_vsensor.errors import UserError
 
 SPEED_LEVELS = (1, 2, 3, 4)
 ACCEL_FRACTION = 0.25          # share of each move spent accelerating (and decelerating)

@@ -55,11 +55,11 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import Callable, Iterable, Mapping, Sequence
 
-from ..errors import UserError
-from ..physics.unit import DDHUnit
-from ..physics.units import BAR_PA, LPM_M3S
-from ..physics.valves import ReliefValve
-from .plant import RowSpec
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.physics.conversions import BAR_PA, LPM_M3S
+from ddh_vsensor.physics.valves import ReliefValve
+from ddh_vsensor.sim.plant import RowSpec
 
 
 @dataclass(frozen=True)

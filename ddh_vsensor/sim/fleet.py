@@ -32,15 +32,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import output_dir
-from ..config import Config
-from ..errors import UserError
-from ..physics.steady import holding_speed, steady_state, steady_state_at_torque
-from ..physics.unit import DDHUnit
-from .cycles import Profile, Trajectory, work_unit
-from .effects import UnitEffects
-from .run import RunSpec, simulate_campaign
-from .sensors import SensorSettings, hall_switch
+from ddh_vsensor.atomic import output_dir
+from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.physics.steady import holding_speed, steady_state, steady_state_at_torque
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.sim.cycles import Profile, Trajectory, work_unit
+from ddh_vsensor.sim.effects import UnitEffects
+from ddh_vsensor.sim.run import RunSpec, simulate_campaign
+from ddh_vsensor.sim.sensors import SensorSettings, hall_switch
 
 LOG_S = 60.0
 STEP_S = 2.0e-3                 # plant step: within 0.1 mm of 1 ms on these cycles, 1.4x faster
@@ -258,7 +258,7 @@ def simulate_fleet(cfg: Config, plan: FleetPlan, out_dir: str | Path,
                    days_per_batch: int = 10) -> list[Path]:
     """Write every machine's daily logs and ``truth.json``. Several days go into one
     vectorised campaign: the plant's cost is mostly per step, not per machine."""
-    from ..canbus.fastblf import write_blf_inputs
+    from ddh_vsensor.io.blf import write_blf_inputs
     out = output_dir(out_dir)
     (out / "truth.json").write_text(json.dumps(truth_of(plan), indent=1) + "\n")
     written = []

@@ -42,16 +42,14 @@ Effects that are plant changes enter per row: pump leakage and displacement thro
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 
-from ..physics.air import compliance, secant_compliance
-from ..physics.unit import DDHUnit
-
-RPM_RAD_S = 2.0 * math.pi / 60.0
+from ddh_vsensor.physics.air import compliance, secant_compliance
+from ddh_vsensor.physics.conversions import RPM_RAD_S
+from ddh_vsensor.physics.unit import DDHUnit
 
 # friction states
 F_UP, F_DOWN, F_STUCK, F_IMPACT = 1, -1, 0, 2

@@ -20,17 +20,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import output_dir
-from ..config import Config
-from ..errors import UserError
-from ..measured import Run, write_csv
-from ..physics.steady import holding_speed, steady_state
-from ..physics.unit import DDHUnit
-from .control import PIDSettings, PositionPID
-from .cycles import WORK, Profile, load_profile_csv, work_cycle
-from .effects import UnitEffects, build_effects, describe
-from .plant import Plant, RowSpec
-from .sensors import SensorSettings, Truth, measure
+from ddh_vsensor.atomic import output_dir
+from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.measured import Run
+from ddh_vsensor.io.csv import write_csv
+from ddh_vsensor.physics.steady import holding_speed, steady_state
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.sim.control import PIDSettings, PositionPID
+from ddh_vsensor.sim.cycles import WORK, Profile, load_profile_csv, work_cycle
+from ddh_vsensor.sim.effects import UnitEffects, build_effects, describe
+from ddh_vsensor.sim.plant import Plant, RowSpec
+from ddh_vsensor.sim.sensors import SensorSettings, Truth, measure
 
 DEFAULT_STEP_S = 1.0e-3
 HOLDING_TORQUE_SHARE = 0.8      # holding the load may take at most this share of the limit
@@ -281,7 +282,7 @@ def write_run_dir(cfg: Config, runs: Mapping[str, Run], out_dir: str | Path,
         write_csv(path, run)
         written.append(path)
     if blf:
-        from ..canbus.log import write_blf
+        from ddh_vsensor.io.log import write_blf
         path = out / "run.blf"
         write_blf(path, dict(runs), cfg)
         written.append(path)

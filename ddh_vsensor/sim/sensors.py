@@ -30,12 +30,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import UnitConfig
-from ..measured import Run
-from ..physics.units import BAR_PA
+from ddh_vsensor.config import UnitConfig
+from ddh_vsensor.measured import Run
+from ddh_vsensor.physics.conversions import BAR_PA
 
 if TYPE_CHECKING:
-    from .effects import UnitEffects
+    from ddh_vsensor.sim.effects import UnitEffects
 
 
 @dataclass(frozen=True)
@@ -119,7 +119,7 @@ def measure(truth: Truth, unit_cfg: UnitConfig, settings: SensorSettings,
             chain: "UnitEffects | None" = None, comments: list[str] | None = None,
             source: str = "<simulated>") -> Run:
     """The logged run of one unit (``chain``: its measurement-chain effects, if any)."""
-    from .effects import NOMINAL
+    from ddh_vsensor.sim.effects import NOMINAL
     e = chain or NOMINAL
     t = truth.time_s
     speed = quantise(lagged(t, truth.speed_rpm, e.time_offset), settings.speed_step_rpm)

@@ -13,12 +13,12 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .. import __version__
-from ..config import Config
-from ..physics.steady import velocity_torque_curve
-from ..physics.unit import DDHUnit
-from .grid import Axis
-from .lookup import FullTable, PaperTable, UnitTables
+from ddh_vsensor.version import __version__
+from ddh_vsensor.config import Config
+from ddh_vsensor.physics.steady import velocity_torque_curve
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.tables.grid import Axis
+from ddh_vsensor.tables.lookup import FullTable, PaperTable, UnitTables
 
 FORMAT_VERSION = 1
 

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .grid import Axis, lerp
+from ddh_vsensor.tables.grid import Axis, lerp
 
 
 @dataclass(frozen=True)

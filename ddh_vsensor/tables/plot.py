@@ -10,8 +10,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..config import Config  # noqa: E402
-from .lookup import UnitTables  # noqa: E402
+from ddh_vsensor.config import Config  # noqa: E402
+from ddh_vsensor.tables.lookup import UnitTables  # noqa: E402
 
 FIGURE5_TEMPERATURES_C = (-5.0, 25.0, 60.0, 100.0)
 

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_write
-from ..config import Config
-from ..errors import UserError
-from .build import FORMAT_VERSION
-from .grid import Axis
-from .lookup import FullTable, PaperTable, UnitTables
+from ddh_vsensor.atomic import atomic_write
+from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.tables.build import FORMAT_VERSION
+from ddh_vsensor.tables.grid import Axis
+from ddh_vsensor.tables.lookup import FullTable, PaperTable, UnitTables
 
 
 class TableError(UserError):

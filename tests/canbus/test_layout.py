@@ -245,6 +245,6 @@ def test_oil_and_io_nodes_may_not_share_an_id(cfg: Config) -> None:
 
 def test_emcy_value_table_is_what_the_sensor_node_sends() -> None:
     from ddh_vsensor.canbus.layout import EMCY_CODES
-    from ddh_vsensor.service.emcy import EMCY_FAULTS
+    from ddh_vsensor.device.emcy import EMCY_FAULTS
     assert {flag: code for flag, (code, _) in EMCY_CODES.items()} == \
         {flag: code for flag, (code, _) in EMCY_FAULTS.items()}

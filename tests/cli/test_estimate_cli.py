@@ -8,7 +8,7 @@ import csv
 
 import numpy as np
 
-from ddh_vsensor.canbus.fastblf import write_blf_inputs
+from ddh_vsensor.io.blf import write_blf_inputs
 from ddh_vsensor.cli.main import main
 from ddh_vsensor.diagnosis.trials import draw_trial, simulate_trial
 from ddh_vsensor.estimator.flags import Flags

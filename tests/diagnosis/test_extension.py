@@ -12,7 +12,7 @@ from ddh_vsensor.cli.main import main
 from ddh_vsensor.estimator.extension import (RESIDUAL_FEATURES, Extension, ExtensionError,
                                              ResidualModel)
 from ddh_vsensor.estimator.estimator import Estimator
-from ddh_vsensor.measured import read_csv
+from ddh_vsensor.io.csv import read_csv
 from ddh_vsensor.sim import RunSpec, simulate
 
 from .conftest import BASE_SEED

@@ -11,7 +11,8 @@ from ddh_vsensor.diagnosis.causes import Cause
 from ddh_vsensor.estimator.chambers import ChamberRow, track_chambers
 from ddh_vsensor.diagnosis.fit import fit_cause
 from ddh_vsensor.diagnosis.runs import AnalysisRun, prepare_run
-from ddh_vsensor.measured import MeasuredDataError, Run, read_csv
+from ddh_vsensor.measured import MeasuredDataError, Run
+from ddh_vsensor.io.csv import read_csv
 from ddh_vsensor.physics.steady import steady_state, steady_state_at_torque
 
 

@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from ddh_vsensor.canbus.fastblf import write_blf_inputs
+from ddh_vsensor.io.blf import write_blf_inputs
 from ddh_vsensor.cli.main import main
 from ddh_vsensor.diagnosis.holds import model_holding_speed_rpm, model_holding_speeds_rpm
 from ddh_vsensor.diagnosis.reference_fit import POSITION_SENSOR_CAUSES, diagnose_references

@@ -18,8 +18,8 @@ import pytest
 import yaml
 
 from ddh_vsensor.config import Config
-from ddh_vsensor.service.client import commission
-from ddh_vsensor.service.replay import machine_frames
+from ddh_vsensor.master.client import commission
+from ddh_vsensor.master.replay import machine_frames
 from ddh_vsensor.sim import RunSpec, simulate_with_truth
 
 from .harness import Daemon, Hub, Recorder, feed, write_config

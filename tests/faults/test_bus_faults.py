@@ -14,7 +14,7 @@ import canopen
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.service.client import SensorClient, commission, sdo_network
+from ddh_vsensor.master.client import SensorClient, commission, sdo_network
 
 from .conftest import CURRENT, Flood, run_row, start_daemon
 from .harness import EXPLAINING, Recorder, check_invariant, feed, outputs

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ddh_vsensor.canbus.fastblf import frames_to_runs, read_frames
-from ddh_vsensor.canbus.log import read_can_log
+from ddh_vsensor.io.blf import frames_to_runs, read_frames
+from ddh_vsensor.io.log import read_can_log
 from ddh_vsensor.cli.main import main
 from ddh_vsensor.fleet.ingest import IngestJob, ingest_one
 from ddh_vsensor.fleet.store import Store

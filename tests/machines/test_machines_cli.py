@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from ddh_vsensor.config import DEFAULT_BUS, Config
-from ddh_vsensor.measured import read_csv
+from ddh_vsensor.io.csv import read_csv
 
 TIMEOUT_S = 600
 

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from ddh_vsensor.physics.units import BAR_PA
+from ddh_vsensor.physics.conversions import BAR_PA
 
 
 def test_leak_coefficient_from_nominal_efficiency_by_hand(boom):

@@ -5,7 +5,7 @@ import pytest
 
 from ddh_vsensor.physics.steady import (holding_speed, steady_state, steady_state_at_torque,
                                         velocity_torque_curve)
-from ddh_vsensor.physics.units import BAR_PA
+from ddh_vsensor.physics.conversions import BAR_PA
 
 
 def _random_points(unit, rng, count=20000):

@@ -23,7 +23,7 @@ from ddh_vsensor.physics.steady import holding_speed, steady_state
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.service import Service, ServiceOptions
 from ddh_vsensor.service.inputs import Inputs
-from ddh_vsensor.service.replay import machine_frames
+from ddh_vsensor.master.replay import machine_frames
 from ddh_vsensor.sim.sensors import hall_switch
 
 START_MM = {"boom": 120.0, "bucket": 380.0}

@@ -22,10 +22,10 @@ import numpy as np
 import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
-from ddh_vsensor.canbus.log import write_blf
+from ddh_vsensor.io.log import write_blf
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.service.client import commission
-from ddh_vsensor.service.replay import read_log
+from ddh_vsensor.master.client import commission
+from ddh_vsensor.master.replay import read_log
 
 from .conftest import paired_outputs
 

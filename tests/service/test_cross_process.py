@@ -22,8 +22,8 @@ import pytest
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.state import load_state
-from ddh_vsensor.service.client import commission
-from ddh_vsensor.service.replay import replay
+from ddh_vsensor.master.client import commission
+from ddh_vsensor.master.replay import replay
 
 from .conftest import START_MM, offline_estimate, paired_outputs
 

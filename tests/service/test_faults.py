@@ -330,7 +330,7 @@ def test_preset_modes_and_their_abort_codes(cfg, unit_tables, mode) -> None:
     import canopen
 
     from ddh_vsensor.estimator.flags import Flags
-    from ddh_vsensor.service.client import SensorClient, sdo_network
+    from ddh_vsensor.master.client import SensorClient, sdo_network
     modal = dataclasses.replace(cfg, faults=dataclasses.replace(cfg.faults, preset=mode))
     channel = channel_name()
     node_id = cfg.can.units["boom"].sensor_node_id

@@ -8,10 +8,10 @@ import struct
 import can
 import pytest
 
-from ddh_vsensor.service.emcy import LIFE_GUARD_CODE
-from ddh_vsensor.service.network import ServiceNetwork
-from ddh_vsensor.service.node import SensorNode
-from ddh_vsensor.service.objects import Published
+from ddh_vsensor.device.emcy import LIFE_GUARD_CODE
+from ddh_vsensor.device.network import ServiceNetwork
+from ddh_vsensor.device.node import SensorNode
+from ddh_vsensor.device.objects import Published
 
 GUARD_ID, EMCY_ID = 0x700 + 49, 0x80 + 49
 QUIET = Published(100.0, 0.0, 0.1, 0, 1, 0)          # no fault flag of the estimate

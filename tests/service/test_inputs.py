@@ -7,7 +7,8 @@ import logging
 import can
 
 from ddh_vsensor.canbus.dbc import FrameCodec
-from ddh_vsensor.service.inputs import Inputs, RateLimitedLog, RateLimiter
+from ddh_vsensor.service.inputs import Inputs
+from ddh_vsensor.service.limits import RateLimitedLog, RateLimiter
 
 
 def test_rate_limiter_counts_frame_time_not_arrival() -> None:

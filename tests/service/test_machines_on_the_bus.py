@@ -19,8 +19,8 @@ from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.cli.main import main
 from ddh_vsensor.config import DEFAULT_BUS, Config, load_config
 from ddh_vsensor.measured import Run
-from ddh_vsensor.service.client import sdo_network
-from ddh_vsensor.service.replay import machine_frames, replay
+from ddh_vsensor.master.client import sdo_network
+from ddh_vsensor.master.replay import machine_frames, replay
 from ddh_vsensor.sim.cycles import WORK
 from ddh_vsensor.sim.run import RunSpec, simulate
 from ddh_vsensor.tables.build import build_unit_tables

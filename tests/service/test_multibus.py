@@ -12,8 +12,8 @@ import pytest
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.config import DEFAULT_BUS
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.service.client import commission
-from ddh_vsensor.service.replay import replay
+from ddh_vsensor.master.client import commission
+from ddh_vsensor.master.replay import replay
 
 from .conftest import (START_MM, Recorder, channel_name, machine_of, offline_estimate, on_buses,
                        paired_outputs, running_service)

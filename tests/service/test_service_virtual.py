@@ -12,8 +12,8 @@ import pytest
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.service.client import SensorClient, commission, sdo_network
-from ddh_vsensor.service.replay import replay
+from ddh_vsensor.master.client import SensorClient, commission, sdo_network
+from ddh_vsensor.master.replay import replay
 
 from .conftest import (START_MM, Recorder, channel_name, offline_estimate,
                        paired_outputs, running_service)
@@ -239,7 +239,7 @@ def test_one_millisecond_inputs_and_event_timer(cfg, unit_tables) -> None:
     offline estimate of the frames it includes, and the last one includes all of them."""
     import dataclasses
 
-    from ddh_vsensor.service.replay import machine_frames
+    from ddh_vsensor.master.replay import machine_frames
 
     from .conftest import synthetic_run
 

@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from ddh_vsensor.canbus.log import read_can_log
+from ddh_vsensor.io.log import read_can_log
 from ddh_vsensor.cli.main import main
-from ddh_vsensor.measured import read_csv
+from ddh_vsensor.io.csv import read_csv
 from ddh_vsensor.sim.cycles import work_cycle
 
 
