@@ -109,6 +109,9 @@ class UnitConfig:
     references_mm: dict[str, float]
     reference_window_mm: float = field(metadata=_positive(le=1000.0))
     reference_hysteresis_mm: float = field(metadata={"ge": 0.0, "le": 1000.0})
+    # How far each switch's real switching points may lie from the configured ones: a mounting
+    # tolerance until commissioning measures them; a reference carries it in its uncertainty.
+    reference_tolerance_mm: float = field(default=3.0, metadata={"ge": 0.0, "le": 100.0})
 
     def check(self, path: str) -> list[tuple[str, str]]:
         problems = []

@@ -154,6 +154,11 @@ class Estimator:
         self.u_base = self.u_ref
         # False with no start position, after a restore or a provisional preset
         self.referenced = initial_position_mm is not None
+        # The switch whose edge disagreed with the estimate beyond both their tolerances, and by
+        # how much: the model or that switch is off, and its own edges cannot tell which. The
+        # position carries the disagreement and is flagged until another switch agrees.
+        self.suspect_switch: str | None = None
+        self.suspect_mm = 0.0
         self.travel_mm = 0.0
         self.hold_s = 0.0
         self.s_ref = (0.0, 0.0)         # raw travel sums at the last reference's edge
@@ -205,6 +210,10 @@ class Estimator:
             self.dynamic.set_position(None)
 
     @property
+    def reference_suspect(self) -> bool:
+        return self.suspect_switch is not None
+
+    @property
     def uncertainty_mm(self) -> float:
         return self.u_base + self.per_travel * self.travel_mm + self.hold_rate * self.hold_s
 
@@ -213,7 +222,7 @@ class Estimator:
 
     def state_flags(self) -> int:
         """The flags that follow from the estimator's state alone (not from one input)."""
-        flags = 0 if self.referenced else Flags.NOT_REFERENCED
+        flags = 0 if self.referenced and not self.reference_suspect else Flags.NOT_REFERENCED
         if self.gain.active:
             flags |= Flags.ADAPTING
         if self.position_mm <= self.lower_mm or self.position_mm >= self.upper_mm:
@@ -241,12 +250,23 @@ class Estimator:
         # the estimate at the crossing is, on average, x - dx/2 (at speed, dx is millimetres:
         # taking x itself would bias every edge met in motion by half of it).
         error = snap.x - snap.after * snap.dx - p
+        # An estimate within its uncertainty and a switch within its tolerance differ by at most
+        # their sum (plus the edge sample's travel); beyond it one of them is wrong, and the edge
+        # cannot say which: the position then carries both (its uncertainty covers the error)
+        # and is flagged, and the error teaches no gain.
+        consistent = (not self.referenced or abs(error) <= self.uncertainty_mm + sw.tolerance_mm
+                      + self.u_ref + abs(snap.dx))
+        if not consistent:
+            self.suspect_switch, self.suspect_mm = sw.name, abs(error)
+        elif sw.name != self.suspect_switch:
+            self.suspect_switch, self.suspect_mm = None, 0.0
         # Within +-dx/2 the error is no evidence against the model, and learning from it
         # only fits sampling noise. An estimate that was not referenced (cold start, restore)
         # carries an unknown offset, not the model's travel error: its first edge only sets
         # the position.
-        adapted = (self.referenced and abs(error) > 0.5 * abs(snap.dx) and self.gain.update(
-            error, snap.s_up - self.s_ref[0], snap.s_down - self.s_ref[1]))
+        adapted = (self.referenced and consistent and abs(error) > 0.5 * abs(snap.dx)
+                   and self.gain.update(error, snap.s_up - self.s_ref[0],
+                                        snap.s_down - self.s_ref[1]))
         self.s_ref = (snap.s_up, snap.s_down)
         # An edge met at speed is exact, but the estimate then carries a transient offset (oil
         # compression, not in the steady-state tables) that vanishes when the rod stops: take
@@ -256,8 +276,10 @@ class Estimator:
                      and abs(error) <= self.resync_transient_mm and self.referenced)
         k = self.resync_gain_moving if transient else 1.0
         self.travel_mm, self.hold_s = 0.0, 0.0
-        # the edge lies somewhere within its sample's travel: that much is not known better
-        self.u_base = self.u_ref + abs(snap.dx) + (1.0 - k) * abs(error)
+        # the edge lies somewhere within its sample's travel and the switch within its
+        # tolerance: that much is not known better
+        self.u_base = (self.u_ref + sw.tolerance_mm + abs(snap.dx) + (1.0 - k) * abs(error)
+                       + self.suspect_mm)
         self.referenced = True
         return self._clip(x_now - k * error), ReferenceEvent(
             index, snap.index, sw.name, rising, p, error, adapted, k)
@@ -357,7 +379,7 @@ class Estimator:
                     if self.dynamic is not None:
                         self.dynamic.set_position(self.position_mm)
                 x = self.position_mm
-        flags = 0 if self._referenced else _NOT_REFERENCED
+        flags = 0 if self._referenced and not self.reference_suspect else _NOT_REFERENCED
         if gain.enabled and (gain._up != 1.0 or gain._down != 1.0):
             flags |= _ADAPTING
         if x <= lower or x >= upper:
@@ -459,7 +481,7 @@ class Estimator:
                 hold = self.hold_s + np.cumsum(hold_dt[i:k + 1])
                 u[i:k + 1] = self.u_base + self.per_travel * travel + self.hold_rate * hold
                 self.travel_mm, self.hold_s = float(travel[-1]), float(hold[-1])
-                not_ref[i:k + 1] = not self.referenced
+                not_ref[i:k + 1] = not self.referenced or self.reference_suspect
                 adapting[i:k + 1] = self.gain.active
                 i = k + 1
             if sw is None:
@@ -474,7 +496,7 @@ class Estimator:
             if dynamic is not None:
                 dynamic.set_position(float(x[k]))
             u[k] = self.uncertainty_mm
-            not_ref[k] = False
+            not_ref[k] = self.reference_suspect
             adapting[k] = self.gain.active
             log.append(event)
             start = float(x[k])
@@ -492,7 +514,7 @@ class Estimator:
         if self.dynamic is not None:
             self.dynamic.set_position(self.position_mm)
         self.u_base, self.travel_mm, self.hold_s = uncertainty_mm, 0.0, 0.0
-        self.referenced = True
+        self.referenced, self.suspect_switch, self.suspect_mm = True, None, 0.0
         self.s_ref = (self._on.s_up, self._on.s_down)
 
     def add_uncertainty(self, mm: float) -> None:

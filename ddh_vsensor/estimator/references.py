@@ -3,7 +3,9 @@
 A switch at position p is on within +-window of p and goes off only beyond window +
 hysteresis. So its four switching positions are known: entering from below at p - w, from
 above at p + w; leaving upwards at p + w + h, downwards at p - w - h. An edge therefore tells
-the position exactly, once the travel direction is known.
+the position once the travel direction is known, to within the tolerance of where the switch
+really switches (its mounting: a datasheet's p, w and h are nominal until commissioning
+measures them).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ class Switch:
     position_mm: float
     window_mm: float
     hysteresis_mm: float
+    tolerance_mm: float = 0.0       # how far the real switching points may lie from these
 
     def switching_position_mm(self, rising: bool, moving_up: bool) -> float:
         w, h = self.window_mm, self.hysteresis_mm
@@ -50,7 +53,8 @@ def share_after_crossing(time_s: np.ndarray, edge_s: np.ndarray | None, index: i
 
 
 def switches_from_config(unit: UnitConfig) -> tuple[Switch, ...]:
-    return tuple(Switch(name, pos, unit.reference_window_mm, unit.reference_hysteresis_mm)
+    return tuple(Switch(name, pos, unit.reference_window_mm, unit.reference_hysteresis_mm,
+                        unit.reference_tolerance_mm)
                  for name, pos in unit.references_mm.items())
 
 

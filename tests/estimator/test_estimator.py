@@ -89,17 +89,54 @@ def test_standstill_at_the_holding_speed_in_full_mode(cfg, boom, unit_tables):
 
 
 def test_resync_corrects_a_planted_offset(cfg, boom, unit_tables, make_run):
-    run = make_run(boom, seconds=30, unit_cfg=cfg.unit("boom"))
+    """A start 12 mm off at a claimed +-0.5 mm: the first edge disagrees beyond both tolerances,
+    so the position is corrected, flagged and widened to cover the error (which of the model and
+    that switch was wrong its own edges cannot tell); another switch's edge agrees and the flag
+    clears."""
+    run = make_run(boom, seconds=60, x0=6.0, unit_cfg=cfg.unit("boom"))
     est = Estimator(cfg, "boom", unit_tables["boom"], mode="full", adaptation=False,
                     initial_position_mm=run.position_mm[0] + 12.0)
     res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
     first = res.events[0]
+    other = next(e for e in res.events if e.switch != first.switch)
     assert first.error_mm == pytest.approx(12.0, abs=0.5)
     after = slice(first.index + 1, None)
     assert np.max(np.abs(res.position_mm[after] - run.position_mm[after])) < 1.0
     u_ref = cfg.estimator.uncertainty_reference_mm        # plus the edge's sample travel
+    tol = cfg.unit("boom").reference_tolerance_mm         # and the switch's mounting tolerance
     sample_mm = np.max(np.abs(res.velocity_mm_s)) * np.max(np.diff(run.time_s))
-    assert u_ref <= res.uncertainty_mm[first.index] <= u_ref + sample_mm
+    assert np.all(res.uncertainty_mm[first.index:other.index] >= abs(first.error_mm) + u_ref + tol)
+    assert np.all(res.flags[first.index:other.index] & Flags.NOT_REFERENCED)
+    assert abs(other.error_mm) < 1.0
+    assert u_ref + tol <= res.uncertainty_mm[other.index] <= u_ref + tol + sample_mm
+    assert not res.flags[other.index] & Flags.NOT_REFERENCED
+
+
+@pytest.mark.parametrize("offset_mm", [2.0, -2.5, 6.0, -9.0])
+def test_a_switch_off_its_configured_position_is_never_trusted_beyond_its_tolerance(
+        cfg, boom, unit_tables, make_run, offset_mm):
+    """The middle switch switches ``offset_mm`` from where the configuration says (the data's
+    switch at the configured position, the configuration's shifted): within the mounting
+    tolerance the uncertainty covers the offset; beyond it its edges disagree with the estimate
+    and flag, until another switch agrees. No published position errs beyond its uncertainty
+    without a flag."""
+    unit = cfg.unit("boom")
+    run = make_run(boom, seconds=60, unit_cfg=unit)
+    shifted = dataclasses.replace(unit, references_mm={
+        **unit.references_mm, "mid": unit.references_mm["mid"] + offset_mm})
+    cfg_off = dataclasses.replace(cfg, units={**cfg.units, "boom": shifted})
+    est = Estimator(cfg_off, "boom", unit_tables["boom"], mode="full", adaptation=False,
+                    initial_position_mm=run.position_mm[0])
+    res = est.run(run.time_s, run.speed_rpm, run.torque_nm, run.oil_temp_c, run.refs)
+    assert len(res.events) >= 4
+    error = np.abs(res.position_mm - run.position_mm)
+    unflagged = (res.flags & Flags.NOT_REFERENCED) == 0
+    assert not np.any(unflagged & (error > res.uncertainty_mm))
+    flagged_edges = [e for e in res.events if res.flags[e.index] & Flags.NOT_REFERENCED]
+    if abs(offset_mm) <= unit.reference_tolerance_mm:
+        assert not flagged_edges
+    else:
+        assert flagged_edges
 
 
 def _cycle_errors(cfg, boom, unit_tables, make_run, adaptation, leakage, seed=1):
