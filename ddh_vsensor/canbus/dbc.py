@@ -144,12 +144,13 @@ class FrameCodec:
 
     def encode_diag(self, actuator: str, uncertainty_mm: float, flags: int, input_frames: int,
                     rejected_frames: int, timestamp_s: float = 0.0) -> can.Message:
-        """Diagnostic TPDO2; counters wrap at 16 bits, uncertainty saturates at 167772.15 mm."""
+        """Diagnostic TPDO2; counters wrap (input frames at 16 bits, rejected frames at 8),
+        the uncertainty saturates at the UNSIGNED32 maximum (42 949 672.95 mm)."""
         name = message_name("diag", actuator)
         limit = self.messages[name].get_signal_by_name("Uncertainty").maximum
         return self.encode(name, {"Uncertainty": min(max(uncertainty_mm, 0.0), limit),
                                   "Flags": int(flags), "InputFrames": input_frames % 0x10000,
-                                  "RejectedFrames": rejected_frames % 0x10000},
+                                  "RejectedFrames": rejected_frames % 0x100},
                            timestamp_s)
 
     def encode_inputs(self, states: Mapping[str, Mapping[str, int]],

@@ -1,11 +1,15 @@
 """Each emulated sensor's EDS: the packaged CiA 406 template with one unit's configured values.
 
 The template (``data/cia406_position_sensor.eds``) describes the device type; a master that
-commissions one unit's sensor needs that unit's values: its node ID (written as the
-``[DeviceComissioning]`` NodeID, so ``canopen.import_od(path)`` resolves every ``$NODEID``
-COB-ID by itself), the measuring step, the stroke as the measuring range, the TPDO1 event timer
-and whether the EMCY producer is valid at boot. These are the settings the service's node
-stores from the configuration; everything else keeps the template's default.
+commissions one unit's sensor needs that unit's values: the measuring step, the stroke as the
+measuring range, the TPDO1 event timer, whether the EMCY producer is valid at boot, the
+identity (0x1018 vendor ID, product code, revision, serial number; 0x1008 device name) and the
+consumer heartbeat time 0x1016 of the unit's motor controller. These are the settings the
+service's node stores from the configuration; everything else keeps the template's default.
+
+An EDS leaves the node ID to the master (COB-IDs stay ``$NODEID+...``, no
+``[DeviceComissioning]``, CiA 306); the DCF of a unit (``.dcf``) is the same file with the
+node ID in ``[DeviceComissioning]``, so ``canopen.import_od(path)`` resolves the COB-IDs.
 """
 
 from __future__ import annotations
@@ -31,11 +35,24 @@ def template_od(node_id: int | None = None) -> ObjectDictionary:
     return canopen.import_od(str(TEMPLATE_EDS), node_id)
 
 
-def _set_default(var: ODVariable, value: int, node_id: int | None = None) -> None:
-    """A new default; relative to ``$NODEID`` (as the template writes COB-IDs) if node_id."""
+def _set_default(var: ODVariable, value: int, node_id: int | None = None,
+                 hex_digits: int = 0) -> None:
+    """A new default; relative to ``$NODEID`` (as the template writes COB-IDs) if node_id,
+    in hex with ``hex_digits`` digits if given (identities, packed fields)."""
     var.default = value
     var.default_raw = (f"$NODEID+0x{value - node_id:X}" if node_id is not None
-                       else str(value))
+                       else f"0x{value:0{hex_digits}X}" if hex_digits else str(value))
+
+
+def consumer_heartbeat(cfg: Config, unit: str, timeout_s: float | None = None) -> int:
+    """0x1016 sub 1 of ``unit``'s sensor: the configured controller's node ID (bits 16..23)
+    and the consumer time in ms (``timeout_s``, default ``faults.heartbeat_timeout_s``); 0 when
+    no controller heartbeat is consumed."""
+    node_id = cfg.faults.heartbeat_node_ids.get(unit)
+    if node_id is None:
+        return 0
+    time_s = cfg.faults.heartbeat_timeout_s if timeout_s is None else timeout_s
+    return node_id << 16 | min(max(round(time_s * 1000.0), 1), 0xFFFF)
 
 
 def unit_object_dictionary(cfg: Config, unit: str) -> ObjectDictionary:
@@ -54,6 +71,15 @@ def unit_object_dictionary(cfg: Config, unit: str) -> ObjectDictionary:
     _set_default(od[0x6200], od[0x1800][5].default)       # CiA 406: the same timer
     emcy = 0x80 + node_id | (0 if cfg.can.emcy_enabled else COB_ID_INVALID)
     _set_default(od[0x1014], emcy, node_id)
+    can = cfg.can
+    identity = (can.vendor_id, can.product_code, can.revision_number, can.serial_number(unit))
+    for sub, value in enumerate(identity, 1):
+        _set_default(od[0x1018][sub], value, hex_digits=8)
+    info = od.device_information
+    info.vendor_number, info.product_number, info.revision_number = identity[:3]
+    od[0x1008].default = od[0x1008].default_raw = f"{can.device_name} {unit}"
+    consumer = consumer_heartbeat(cfg, unit)
+    _set_default(od[0x1016][1], consumer, hex_digits=8)
     od.comments = "\n".join([
         f"Unit {unit}: sensor node {node_id}, stroke {cfg.unit(unit).stroke_mm:g} mm, "
         f"measuring step {step_mm:g} mm, TPDO1 event timer {od[0x1800][5].default} ms.",
@@ -62,6 +88,11 @@ def unit_object_dictionary(cfg: Config, unit: str) -> ObjectDictionary:
                    "stays PRE-OPERATIONAL until a master starts it (can.nmt_auto_start)."),
         "EMCY producer " + ("valid at boot (can.emcy_enabled)." if cfg.can.emcy_enabled else
                             "not valid at boot: 0x1014 bit 31 set (can.emcy_enabled)."),
+        f"Identity 0x1018: vendor ID 0x{identity[0]:08X}, product code 0x{identity[1]:08X}, "
+        f"revision 0x{identity[2]:08X}, serial number {identity[3]} (can: section).",
+        ("Consumer heartbeat 0x1016: motor controller node "
+         f"{consumer >> 16}, {consumer & 0xFFFF} ms (faults.heartbeat_timeout_s)." if consumer
+         else "Consumer heartbeat 0x1016: none (faults.heartbeat_node_ids)."),
         od.comments])
     return od
 
@@ -74,7 +105,8 @@ def _template_sections() -> configparser.RawConfigParser:
 
 
 def write_unit_eds(cfg: Config, unit: str, dest: TextIO, file_name: str) -> None:
-    """``unit``'s EDS, written by canopen; the same bytes for the same configuration."""
+    """``unit``'s EDS, written by canopen; the same bytes for the same configuration. A
+    ``file_name`` ending in ``.dcf`` gets its DCF: the node ID in ``[DeviceComissioning]``."""
     od = unit_object_dictionary(cfg, unit)
     template = _template_sections()
     # canopen reads Granularity as a flag; the template's bits per mapping step are kept
@@ -82,5 +114,5 @@ def write_unit_eds(cfg: Config, unit: str, dest: TextIO, file_name: str) -> None
     file_info = {**template["FileInfo"], "FileName": file_name,
                  "Description": f"ddh-vsensor emulated CiA 406 linear position sensor of the "
                                 f"{unit}, node {od.node_id}"}
-    # device_commisioning: the node ID goes into the file (export_od leaves it out)
-    canopen_eds.export_eds(od, dest, file_info=file_info, device_commisioning=True)
+    dcf = file_name.lower().endswith(".dcf")
+    canopen_eds.export_eds(od, dest, file_info=file_info, device_commisioning=dcf)

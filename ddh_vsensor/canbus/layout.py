@@ -7,6 +7,13 @@ need, with one bit signal per configured switch. The status byte of a position f
 byte of a diagnostic frame and the active faults of an EMCY are one bit signal per
 :class:`~ddh_vsensor.estimator.flags.Flags` member, with value tables for tools. Cycle times of
 the sensor's frames are its configured event timer and the template EDS's defaults.
+
+Send types are the attribute definitions of Vector's interaction layer (the CANoe IL DBC
+template), so an IL or a restbus simulation sends the frames as the machine does: every
+periodic frame ``GenMsgSendType`` "Cyclic" with its ``GenMsgCycleTime`` (ms), every event frame
+(EMCY, SDO, NMT, SYNC) "NoMsgSendType". The I/O module's frame goes out on a change of state
+and on its event timer as refresh: "Cyclic" at the refresh, its switch signals
+``GenSigSendType`` "OnChange".
 ``ddh-vsensor dbc`` writes this database as a DBC; ``dbc/ddh_vsensor.dbc`` is the one of the
 reference loader.
 """
@@ -52,12 +59,22 @@ OIL_TEMP_SENSOR, IO_NODE = "OIL_TEMP_SENSOR", "IO_MODULE"
 
 # What the frames the daemon reads are known to carry (one known setup, the simulated logs).
 SEVCON_TPDO_MS, SEVCON_HEARTBEAT_MS, OIL_TEMP_MS = 10, 100, 10
+IO_MODULE_MS = 100      # the I/O module's refresh (event timer; ddh_vsensor.io.log's logs)
 
-SEND_TYPES = ("Cyclic", "OnChange", "Spontaneous")
+# Vector interaction layer: GenMsgSendType's enum as its DBC template defines it (index 0
+# "Cyclic", 7 "IfActive", 8 "NoMsgSendType"; the others unused), GenSigSendType's.
+MSG_SEND_TYPES = ("Cyclic", "not_used", "not_used", "not_used", "not_used", "Cyclic",
+                  "not_used", "IfActive", "NoMsgSendType")
+SEND_TYPES = ("Cyclic", "NoMsgSendType")            # the ones this layout uses
+SIG_SEND_TYPES = ("Cyclic", "OnWrite", "OnWriteWithRepetition", "OnChange",
+                  "OnChangeWithRepetition", "IfActive", "IfActiveWithRepetition",
+                  "NoSigSendType")
 _CYCLE_TIME = DbcAttributeDefinition("GenMsgCycleTime", default_value=0, kind="BO_",
                                      type_name="INT", minimum=0, maximum=65535)
-_SEND_TYPE = DbcAttributeDefinition("GenMsgSendType", default_value="Spontaneous", kind="BO_",
-                                    type_name="ENUM", choices=list(SEND_TYPES))
+_SEND_TYPE = DbcAttributeDefinition("GenMsgSendType", default_value="NoMsgSendType",
+                                    kind="BO_", type_name="ENUM", choices=list(MSG_SEND_TYPES))
+_SIG_SEND_TYPE = DbcAttributeDefinition("GenSigSendType", default_value="Cyclic", kind="SG_",
+                                        type_name="ENUM", choices=list(SIG_SEND_TYPES))
 
 NMT_STATES = {0: "BootUp", 4: "Stopped", 5: "Operational", 127: "PreOperational"}
 NMT_COMMANDS = {1: "StartRemoteNode", 2: "StopRemoteNode", 128: "EnterPreOperational",
@@ -140,8 +157,9 @@ def _number(value: float) -> float:
 def _signal(name: str, start: int, length: int, comment: str, *, signed: bool = False,
             scale: float = 1, minimum: float | None = None, maximum: float | None = None,
             unit: str | None = None, choices: dict[int, str] | None = None,
-            receivers: Sequence[str] = ()) -> Signal:
-    """A little-endian signal; its range is the raw range times the scale unless given."""
+            receivers: Sequence[str] = (), send_type: str | None = None) -> Signal:
+    """A little-endian signal; its range is the raw range times the scale unless given;
+    ``send_type``: its GenSigSendType if not the default ("Cyclic")."""
     raw_min, raw_max = ((-(1 << (length - 1)), (1 << (length - 1)) - 1) if signed
                         else (0, (1 << length) - 1))
     conversion = BaseConversion.factory(
@@ -150,7 +168,10 @@ def _signal(name: str, start: int, length: int, comment: str, *, signed: bool = 
     return Signal(name, start, length, "little_endian", signed, conversion=conversion,
                   minimum=_number(raw_min * scale if minimum is None else minimum),
                   maximum=_number(raw_max * scale if maximum is None else maximum),
-                  unit=unit, comment=comment, receivers=list(receivers))
+                  unit=unit, comment=comment, receivers=list(receivers),
+                  dbc_specifics=None if send_type is None else DbcSpecifics(
+                      attributes=OrderedDict(GenSigSendType=DbcAttribute(
+                          SIG_SEND_TYPES.index(send_type), _SIG_SEND_TYPE))))
 
 
 def _message(frame_id: int, name: str, length: int, signals: list[Signal], comment: str,
@@ -158,7 +179,7 @@ def _message(frame_id: int, name: str, length: int, signals: list[Signal], comme
     attributes: OrderedDict[str, DbcAttribute] = OrderedDict()
     if cycle_time_ms is not None:
         attributes["GenMsgCycleTime"] = DbcAttribute(cycle_time_ms, _CYCLE_TIME)
-    attributes["GenMsgSendType"] = DbcAttribute(SEND_TYPES.index(send_type), _SEND_TYPE)
+    attributes["GenMsgSendType"] = DbcAttribute(MSG_SEND_TYPES.index(send_type), _SEND_TYPE)
     return Message(frame_id, name, length, signals, comment=comment, senders=[sender],
                    send_type=send_type, cycle_time=cycle_time_ms,
                    dbc_specifics=DbcSpecifics(attributes=attributes))
@@ -217,7 +238,8 @@ def _hall_signals(cfg: Config) -> tuple[int, list[Signal]]:
             wired[bit] = (unit, ref)
     signals = [_signal(f"Hall{camel(unit)}{camel(ref)}", bit, 1,
                        f"{unit.capitalize()} {ref} Hall switch, input bit {bit % 8} of 0x6000 "
-                       f"sub {bit // 8 + 1}; 1 = switch on.", receivers=[DAEMON])
+                       f"sub {bit // 8 + 1}; 1 = switch on.", receivers=[DAEMON],
+                       send_type="OnChange")
                for bit, (unit, ref) in sorted(wired.items())]
     length = max(wired, default=0) // 8 + 1
     return length, signals
@@ -273,13 +295,13 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
         DAEMON, "Cyclic", event_ms)
     yield _message(
         frame_id("diag"), message_name("diag", unit), 8,
-        [_signal("Uncertainty", 0, 24, "Estimated position uncertainty, manufacturer object "
-                 "0x2001, UNSIGNED24, 0.01 mm (covers any stroke).", scale=0.01, unit="mm"),
-         *_flag_bits("Flag", 24, "Flags 0x2002 bit {bit}: {text}.", with_choices=True),
-         _signal("InputFrames", 32, 16, "Sevcon frames received, manufacturer object 0x2003, "
-                 "UNSIGNED16, wraps."),
-         _signal("RejectedFrames", 48, 16, "Sevcon frames rejected as implausible, manufacturer "
-                 "object 0x2004, UNSIGNED16, wraps.")],
+        [_signal("Uncertainty", 0, 32, "Estimated position uncertainty, manufacturer object "
+                 "0x2001, UNSIGNED32, 0.01 mm (covers any stroke).", scale=0.01, unit="mm"),
+         *_flag_bits("Flag", 32, "Flags 0x2002 bit {bit}: {text}.", with_choices=True),
+         _signal("RejectedFrames", 40, 8, "Sevcon frames rejected as implausible, manufacturer "
+                 "object 0x2004, UNSIGNED8, wraps."),
+         _signal("InputFrames", 48, 16, "Sevcon frames received, manufacturer object 0x2003, "
+                 "UNSIGNED16, wraps.")],
         f"Diagnostics of the emulated {unit} sensor, TPDO2 (0x280 + node {node_id}), event "
         f"timer 0x1801 sub 5 ({timers_ms['diag']} ms), sent in the tick of a TPDO1. No RTR.",
         DAEMON, "Cyclic", timers_ms["diag"])
@@ -312,7 +334,7 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
          _signal("Reserved", 40, 24, "Manufacturer-specific error field bytes 5..7, 0.")],
         f"EMCY of the emulated {unit} sensor (0x1014: 0x80 + node {node_id}), sent when a fault "
         f"flag is set (its error code) or cleared (error reset), at most one per inhibit time "
-        f"0x1015 ({timers_ms['inhibit']} ms), not in STOPPED.", DAEMON, "Spontaneous")
+        f"0x1015 ({timers_ms['inhibit']} ms), not in STOPPED.", DAEMON, "NoMsgSendType")
     for kind, sender, receivers, text in (
             ("sdo_tx", DAEMON, (), f"SDO server response of the emulated {unit} sensor (0x580 + "
              f"node {node_id}); segment frames carry 7 data bytes after the command byte."),
@@ -322,7 +344,7 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
             frame_id(kind), message_name(kind, unit), 8,
             [_signal(name, start, length, comment, receivers=receivers,
                      choices=SDO_ABORTS if kind == "sdo_tx" and name == "Data" else None)
-             for name, start, length, comment in _SDO_FIELDS], text, sender, "Spontaneous")
+             for name, start, length, comment in _SDO_FIELDS], text, sender, "NoMsgSendType")
 
 
 def _template_timers_ms() -> dict[str, int]:
@@ -339,8 +361,10 @@ def _comments(cfg: Config) -> tuple[str, dict[str, str]]:
             f"layout, little-endian. Generated by `ddh-vsensor dbc` from {source}: each frame ID "
             "is the CANopen function code (0x080 EMCY, 0x180 TPDO1, 0x280 TPDO2, 0x580/0x600 "
             "SDO, 0x700 heartbeat) plus the node ID configured in its can: section. "
-            "GenMsgCycleTime in ms; GenMsgSendType Cyclic, OnChange (change of state with "
-            "refresh) or Spontaneous (event).")
+            "Send types as Vector's interaction layer defines them: GenMsgSendType Cyclic "
+            "(every GenMsgCycleTime ms) or NoMsgSendType (event frames: EMCY, SDO, NMT, SYNC); "
+            "the I/O module frame also goes out on a change of its inputs (GenSigSendType "
+            "OnChange).")
     buses = {cfg.can.units[u].bus for u in cfg.unit_names}
     if len(buses) > 1:
         text += " Buses: " + "; ".join(
@@ -386,9 +410,10 @@ def machine_database(cfg: Config) -> Database:
         ids.take(IO_MODULE, 0x180, cfg.can.io_module_node_id, "can.io_module_node_id"),
         IO_MODULE, io_length, hall,
         f"I/O module TPDO1 (0x180 + node {cfg.can.io_module_node_id}): CiA 401 object 0x6000 "
-        f"{subs} read input 8-bit, sent on change of state (event timer as refresh). Bit per "
+        f"{subs} read input 8-bit, sent on change of state and every {IO_MODULE_MS} ms (event "
+        f"timer as refresh, as in the simulated logs). Bit per "
         f"switch is configuration (can.units.*.hall_bits); the signals follow it.",
-        IO_NODE, "OnChange"))
+        IO_NODE, "Cyclic", IO_MODULE_MS))
     messages.append(_message(
         0x000, NMT_COMMAND, 2,
         [_signal("Command", 0, 8, "NMT command specifier.", choices=NMT_COMMANDS,
@@ -396,19 +421,20 @@ def machine_database(cfg: Config) -> Database:
          _signal("NodeId", 8, 8, "Addressed node, 0 = all nodes.", maximum=127,
                  receivers=[DAEMON])],
         "CiA 301 NMT command (COB-ID 0) from the network master; the sensor nodes act on the "
-        "ones addressed to them or to all (node 0).", NMT_MASTER, "Spontaneous"))
+        "ones addressed to them or to all (node 0).", NMT_MASTER, "NoMsgSendType"))
     messages.append(_message(
         0x080, SYNC, 0, [],
         "CiA 301 SYNC (COB-ID 0x1005 = 0x80) from the network master: the sensor nodes send "
         "the TPDOs a master made synchronous (transmission type 0..240) on it, at the "
         "master's communication cycle period (its configuration, not known here).", NMT_MASTER,
-        "Spontaneous"))
+        "NoMsgSendType"))
     timers_ms = _template_timers_ms()
     for unit in units:
         messages.extend(_sensor_messages(cfg, unit, ids, timers_ms))
     comment, node_comments = _comments(cfg)
     nodes = [Node(name, comment=text) for name, text in node_comments.items()]
-    definitions = OrderedDict(GenMsgCycleTime=_CYCLE_TIME, GenMsgSendType=_SEND_TYPE)
+    definitions = OrderedDict(GenMsgCycleTime=_CYCLE_TIME, GenMsgSendType=_SEND_TYPE,
+                              GenSigSendType=_SIG_SEND_TYPE)
     return Database(messages, nodes, buses=[Bus("", comment=comment)], version=VERSION,
                     dbc_specifics=DbcSpecifics(attribute_definitions=definitions))
 

@@ -205,6 +205,8 @@ class CanUnitConfig:
     sensor_node_id: int = field(metadata={"ge": 1, "le": 127})
     hall_bits: dict[str, int]       # reference name -> bit of the I/O module's inputs (0x6000)
     bus: str = DEFAULT_BUS          # the bus this unit's controller and sensor are on
+    # the sensor's serial number 0x1018 sub 4 (absent: can.serial_number_base + unit index)
+    serial_number: int | None = field(default=None, metadata={"ge": 0, "le": 0xFFFFFFFF})
 
     def check(self, path: str) -> list[tuple[str, str]]:
         for name, bit in self.hall_bits.items():
@@ -229,6 +231,35 @@ class CanConfig:
     # a unit whose newest controller frame is older than this when its TPDO1 is due
     # publishes right after its next frame instead (held at most one input period)
     fresh_input_ms: float = field(default=1.0, metadata={"ge": 0.0, "le": 1000.0})
+    # sensor nodes' vendor ID 0x1018 sub 1; 0 is "not assigned" (CiA hands out vendor IDs)
+    vendor_id: int = field(default=0, metadata={"ge": 0, "le": 0xFFFFFFFF})
+    # product code 0x1018 sub 2 and revision number 0x1018 sub 3 of the sensor nodes
+    product_code: int = field(default=0x406, metadata={"ge": 0, "le": 0xFFFFFFFF})
+    revision_number: int = field(default=0x00010000, metadata={"ge": 0, "le": 0xFFFFFFFF})
+    # serial number 0x1018 sub 4: this plus the unit's index (its own key overrides); the
+    # serial numbers must differ between units
+    serial_number_base: int = field(default=1, metadata={"ge": 0, "le": 0xFFFFFFFF})
+    device_name: str = "ddh-vsensor"    # 0x1008 reads "<device_name> <unit>"
+
+    def serial_number(self, unit: str) -> int:
+        """0x1018 sub 4 of ``unit``'s sensor: its own key, else the base + its index."""
+        own = self.units[unit].serial_number
+        return own if own is not None else self.serial_number_base + list(self.units).index(unit)
+
+    def check(self, path: str) -> list[tuple[str, str]]:
+        seen: dict[int, str] = {}
+        for unit in self.units:
+            serial = self.serial_number(unit)
+            if serial > 0xFFFFFFFF:
+                return [(f"{path}.serial_number_base", f"unit {unit}'s serial number {serial} "
+                         "exceeds UNSIGNED32")]
+            if serial in seen:
+                return [(f"{path}.units.{unit}.serial_number", f"serial number {serial} is "
+                         f"{seen[serial]}'s too: every sensor node needs its own")]
+            seen[serial] = unit
+        if len(self.device_name.encode()) > 200 or not self.device_name.isprintable():
+            return [(f"{path}.device_name", "printable text of up to 200 bytes")]
+        return []
 
 
 END_STOP_OVERTRAVEL_MAX_MM = 100.0     # a cycle setpoint beyond a stroke end presses the rod

@@ -4,8 +4,15 @@ EDS shipped in the package, behaving as CiA 301 / CiA 406 describe for a generic
 - TPDO1 (0x180 + node): position 0x6020 sub 1 (INT32, measuring step 0x6005 sub 1, from
   ``can.position_step_mm``), speed 0x6030 sub 1 (INT16, 0.1 mm/s), status 0x2000; sent every
   event timer (0x1800 sub 5, from ``can.event_timer_ms``).
-- TPDO2 (0x280 + node): diagnostics 0x2001..0x2004 (uncertainty, flags, input frames,
-  rejected frames) every 0x1801 sub 5 (EDS default 100 ms), in the same tick as a TPDO1.
+- TPDO2 (0x280 + node): diagnostics every 0x1801 sub 5 (EDS default 100 ms), in the same
+  tick as a TPDO1: uncertainty 0x2001 (UNSIGNED32, 0.01 mm: any stroke), flags 0x2002
+  (UNSIGNED8), rejected frames 0x2004 (UNSIGNED8, wraps) and input frames 0x2003
+  (UNSIGNED16, wraps), 64 bits, every entry a type IEC 61131-3 tools map (USINT, UINT,
+  UDINT; no 24-bit object) and the 16-bit one on an even byte. The rejected-frames counter
+  is the one narrowed to fit 64 bits: a master differencing it stays right up to 255
+  rejections per TPDO2 period, where a controller sends 10 frames in the default 100 ms.
+- Identity 0x1018 and device name 0x1008: configuration (``can.vendor_id``,
+  ``can.serial_number_base``, ...; :func:`ddh_vsensor.canbus.eds.unit_object_dictionary`).
 - PDO configuration by a master: :mod:`.pdo`; EMCY, error register 0x1001 and error field
   0x1003: :mod:`.emcy`; what the SDO server accepts (not in STOPPED, bounded segmented
   downloads): :mod:`.sdo_gate`.
@@ -15,6 +22,19 @@ EDS shipped in the package, behaving as CiA 301 / CiA 406 describe for a generic
   only while OPERATIONAL.
 - Heartbeat producer 0x1017 (EDS default 1000 ms); node guarding answered, life guarding
   with 0x100C x 0x100D: :mod:`.guarding`.
+- Consumer heartbeat time 0x1016 sub 1: the unit's motor controller, whose heartbeat the
+  service consumes (``faults.heartbeat_node_ids``), and its consumer time (default
+  ``faults.heartbeat_timeout_s``). A master's write changes the consumer's time at once; only
+  the configured controller's node ID and a time of 1..65535 ms are accepted (0609 0030
+  otherwise: which controller is consumed is the configuration's, and a unit's controller is
+  always consumed when configured). Without a consumed controller it reads 0, and only 0 is
+  accepted.
+- Store 0x1010 / restore 0x1011 parameters: :mod:`.storage` (sub 1 all, sub 2
+  communication; "save"/"load" signatures, else abort 0800 0020). Stored values are replayed
+  through the object dictionary's write path at start (a stored set the node refuses is
+  ignored whole, with a warning) and are the values NMT resets return to; a restore makes the
+  defaults those values again from the next start or reset. Without a state directory the
+  node cannot store: 0x1010/0x1011 read 0 and writes abort 0800 0020.
 - CiA 406 cyclic timer 0x6200: TPDO1's event timer (0x1800 sub 5) by the profile's name,
   which masters written for encoders set; reading and writing either is the same.
 - SDO server: reads return the live values; writing the preset 0x6010 sub 1 (in measuring
@@ -33,6 +53,7 @@ from __future__ import annotations
 import logging
 import struct
 from collections.abc import Callable
+from typing import Protocol
 
 import canopen
 from canopen.sdo import SdoAbortedError
@@ -43,18 +64,38 @@ from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.device.emcy import EmcyProducer
 from ddh_vsensor.device.guarding import Guarding
 from ddh_vsensor.device.network import ServiceNetwork
-from ddh_vsensor.device.objects import (ABORT_MAX_BELOW_MIN, ABORT_VALUE_RANGE, ABORT_VALUE_TOO_HIGH,
-                      ABORT_VALUE_TOO_LOW, ALARM_POSITION_ERROR, CHANNEL_ARRAYS, COMM_AREA,
-                      INT16, INT32, LIVE_OBJECTS, PDO_INVALID, SPEED_STEP_MM_S, UINT24_MAX,
-                      UNCERTAINTY_STEP_MM, WARNING_CLAMPED, WARNING_NO_REFERENCE,
-                      WARNING_SOFT_LIMIT, Published, clamp, value_of)
+from ddh_vsensor.device.objects import (ABORT_MAX_BELOW_MIN, ABORT_NOT_STORED, ABORT_VALUE_RANGE,
+                      ABORT_VALUE_TOO_HIGH, ABORT_VALUE_TOO_LOW, ALARM_POSITION_ERROR,
+                      CHANNEL_ARRAYS, COMM_AREA, INT16, INT32, LIVE_OBJECTS, PDO_INVALID,
+                      SPEED_STEP_MM_S, UNCERTAINTY_MAX_COUNTS, UNCERTAINTY_STEP_MM,
+                      WARNING_CLAMPED, WARNING_NO_REFERENCE, WARNING_SOFT_LIMIT, Published,
+                      clamp, raw, value_of)
 from ddh_vsensor.device.pdo import SYNC_TYPE_MAX, Getter, Packer, PdoConfig
+from ddh_vsensor.device.pdo import log as pdo_log    # quiet while stored values replay
 from ddh_vsensor.device.sdo_gate import SdoGate
+from ddh_vsensor.device.storage import (ALL, COMMUNICATION, LOAD, SAVE, Key, ParameterStore,
+                                        in_scope, parameters)
 
 log = logging.getLogger(__name__)
 
 SYNC_COB_ID = 0x80              # the pre-defined SYNC COB-ID the service routes to on_sync
 CYCLIC_TIMER = 0x6200           # CiA 406 cyclic timer (ms): TPDO1's event timer by another name
+STORE, RESTORE, CONSUMER_HEARTBEAT = 0x1010, 0x1011, 0x1016
+TPDO_COMS, TPDO_MAPS = (0x1800, 0x1801), (0x1A00, 0x1A01)
+
+
+class _Warnings(logging.Filter):
+    """Warnings and errors only: a replay of stored values is logged once, as a whole."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno > logging.INFO
+
+
+class ConsumedHeartbeat(Protocol):
+    """The service's consumer of the unit's controller heartbeat, as 0x1016 sees it."""
+
+    node_id: int
+    consumer_time_s: float
 
 
 class SensorNode:
@@ -65,7 +106,10 @@ class SensorNode:
 
     def __init__(self, network: ServiceNetwork, cfg: Config, actuator: str,
                  live: Callable[[], Published],
-                 on_preset: Callable[[float], None]) -> None:
+                 on_preset: Callable[[float], None],
+                 heartbeat: ConsumedHeartbeat | None = None) -> None:
+        """``heartbeat``: the consumer whose time 0x1016 sets (None: the object is kept,
+        nothing consumes it)."""
         self.actuator = actuator
         self.node_id = cfg.can.units[actuator].sensor_node_id  # type: ignore[index]
         self.step_mm = cfg.can.position_step_mm
@@ -97,6 +141,16 @@ class SensorNode:
         self.event_timer_ms = float(cfg.can.event_timer_ms)
         self._configure(0x1800, 5, struct.pack("<H", max(1, round(self.event_timer_ms))))
         self.diag_timer_ms = float(node.sdo[0x1801][5].raw)
+        self.heartbeat = heartbeat
+        # the controller 0x1016 names: the configuration's (the consumer's, if one is given)
+        self.controller_node_id = heartbeat.node_id if heartbeat is not None else \
+            cfg.faults.heartbeat_node_ids.get(actuator)
+        if heartbeat is not None:       # the consumer's actual time (options may override)
+            self._configure(CONSUMER_HEARTBEAT, 1, struct.pack(
+                "<I", heartbeat.node_id << 16 | clamp(round(heartbeat.consumer_time_s * 1000),
+                                                      (1, 0xFFFF))))
+        self.storage: ParameterStore | None = None
+        self._stored: dict[Key, bytes] = {}     # stored by 0x1010: power-on values
         self._every = (1, 10)               # ticks per TPDO1, per TPDO2 (set_tick)
         self._next = (0, 0)                 # tick index at which each is due next
         self.heartbeat_period_s = 0.0
@@ -111,6 +165,7 @@ class SensorNode:
         node.add_read_callback(self._on_read)
         node.add_read_callback(self.emcy.on_read)
         node.add_write_callback(self._on_write)
+        node.add_write_callback(self._on_write_storage)
         node.add_write_callback(self.pdos.on_write)
         node.add_write_callback(self.emcy.on_write)
         node.add_write_callback(self._on_write_profile)
@@ -162,17 +217,20 @@ class SensorNode:
         for index in list(store):
             if not communication_only or index in COMM_AREA:
                 del store[index]
-        for (index, subindex), data in self._configured.items():
+        for (index, subindex), data in [*self._configured.items(), *self._stored.items()]:
             if not communication_only or index in COMM_AREA:
                 store.setdefault(index, {})[subindex] = data
-        self.pdos.restore()                    # rebuilt only if a master changed it
+        if self._stored:
+            self.pdos.written.update((self.tpdo1, self.tpdo2))
+        self.pdos.restore()                    # rebuilt only if a master or a store changed it
         self.emcy.reset()
         for index, before in timers.items():  # a changed timer: the path of an SDO write
             data = self.node.get_data(index, 5)
             if data != before:
                 od = self.node.object_dictionary[index][5]
                 self._on_write(index=index, subindex=5, od=od, data=data)
-        self.sdo_gate.download_limit = None
+        self._consume(value_of(self.node.get_data(CONSUMER_HEARTBEAT, 1)))
+        self.sdo_gate.reset()
 
     @property
     def operational(self) -> bool:
@@ -226,10 +284,10 @@ class SensorNode:
             0x6030: lambda p: min(max(round(p.speed_mm_s / SPEED_STEP_MM_S), INT16[0]),
                                   INT16[1]),
             0x2001: lambda p: min(max(round(p.uncertainty_mm / UNCERTAINTY_STEP_MM), 0),
-                                  UINT24_MAX),
+                                  UNCERTAINTY_MAX_COUNTS),
             0x2000: lambda p: p.flags & 0xFF, 0x2002: lambda p: p.flags & 0xFF,
             0x2003: lambda p: p.input_frames & 0xFFFF,
-            0x2004: lambda p: p.rejected_frames & 0xFFFF}
+            0x2004: lambda p: p.rejected_frames & 0xFF}
         if index in live:
             return live[index]
         get_data, value = self.node.get_data, self._value
@@ -327,6 +385,8 @@ class SensorNode:
     # --- SDO -------------------------------------------------------------------------------
 
     def _on_read(self, index: int, subindex: int, od: object) -> int | None:
+        if index in (STORE, RESTORE) and subindex in (ALL, COMMUNICATION):
+            return 1 if self.storage is not None else 0     # 1: on command (CiA 301)
         if index in (0x6501, 0x650A):
             return self._value(index, subindex, None)
         if index == CYCLIC_TIMER:
@@ -348,11 +408,14 @@ class SensorNode:
         if index == 0x6030:
             return clamp(round(p.speed_mm_s / SPEED_STEP_MM_S), INT16)
         if index == 0x2001:
-            return clamp(round(p.uncertainty_mm / UNCERTAINTY_STEP_MM), (0, UINT24_MAX))
+            return clamp(round(p.uncertainty_mm / UNCERTAINTY_STEP_MM),
+                         (0, UNCERTAINTY_MAX_COUNTS))
         if index in (0x2000, 0x2002):
             return p.flags & 0xFF
-        if index in (0x2003, 0x2004):
-            return (p.input_frames if index == 0x2003 else p.rejected_frames) & 0xFFFF
+        if index == 0x2003:
+            return p.input_frames & 0xFFFF
+        if index == 0x2004:
+            return p.rejected_frames & 0xFF
         if index == 0x1001:
             return self.emcy.register(p.flags)
         if index == 0x6400:
@@ -387,6 +450,18 @@ class SensorNode:
             self.on_preset(position_mm)
             self.presets += 1
             log.info("%s: position preset to %.3f mm over SDO", self.actuator, position_mm)
+        elif index == CONSUMER_HEARTBEAT and subindex == 1:
+            value = value_of(data)
+            node_id, ms = value >> 16, value & 0xFFFF
+            expected = self.controller_node_id
+            if (value != 0) if expected is None else (node_id != expected or ms == 0):
+                log.warning("%s: consumer heartbeat 0x%08X refused: %s", self.actuator, value,
+                            "no controller heartbeat is consumed" if expected is None else
+                            f"node {expected}, 1..65535 ms only")
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+            self._consume(value)
+            log.info("%s: controller heartbeat consumer time set to %d ms over SDO",
+                     self.actuator, ms)
         elif index == 0x1005:
             # consumed only: the pre-defined 11-bit ID, no SYNC produced (bit 30), bit 31
             # is don't care (CiA 301)
@@ -410,6 +485,105 @@ class SensorNode:
                      1 if index == 0x1800 else 2, ms)
             if self.on_timer_change is not None:
                 self.on_timer_change()
+
+    def _consume(self, value: int) -> None:
+        """0x1016 sub 1 in effect: the consumer's time from its low 16 bits (ms)."""
+        if self.heartbeat is not None and value & 0xFFFF:
+            self.heartbeat.consumer_time_s = (value & 0xFFFF) / 1000.0
+
+    # --- store and restore parameters (0x1010, 0x1011) ---------------------------------------
+
+    def attach_storage(self, storage: ParameterStore) -> None:
+        """Before boot: the parameters stored in ``storage`` replayed through the write path
+        (validated as a master's writes are), then kept as the values NMT resets return to.
+        A stored set the node refuses is ignored whole: the defaults apply."""
+        self.storage = storage
+        stored = storage.load()
+        if not stored:
+            return
+        quiet = _Warnings()
+        for logger in (log, pdo_log):
+            logger.addFilter(quiet)
+        try:
+            self._replay(stored)
+        except (SdoAbortedError, KeyError, struct.error, ValueError) as exc:
+            self._stored = {}
+            self.restore_defaults(communication_only=False)
+            log.warning("%s: stored parameters in %s ignored (%s); defaults apply",
+                        self.actuator, storage.path,
+                        f"abort 0x{exc.code:08X}" if isinstance(exc, SdoAbortedError) else exc)
+            return
+        finally:
+            for logger in (log, pdo_log):
+                logger.removeFilter(quiet)
+        log.info("%s: %d stored parameters applied from %s", self.actuator, len(stored),
+                 storage.path)
+
+    def _replay(self, stored: dict[Key, int]) -> None:
+        """Stored values written in the order CiA 301 asks of a master: each TPDO disabled,
+        its mapping cleared, entries, count, then everything else, the COB-IDs last."""
+        od, set_data = self.node.object_dictionary, self.node.set_data
+        encoded = {}
+        for (index, sub), value in stored.items():
+            obj = od[index]
+            var = obj if isinstance(obj, canopen.objectdictionary.ODVariable) else obj[sub]
+            if not var.writable or not in_scope(index, ALL):
+                raise ValueError(f"0x{index:04X} sub {sub} is not a stored parameter")
+            encoded[(index, sub)] = var.encode_raw(value)
+        for com, mapping in zip(TPDO_COMS, TPDO_MAPS):
+            cob_id = stored.get((com, 1), raw(self.node, com, 1))
+            set_data(com, 1, struct.pack("<I", cob_id | PDO_INVALID), check_writable=True)
+            entries = [k for k in encoded if k[0] == mapping and k[1] > 0]
+            if (mapping, 0) in encoded or entries:
+                set_data(mapping, 0, b"\x00", check_writable=True)
+                for key in sorted(entries):
+                    set_data(*key, encoded[key], check_writable=True)
+                count = encoded.get((mapping, 0), struct.pack("<B", raw(self.node, mapping, 0)))
+                set_data(mapping, 0, count, check_writable=True)
+        last = [(com, 1) for com in TPDO_COMS]
+        for key in sorted(encoded):
+            if key[0] not in TPDO_MAPS and key not in last:
+                set_data(*key, encoded[key], check_writable=True)
+        for key in last:
+            if key in encoded:
+                set_data(*key, encoded[key], check_writable=True)
+        self._stored = encoded
+
+    def _on_write_storage(self, index: int, subindex: int, od: object, data: bytes) -> None:
+        """0x1010 "save" stores the parameters of sub 1 (all) or 2 (communication) now;
+        0x1011 "load" removes them from the store: the defaults apply from the next start or
+        NMT reset. A wrong signature, another sub-index or no store: abort 0800 0020."""
+        if index not in (STORE, RESTORE):
+            return
+        signature = SAVE if index == STORE else LOAD
+        if self.storage is None or subindex not in (ALL, COMMUNICATION) or \
+                value_of(data) != signature:
+            raise SdoAbortedError(ABORT_NOT_STORED)
+        kept = {key: data for key, data in self._stored.items()
+                if not in_scope(key[0], subindex)}
+        if index == STORE:
+            kept.update({(var.index, var.subindex): bytes(self.node.get_data(
+                var.index, var.subindex)) for var in parameters(self.node.object_dictionary,
+                                                                subindex)})
+        values = {key: self._decode(key, data) for key, data in kept.items()}
+        try:
+            self.storage.save(values)
+        except OSError as exc:
+            log.error("%s: cannot store parameters in %s: %s", self.actuator,
+                      self.storage.path, exc.strerror or exc)
+            raise SdoAbortedError(ABORT_NOT_STORED) from None
+        self._stored = kept
+        if index == RESTORE:                # the next reset rebuilds the TPDOs from defaults
+            self.pdos.written.update((self.tpdo1, self.tpdo2))
+        log.info("%s: %s parameters %s (0x%04X over SDO; %s)", self.actuator,
+                 "all" if subindex == ALL else "communication",
+                 "stored" if index == STORE else "back to their defaults from the next reset "
+                 "or start", index, self.storage.path)
+
+    def _decode(self, key: Key, data: bytes) -> int:
+        obj = self.node.object_dictionary[key[0]]
+        var = obj if isinstance(obj, canopen.objectdictionary.ODVariable) else obj[key[1]]
+        return int(var.decode_raw(data))
 
     # --- configuration defaults and PDO configuration ---------------------------------------
 

@@ -18,6 +18,7 @@ ABORT_MAP_LENGTH = 0x06040042
 ABORT_LENGTH_TOO_HIGH = 0x06070012
 ABORT_COMMAND = 0x05040001          # command specifier not valid or unknown
 ABORT_NO_DATA = 0x08000024
+ABORT_NOT_STORED = 0x08000020       # data cannot be transferred or stored (0x1010/0x1011)
 ABORT_DEVICE_STATE = 0x08000022     # not in the right state (NMT, or the rod is moving)
 COMM_AREA = range(0x1000, 0x2000)   # what NMT reset communication restores
 PDO_INVALID, PDO_NO_RTR = 1 << 31, 1 << 30     # COB-ID bits (PDO, EMCY): not valid, no RTR
@@ -26,8 +27,8 @@ PDO_INVALID, PDO_NO_RTR = 1 << 31, 1 << 30     # COB-ID bits (PDO, EMCY): not va
 ALARM_POSITION_ERROR = 0x0001
 WARNING_NO_REFERENCE, WARNING_CLAMPED, WARNING_SOFT_LIMIT = 0x0020, 0x1000, 0x2000
 SPEED_STEP_MM_S = 0.1               # 0x6030 counts (EDS comment, DBC scale)
-UNCERTAINTY_STEP_MM = 0.01          # 0x2001 counts (UNSIGNED24: up to 167 m, any stroke)
-UINT24_MAX = 2 ** 24 - 1
+UNCERTAINTY_STEP_MM = 0.01          # 0x2001 counts (UNSIGNED32: any stroke)
+UNCERTAINTY_MAX_COUNTS = 2 ** 32 - 1
 # Objects whose value is the estimate's (read callback, PDO encoding).
 LIVE_OBJECTS = frozenset({0x1001, 0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6020, 0x6030,
                           0x6400, 0x6503, 0x6505})

@@ -83,8 +83,14 @@ class SensorClient:
         """Every value ``status`` shows, read now (one SDO upload each)."""
         position = self.position_steps
         flags = self.flags
+        identity = self.sdo[0x1018]
         return {
             "device_type": f"0x{self.sdo[0x1000].raw:08X}",
+            "device_name": self.sdo[0x1008].raw,
+            "vendor_id": f"0x{identity[1].raw:08X}",
+            "product_code": f"0x{identity[2].raw:08X}",
+            "revision_number": f"0x{identity[3].raw:08X}",
+            "serial_number": identity[4].raw,
             "position_mm": position * self.step_mm,
             "position_steps": position,
             "measuring_step_nm": self.sdo[0x6005][1].raw,
@@ -97,6 +103,7 @@ class SensorClient:
             "tpdo1_event_timer_ms": self.sdo[0x1800][5].raw,
             "tpdo2_event_timer_ms": self.sdo[0x1801][5].raw,
             "heartbeat_ms": self.sdo[0x1017].raw,
+            "controller_heartbeat_consumer_ms": self.sdo[0x1016][1].raw & 0xFFFF,
             "guard_time_ms": self.sdo[0x100C].raw,
             "life_time_factor": self.sdo[0x100D].raw,
             "error_register": self.sdo[0x1001].raw,

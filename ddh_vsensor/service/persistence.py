@@ -5,6 +5,9 @@ A restored estimate is trusted at its saved uncertainty only when it was written
 stop; a periodic save (what a kill leaves) is widened by the worst travel possible since it
 was written (wall clock), a save from the future or of unknown age by the whole stroke.
 Restored or not, the unit starts not referenced, until a reference switch or an SDO preset.
+
+Beside each estimate, ``<unit>.parameters.json``: the CANopen parameters a master stored in
+that unit's sensor node (0x1010, :mod:`ddh_vsensor.device.storage`), applied before it boots.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from ddh_vsensor.atomic import remove_temp_files
 from ddh_vsensor.config import Config
 from ddh_vsensor.estimator.state import EstimatorState, load_state, save_state
 from ddh_vsensor.device.objects import Published
+from ddh_vsensor.device.storage import ParameterStore
 from ddh_vsensor.service.unit_state import Unit
 
 log = logging.getLogger(__name__)
@@ -34,9 +38,17 @@ class StateStore:
     def path(self, actuator: str) -> Path | None:
         return None if self.state_dir is None else Path(self.state_dir) / f"{actuator}.json"
 
+    def parameters_path(self, actuator: str) -> Path | None:
+        """Where ``actuator``'s sensor node keeps the parameters stored over 0x1010."""
+        return None if self.state_dir is None else \
+            Path(self.state_dir) / f"{actuator}.parameters.json"
+
     def restore(self, units: Mapping[str, Unit]) -> None:
         cfg = self.cfg
         for actuator, unit in units.items():
+            parameters = self.parameters_path(actuator)
+            if parameters is not None and unit.node is not None:
+                unit.node.attach_storage(ParameterStore(parameters, unit.node.node_id))
             path = self.path(actuator)
             state = None
             if path is not None:

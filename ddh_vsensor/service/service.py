@@ -188,7 +188,8 @@ class Service:
                     lambda: self.ticker.period_s, self.options.stale_periods, clock=self.clock)
         unit.node = SensorNode(network, cfg, actuator,
                                live=lambda: self.published(unit),
-                               on_preset=lambda mm: unit.preset(mm, self.published(unit)))
+                               on_preset=lambda mm: unit.preset(mm, self.published(unit)),
+                               heartbeat=hb)
         unit.node.event_timer_bounds_ms = (faults.event_timer_min_ms, faults.event_timer_max_ms)
         unit.node.on_timer_change = self._timers_changed
         return unit

@@ -38,7 +38,7 @@ from ddh_vsensor.service.heartbeat import HeartbeatConsumer
 from ddh_vsensor.service.inputs import Inputs
 from ddh_vsensor.service.limits import RateLimitedLog
 from ddh_vsensor.device.node import SensorNode
-from ddh_vsensor.device.objects import (ABORT_DEVICE_STATE, ABORT_READ_ONLY, ABORT_VALUE_RANGE, UINT24_MAX,
+from ddh_vsensor.device.objects import (ABORT_DEVICE_STATE, ABORT_READ_ONLY, ABORT_VALUE_RANGE, UNCERTAINTY_MAX_COUNTS,
                       UNCERTAINTY_STEP_MM, Published)
 
 log = logging.getLogger(__name__)
@@ -55,9 +55,9 @@ HOLD_SLACK_PERIODS = 0.25    # hold_for_input_s: the next frame's arrival, beyon
 WALL_STEP_MIN_S = 0.005       # wall clock slews (NTP) below this: no step
 WALL_READ_TRIES = 3
 WALL_READ_GOOD_S = 1e-4       # a read of the two clocks this close together is not retried
-# The largest uncertainty the diagnostic frame can carry (UNSIGNED24 counts): a bound beyond
+# The largest uncertainty the diagnostic frame can carry (UNSIGNED32 counts): a bound beyond
 # it is published as "not referenced".
-UNCERTAINTY_MAX_MM = UINT24_MAX * UNCERTAINTY_STEP_MM
+UNCERTAINTY_MAX_MM = UNCERTAINTY_MAX_COUNTS * UNCERTAINTY_STEP_MM
 # The flags as plain ints on the per-tick path: IntFlag arithmetic costs a Python call per
 # operator.
 _STALE_INPUT = int(Flags.STALE_INPUT)

@@ -28,10 +28,10 @@ def test_documented_layout(cfg: Config) -> None:
     assert bytes(msg.data) == (12346).to_bytes(4, "little", signed=True) + \
         (-123).to_bytes(2, "little", signed=True) + b"\x03"
     msg = codec.encode_diag("bucket", uncertainty_mm=1.5, flags=Flags.ADAPTING,
-                            input_frames=70000, rejected_frames=2)
+                            input_frames=70000, rejected_frames=258)
     assert msg.arbitration_id == 0x2B2
-    assert bytes(msg.data) == bytes([150, 0, 0, 8]) + (70000 - 65536).to_bytes(2, "little") + \
-        bytes([2, 0])
+    # uncertainty UNSIGNED32, flags, rejected frames UNSIGNED8, input frames UNSIGNED16
+    assert bytes(msg.data) == bytes([150, 0, 0, 0, 8, 2]) + (70000 - 65536).to_bytes(2, "little")
     assert bytes(codec.encode_oil_temp(-4.5).data) == (-45).to_bytes(2, "little", signed=True)
 
 
@@ -48,8 +48,9 @@ def test_sensor_output_saturates_like_a_sensor(cfg: Config) -> None:
     codec = FrameCodec(cfg)
     pos = codec.decode(codec.encode_position("boom", 10.0, speed_mm_s=1e6, status=0))[1]
     assert pos["Speed"] == pytest.approx(3276.7)
-    diag = codec.decode(codec.encode_diag("boom", 1e6, 0, 0, 0))[1]
-    assert diag["Uncertainty"] == pytest.approx(167772.15)
+    diag = codec.decode(codec.encode_diag("boom", 1e12, 0, 0, 0))[1]
+    assert diag["Uncertainty"] == pytest.approx((2 ** 32 - 1) * 0.01)
+    assert codec.decode(codec.encode_diag("boom", 1e6, 0, 0, 0))[1]["Uncertainty"] == 1e6
 
 
 def test_uncertainty_range_covers_every_stroke(cfg: Config) -> None:

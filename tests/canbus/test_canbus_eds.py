@@ -34,7 +34,16 @@ def test_eds_describes_a_cia406_linear_encoder() -> None:
     assert od[0x1800][1].default == 0x4000_0000 | (0x180 + 49)     # bit 30: no RTR
     assert od[0x1014].default == 0x80 + 49                          # EMCY
     assert od[0x6005][2].default == 100                             # um/s: 0.1 mm/s
-    assert od[0x2001].data_type == canopen.objectdictionary.UNSIGNED24
+    assert od[0x2001].data_type == canopen.objectdictionary.UNSIGNED32
+    assert od[0x1008].default == "ddh-vsensor"                      # the device name
+    assert [od[0x1010][s].default for s in (1, 2)] == [1, 1]        # stores on command
+    # no 24-bit object anywhere: IEC 61131-3 tools map 8, 16, 32, 64 bits
+    variables = [v for obj in od.values() for v in
+                 ([obj] if isinstance(obj, canopen.objectdictionary.ODVariable)
+                  else obj.values())]
+    assert not [v.name for v in variables if len(v) == 24 or v.data_type in
+                (canopen.objectdictionary.UNSIGNED24, canopen.objectdictionary.INTEGER24)]
+    assert "[DeviceComissioning]" not in EDS.read_text()
 
 
 def test_eds_lists_every_object_it_defines() -> None:
@@ -81,7 +90,8 @@ def test_tpdo2_packs_like_the_diag_frame(sensor: tuple[str, canopen.LocalNode],
 
 # --- the EDS generated per unit ------------------------------------------------------------
 
-CONFIGURED = {(0x6005, 1), (0x6501, 0), (0x650A, 3), (0x1800, 5), (0x1014, 0)}
+CONFIGURED = {(0x6005, 1), (0x6501, 0), (0x650A, 3), (0x1800, 5), (0x1014, 0), (0x1008, 0),
+              (0x1016, 1), (0x1018, 1), (0x1018, 2), (0x1018, 3), (0x1018, 4)}
 
 
 def _generated(cfg: Config, unit: str, tmp_path: Path) -> Path:
@@ -111,8 +121,10 @@ def test_generated_eds_loads_with_the_configured_values(machine: str, tmp_path: 
     for unit in cfg.unit_names:
         node_id = cfg.can.units[unit].sensor_node_id
         path = _generated(cfg, unit, tmp_path)
-        od = canopen.import_od(str(path))                   # the node ID comes from the file
-        assert od.node_id == node_id
+        # an EDS leaves the node ID to the master (CiA 306: [DeviceComissioning] is a DCF's)
+        assert "[DeviceComissioning]" not in path.read_text()
+        assert canopen.import_od(str(path)).node_id is None
+        od = canopen.import_od(str(path), node_id)         # the master's node ID
         assert od[0x1800][1].default == 0x4000_0000 | (0x180 + node_id)
         assert od[0x1801][1].default == 0x4000_0000 | (0x280 + node_id)
         assert od[0x1014].default == 0x80 + node_id
@@ -136,7 +148,7 @@ def test_generated_eds_follows_step_timer_emcy_and_nmt(cfg: Config, tmp_path: Pa
         cfg.can, position_step_mm=0.1, event_timer_ms=25.0, emcy_enabled=False,
         nmt_auto_start=False))
     path = _generated(other, "bucket", tmp_path)
-    od = canopen.import_od(str(path))
+    od = canopen.import_od(str(path), 50)
     assert od[0x6005][1].default == 100_000
     assert od[0x650A][3].default == round(cfg.unit("bucket").stroke_mm / 0.1)
     assert od[0x1800][5].default == 25

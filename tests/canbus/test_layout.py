@@ -34,10 +34,28 @@ REWORDED = {(None, None),                                        # the database'
             ("SENSOR_BOOM_EMCY", "ErrorCode"),                    # 8130: life guarding too
             ("SENSOR_BUCKET_EMCY", "ErrorCode"),
             ("SENSOR_BOOM_HEARTBEAT", None),                      # node guarding answers
-            ("SENSOR_BUCKET_HEARTBEAT", None)}
+            ("SENSOR_BUCKET_HEARTBEAT", None),
+            ("DIAG_BOOM_TPDO2", "Uncertainty"), ("DIAG_BUCKET_TPDO2", "Uncertainty"),  # 32 bits
+            ("DIAG_BOOM_TPDO2", "RejectedFrames"), ("DIAG_BUCKET_TPDO2", "RejectedFrames")}
 # Frames described since (the sensors consume SYNC), and the nodes whose comment says so.
 ADDED = {"SYNC"}
 REWORDED_NODES = {"NMT_MASTER"}
+# Send types as Vector's interaction layer defines them (hand-written -> generated), and the
+# I/O module's refresh as its cycle time.
+SEND_TYPE_NOW = {"Cyclic": "Cyclic", "OnChange": "Cyclic", "Spontaneous": "NoMsgSendType"}
+CYCLE_TIME_ADDED = {IO_MODULE: 100}
+VECTOR_IL_DEFINITIONS = {
+    "GenMsgCycleTime": ("BO_", "INT", 0, 65535, [], 0),
+    "GenMsgSendType": ("BO_", "ENUM", None, None, ["Cyclic", "not_used", "not_used", "not_used",
+                       "not_used", "Cyclic", "not_used", "IfActive", "NoMsgSendType"],
+                       "NoMsgSendType"),
+    "GenSigSendType": ("SG_", "ENUM", None, None, ["Cyclic", "OnWrite", "OnWriteWithRepetition",
+                       "OnChange", "OnChangeWithRepetition", "IfActive",
+                       "IfActiveWithRepetition", "NoSigSendType"], "Cyclic")}
+# TPDO2 without a 24-bit object: (start, length) of the re-laid-out diagnostic signals.
+DIAG_LAYOUT = {"Uncertainty": (0, 32), "RejectedFrames": (40, 8), "InputFrames": (48, 16),
+               **{"Flag" + "".join(w.capitalize() for w in (f.name or "").split("_")):
+                  (32 + f.bit_length() - 1, 1) for f in Flags}, "FlagReserved": (39, 1)}
 
 
 def test_packaged_dbc_is_a_relative_link_to_the_repo_dbc() -> None:
@@ -63,28 +81,28 @@ def test_nothing_a_tool_relies_on_changed_from_the_hand_written_dbc() -> None:
         [(n.name, n.comment) for n in old.nodes if n.name not in REWORDED_NODES]
     assert [m.name for m in new.messages if m.name not in ADDED] == \
         [m.name for m in old.messages]
-    definitions = {name: (d.kind, d.type_name, d.minimum, d.maximum, d.choices, d.default_value)
-                   for name, d in old.dbc.attribute_definitions.items()}
     assert {name: (d.kind, d.type_name, d.minimum, d.maximum, d.choices, d.default_value)
-            for name, d in new.dbc.attribute_definitions.items()} == definitions
+            for name, d in new.dbc.attribute_definitions.items()} == VECTOR_IL_DEFINITIONS
     reworded = set()
     for was in old.messages:
         now = new.get_message_by_name(was.name)
+        diag = was.name.startswith("DIAG_")
         assert (now.frame_id, now.length, now.cycle_time, now.send_type, now.senders,
-                now.is_extended_frame) == (was.frame_id, was.length, was.cycle_time,
-                                           was.send_type, was.senders,
+                now.is_extended_frame) == (was.frame_id, was.length,
+                                           CYCLE_TIME_ADDED.get(was.name, was.cycle_time),
+                                           SEND_TYPE_NOW[was.send_type], was.senders,
                                            was.is_extended_frame), was.name
-        assert {k: a.value for k, a in now.dbc.attributes.items()} == \
-            {k: a.value for k, a in was.dbc.attributes.items()}, was.name
         if now.comment != was.comment:
             reworded.add((was.name, None))
-        assert [s.name for s in now.signals] == [s.name for s in was.signals], was.name
+        assert sorted(s.name for s in now.signals) == sorted(s.name for s in was.signals)
         for old_signal in was.signals:
             signal = now.get_signal_by_name(old_signal.name)
-            fields = ("start", "length", "byte_order", "is_signed", "scale", "offset",
-                      "minimum", "maximum", "unit", "receivers", "is_float")
+            fields = ("byte_order", "is_signed", "scale", "offset", "unit", "receivers",
+                      "is_float") + (() if diag else ("start", "length", "minimum", "maximum"))
             assert {f: getattr(signal, f) for f in fields} == \
                 {f: getattr(old_signal, f) for f in fields}, (was.name, signal.name)
+            if diag:
+                assert (signal.start, signal.length) == DIAG_LAYOUT[signal.name], signal.name
             assert _choices(signal) == _choices(old_signal), (was.name, signal.name)
             if signal.comment != old_signal.comment:
                 reworded.add((was.name, signal.name))
@@ -187,14 +205,23 @@ def test_cycle_times_and_send_types(cfg: Config) -> None:
     db = machine_database(cfg)
     expected = {"POSITION_BOOM_TPDO1": (10, "Cyclic"), "DIAG_BOOM_TPDO2": (100, "Cyclic"),
                 "SENSOR_BOOM_HEARTBEAT": (1000, "Cyclic"), "SEVCON_BOOM_TPDO1": (10, "Cyclic"),
-                "SENSOR_BOOM_EMCY": (None, "Spontaneous"), "IO_MODULE_TPDO1": (None, "OnChange"),
-                "SENSOR_BOOM_SDO_TX": (None, "Spontaneous")}
+                "SENSOR_BOOM_EMCY": (None, "NoMsgSendType"), "IO_MODULE_TPDO1": (100, "Cyclic"),
+                "SENSOR_BOOM_SDO_TX": (None, "NoMsgSendType"), "SYNC": (None, "NoMsgSendType")}
     for name, (cycle_ms, send_type) in expected.items():
         message = db.get_message_by_name(name)
         assert (message.cycle_time, message.send_type) == (cycle_ms, send_type), name
     for message in db.messages:
-        assert message.send_type in ("Cyclic", "OnChange", "Spontaneous"), message.name
+        assert message.send_type in ("Cyclic", "NoMsgSendType"), message.name
         assert (message.cycle_time is not None) == (message.send_type == "Cyclic"), message.name
+    # as a Vector tool reads the DBC: the attribute values index the IL's enum
+    text = cantools.database.load_string(db.as_dbc_string(), database_format="dbc")
+    for message in text.messages:
+        attributes = message.dbc.attributes
+        assert attributes["GenMsgSendType"].value == (0 if message.cycle_time else 8)
+        if message.cycle_time:
+            assert attributes["GenMsgCycleTime"].value == message.cycle_time
+    hall = text.get_message_by_name(IO_MODULE).signals
+    assert hall and {s.dbc.attributes["GenSigSendType"].value for s in hall} == {3}  # OnChange
 
 
 def test_flag_bits_have_value_tables(three_units: Config) -> None:

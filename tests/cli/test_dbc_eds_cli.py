@@ -50,8 +50,9 @@ def test_eds_of_each_unit(lift_tilt: Path, tmp_path: Path, capsys) -> None:
         out = tmp_path / f"{unit}.eds"
         assert main(["eds", "--config", str(lift_tilt), "--unit", unit, "--out",
                      str(out)]) == 0
-        od = canopen.import_od(str(out))
-        assert od.node_id == node_id and od[0x1800][1].default == 0x4000_0000 | 0x180 + node_id
+        assert "[DeviceComissioning]" not in out.read_text()     # an EDS: the master's ID
+        od = canopen.import_od(str(out), node_id)
+        assert od[0x1800][1].default == 0x4000_0000 | 0x180 + node_id
         assert f"sensor of the {unit}, node {node_id}" in capsys.readouterr().out
 
 

@@ -31,7 +31,7 @@ def test_master_reads_the_pdo_configuration_and_decodes_tpdos(cfg, bus) -> None:
     assert [(v.index, v.subindex, v.length) for v in tpdo1.map] == \
         [(0x6020, 1, 32), (0x6030, 1, 16), (0x2000, 0, 8)]
     assert [(v.index, v.length) for v in tpdo2.map] == \
-        [(0x2001, 24), (0x2002, 8), (0x2003, 16), (0x2004, 16)]
+        [(0x2001, 32), (0x2002, 8), (0x2004, 8), (0x2003, 16)]
     assert tpdo1.wait_for_reception(10.0) is not None
     assert tpdo1[0x6020].raw == 12345                  # the preset, decoded by the master
     assert tpdo1[0x6030].raw == 0
@@ -43,7 +43,7 @@ def test_master_reads_the_pdo_configuration_and_decodes_tpdos(cfg, bus) -> None:
 
 def _uncertainty_after_preset(cfg, counts: int) -> bool:
     """The preset's uncertainty, plus what standing stale (no inputs) adds: the worst-case
-    travel since the preset, at most the stroke (24-bit counts of 0.01 mm decode it whole)."""
+    travel since the preset, at most the stroke (32-bit counts of 0.01 mm decode it whole)."""
     low = cfg.estimator.uncertainty_reference_mm
     return round(low / 0.01) <= counts <= round(cfg.unit("bucket").stroke_mm / 0.01)
 
@@ -56,12 +56,11 @@ def test_master_remaps_a_tpdo_and_decodes_the_new_layout(cfg, bus) -> None:
     tpdo = node.tpdo[1]
     tpdo.clear()
     tpdo.add_variable(0x6020, 1)
-    tpdo.add_variable(0x2001)                          # uncertainty, 24 bits
-    tpdo.add_variable(0x1001)                          # error register: 64 bits in all
+    tpdo.add_variable(0x2001)                          # uncertainty, 32 bits: 64 in all
     tpdo.save()                                        # disable, map, enable: CiA 301
     node.tpdo.read()                                   # what the node now says it sends
     assert [(v.index, v.length) for v in node.tpdo[1].map] == \
-        [(0x6020, 32), (0x2001, 24), (0x1001, 8)]
+        [(0x6020, 32), (0x2001, 32)]
     tpdo = node.tpdo[1]
     mark = master.frames.mark()
     master.frames.wait_count(mark, 0x1B2, 3, "remapped TPDO1")
@@ -69,7 +68,6 @@ def test_master_remaps_a_tpdo_and_decodes_the_new_layout(cfg, bus) -> None:
     assert len(tpdo.data) == 8
     assert tpdo[0x6020].raw == 20000
     assert _uncertainty_after_preset(cfg, tpdo[0x2001].raw)
-    assert tpdo[0x1001].raw == node.sdo[0x1001].raw != 0    # stale: no inputs at all
     # the other node and TPDO2 are untouched
     assert len(master.frames.since(mark, 0x1B1)[-1].data) == 7
 

@@ -66,10 +66,12 @@ def test_default_mappings_pack_like_canopen(node) -> None:
 
 
 @pytest.mark.parametrize("entries", [
-    [(0x6020, 1, 32), (0x2001, 0, 24), (0x1001, 0, 8)],
-    [(0x0005, 0, 8), (0x6400, 1, 8), (0x6503, 0, 16), (0x6505, 0, 16), (0x2004, 0, 16)],
+    [(0x2001, 0, 32), (0x6020, 1, 32)],
+    [(0x0005, 0, 8), (0x6400, 1, 8), (0x6503, 0, 16), (0x6505, 0, 16), (0x2004, 0, 8),
+     (0x1001, 0, 8)],
     [(0x2003, 0, 16), (0x6030, 1, 16), (0x0005, 0, 8), (0x2000, 0, 8)],
-], ids=["position-uncertainty-register", "dummy-area-alarms-warnings", "counter-speed-dummy"])
+], ids=["uncertainty-position", "dummy-area-alarms-warnings-register",
+        "counter-speed-dummy"])
 def test_remapped_tpdo_packs_like_canopen(node, entries) -> None:
     node._encode(node.tpdo1, records(1)[0])             # noqa: SLF001 - compiled, cached
     assert node.pdos.packers[node.tpdo1] is not None
@@ -85,5 +87,5 @@ def test_a_reset_communication_recompiles_the_default_mapping(node) -> None:
     node._encode(node.tpdo2, records(1)[0])             # noqa: SLF001
     node.restore_defaults(communication_only=True)
     assert node.tpdo2 not in node.pdos.packers
-    assert [v.index for v in node.tpdo2.map] == [0x2001, 0x2002, 0x2003, 0x2004]
+    assert [v.index for v in node.tpdo2.map] == [0x2001, 0x2002, 0x2004, 0x2003]
     assert_packs_like_canopen(node, node.tpdo2)
