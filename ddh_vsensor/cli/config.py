@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import types
 import typing
 from pathlib import Path
 
 from ddh_vsensor.config import DEFAULT_BUS, DEFAULT_CONFIG, Config, load_config
+from ddh_vsensor.config.jsonschema import json_schema
 from ddh_vsensor.errors import UserError
 
 
@@ -28,6 +30,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument("--schema", action="store_true",
                       help="print every configuration key with its type, bounds and default "
                            "(generated from the configuration's dataclasses)")
+    what.add_argument("--json-schema", nargs="?", const="-", metavar="FILE",
+                      help="print the configuration's JSON Schema (draft 2020-12) for YAML "
+                           "editors, or write it to FILE; a config file then names it in a "
+                           "first line '# yaml-language-server: $schema=FILE'")
     what.add_argument("--write", metavar="PATH",
                       help="write the default configuration to PATH (an existing different "
                            "file is never overwritten)")
@@ -138,6 +144,21 @@ def write_default(path: Path) -> str:
     return "written"
 
 
+def _write_json_schema(target: str) -> int:
+    """The schema to stdout (``-``) or to a file, whose path then goes to stdout."""
+    text = json.dumps(json_schema(), indent=2) + "\n"
+    if target == "-":
+        sys.stdout.write(text)
+        return 0
+    path = Path(target)
+    try:
+        path.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
+    print(f"{path}: written")
+    return 0
+
+
 def _run(args: argparse.Namespace) -> int:
     if args.print_default:
         sys.stdout.write(default_text())
@@ -147,6 +168,8 @@ def _run(args: argparse.Namespace) -> int:
               "the machine's units)")
         print("\n".join(schema_lines()))
         return 0
+    if args.json_schema:
+        return _write_json_schema(args.json_schema)
     if args.validate:
         cfg = load_config(args.validate)
         print(f"{args.validate}: valid: {describe(cfg)}")

@@ -4,7 +4,6 @@ report's nine keys, the errors taken at the references, plus ``truth``, ``causes
 
 from __future__ import annotations
 
-import html
 import json
 from pathlib import Path
 from typing import Any
@@ -16,7 +15,7 @@ from ddh_vsensor.diagnosis.causes import ALL_CAUSES
 from ddh_vsensor.estimator.extension import Extension
 from ddh_vsensor.diagnosis.figures import ranking_figure
 from ddh_vsensor.diagnosis.reference_fit import ReferenceDiagnosis
-from ddh_vsensor.diagnosis.report import _img, _table
+from ddh_vsensor.diagnosis.report import render_page
 from ddh_vsensor.diagnosis.selection import MIN_SCORE
 
 
@@ -83,33 +82,24 @@ def write_reference_report(diag: ReferenceDiagnosis, out_dir: str | Path,
 
 def _html(diag: ReferenceDiagnosis, data: dict[str, Any]) -> str:
     b, e = data["baseline"], data["extended"]
-    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>ddh-vsensor diagnosis "
-             f"from references: {diag.actuator}</title></head><body>",
-             f"<h1>Diagnosis from references and holds: {diag.actuator}</h1>",
-             f"<p><b>Cause: {html.escape(diag.cause)}</b></p>",
-             f"<p>{html.escape(diag.decision.reason)}.</p>"]
-    if diag.cause in ALL_CAUSES and diag.cause != "none":
-        parts.append(f"<p>{html.escape(ALL_CAUSES[diag.cause].summary)}. Extension: "
-                     f"<code>{html.escape(data['extension_file'])}</code></p>")
-    parts.append("<h2>Error at the references (edge to edge, held-out runs)</h2>" + _table(
-        ["", "max |error| (mm)", "RMS (mm)"],
-        [["model as it is", b["max_abs_error_mm"], b["rms_error_mm"]],
-         [f"extended ({diag.cause})", e["max_abs_error_mm"], e["rms_error_mm"]]]))
-    parts.append("<h2>Candidate causes</h2>" + _table(
-        ["cause", "score", "fitted", "90 % interval"],
-        [[c["cause"], c["score"], ", ".join(f"{k}={v:.4g}" for k, v in c["parameters"].items()),
-          ", ".join(f"{v[0]:.4g}..{v[1]:.4g}" for v in c["interval"].values())]
-         for c in data["causes"]]))
-    parts.append(_img(ranking_figure([f.cause.name for f in diag.fits],
-                                     [f.score for f in diag.fits], MIN_SCORE,
-                                     diag.cause if diag.cause in ALL_CAUSES else "none"),
-                      "ranking"))
-    parts.append("<h2>Runs</h2>" + _table(
-        ["run", "duration (s)", "edges", "holds", "mean holding speed (rpm)",
-         "model holding speed (rpm)"],
-        [[Path(r.name).name, r.run.duration_s, len(r.edges), len(r.holds),
-          float(np.mean([h.speed_rpm for h in r.holds])) if r.holds else float("nan"),
-          float(np.nanmean([h.model_speed_rpm for h in r.holds])) if r.holds else float("nan")]
-         for r in diag.rruns]))
-    parts.append("</body></html>")
-    return "\n".join(parts)
+    named = diag.cause in ALL_CAUSES and diag.cause != "none"
+    return render_page(
+        "reference_diagnosis.html.j2",
+        title=f"ddh-vsensor diagnosis from references: {diag.actuator}",
+        actuator=diag.actuator, cause=diag.cause, reason=diag.decision.reason,
+        summary=ALL_CAUSES[diag.cause].summary if named else None,
+        extension_file=data["extension_file"],
+        errors=[["model as it is", b["max_abs_error_mm"], b["rms_error_mm"]],
+                [f"extended ({diag.cause})", e["max_abs_error_mm"], e["rms_error_mm"]]],
+        candidates=[[c["cause"], c["score"],
+                     ", ".join(f"{k}={v:.4g}" for k, v in c["parameters"].items()),
+                     ", ".join(f"{v[0]:.4g}..{v[1]:.4g}" for v in c["interval"].values())]
+                    for c in data["causes"]],
+        ranking_png=ranking_figure([f.cause.name for f in diag.fits],
+                                   [f.score for f in diag.fits], MIN_SCORE,
+                                   diag.cause if diag.cause in ALL_CAUSES else "none"),
+        runs=[[Path(r.name).name, r.run.duration_s, len(r.edges), len(r.holds),
+               float(np.mean([h.speed_rpm for h in r.holds])) if r.holds else float("nan"),
+               float(np.nanmean([h.model_speed_rpm for h in r.holds])) if r.holds
+               else float("nan")]
+              for r in diag.rruns])

@@ -5,12 +5,13 @@ embedded figures, readable without a server)."""
 from __future__ import annotations
 
 import base64
-import html
+import functools
 import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import jinja2
 import numpy as np
 
 from ddh_vsensor.atomic import output_dir
@@ -22,6 +23,7 @@ from ddh_vsensor.diagnosis.figures import breakdown_figure, errors_per_run, rank
 from ddh_vsensor.diagnosis.selection import MIN_SCORE, separation
 from ddh_vsensor.diagnosis.fit import PENALTY_PER_PARAMETER
 from ddh_vsensor.diagnosis.signatures import signature, signature_errors
+from ddh_vsensor.version import __version__
 
 
 def _full(mask: np.ndarray, masked: np.ndarray) -> np.ndarray:
@@ -116,30 +118,39 @@ def write_report(diag: Diagnosis, out_dir: str | Path, cfg_hash: str) -> dict[st
 
 # --- HTML ------------------------------------------------------------------------------------
 
-_STYLE = """
-body { font-family: sans-serif; max-width: 1200px; margin: 1em auto; color: #222; }
-table { border-collapse: collapse; margin: 0.5em 0 1em; font-size: 0.85em; }
-th, td { border: 1px solid #ccc; padding: 2px 8px; text-align: right; }
-th:first-child, td:first-child { text-align: left; }
-.named { font-size: 1.3em; font-weight: bold; }
-img { max-width: 100%; }
-.note { color: #555; font-size: 0.85em; }
-"""
+
+def _cell(value: Any, small_g: bool = True) -> str:
+    """A table cell's text: a number to three decimals (three significant digits below 0.01
+    where ``small_g``), nothing for a non-finite number or None."""
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        if not np.isfinite(value):
+            return ""
+        return f"{value:.3g}" if small_g and abs(value) < 1e-2 else f"{value:.3f}"
+    return str(value)
 
 
-def _img(png: bytes, alt: str) -> str:
-    return (f'<img alt="{html.escape(alt)}" '
-            f'src="data:image/png;base64,{base64.b64encode(png).decode()}">')
+def _base64(png: bytes) -> str:
+    return base64.b64encode(png).decode("ascii")
 
 
-def _table(head: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    def cell(v: Any) -> str:
-        if isinstance(v, float):
-            return "" if not np.isfinite(v) else f"{v:.3g}" if abs(v) < 1e-2 else f"{v:.3f}"
-        return html.escape(str(v))
-    return ("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"
-            + "".join("<tr>" + "".join(f"<td>{cell(v)}</td>" for v in r) + "</tr>"
-                      for r in rows) + "</table>")
+@functools.cache
+def _templates() -> jinja2.Environment:
+    """The reports' templates (``data/templates``), every value HTML-escaped: a run name or
+    a path may hold any character (``html.j2`` is named: the default list misses it)."""
+    env = jinja2.Environment(loader=jinja2.PackageLoader("ddh_vsensor", "data/templates"),
+                             autoescape=jinja2.select_autoescape(("html", "html.j2")),
+                             undefined=jinja2.StrictUndefined, trim_blocks=True,
+                             lstrip_blocks=True)
+    env.filters.update(cell=_cell, b64=_base64)
+    return env
+
+
+def render_page(template: str, **context: Any) -> str:
+    """A self-contained report page: ``template`` (which extends ``base.html.j2``) with
+    ``context``; a missing value is an error, not an empty cell."""
+    return _templates().get_template(template).render(version=__version__, **context)
 
 
 def _html(diag: Diagnosis, data: dict[str, Any], stats) -> str:
@@ -148,117 +159,66 @@ def _html(diag: Diagnosis, data: dict[str, Any], stats) -> str:
     masks = bench.masks
     before = diag.baseline
     after = [_full(m, h) for m, h in zip(masks, diag.heldout)]
-    names = [r.name for r in diag.runs]
-    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>ddh-vsensor diagnosis:"
-             f" {diag.actuator}</title><style>{_STYLE}</style></head><body>",
-             f"<h1>Model diagnosis: {diag.actuator}, {diag.mode} mode</h1>",
-             f"<p class='named'>Cause: {html.escape(diag.cause)}</p>",
-             f"<p>{html.escape(diag.decision.reason)}.</p>"]
-    if data["causes"]:
-        parts.append("<h2>Causes (fitted jointly)</h2>" + _table(
-            ["cause", "what it is", "parameter", "fitted", "90 % interval",
-             "share of held-out error removed"],
-            [[c["cause"], ALL_CAUSES[c["cause"]].summary if c["cause"] in ALL_CAUSES
-              else "not in the catalogue: a residual model of physical features",
-              next(iter(c["parameters"]), ""), next(iter(c["parameters"].values()),
-                                                    float("nan")),
-              " .. ".join(f"{v:.4g}" for v in next(iter(c["interval"].values()), [])),
-              c["share"]] for c in data["causes"]]))
-        parts.append(f"<p>Extension: <code>{html.escape(data['extension_file'])}</code> "
-                     f"(<code>ddh-vsensor estimate RUN --actuator {diag.actuator} --extension "
-                     f"FILE</code>).</p>")
-    if diag.ambiguous:
-        parts.append("<h2>What the runs cannot tell apart</h2><ul>" + "".join(
-            f"<li><b>{html.escape(a)}</b> and <b>{html.escape(b)}</b> explain the runs about "
-            f"equally well; to separate them: {html.escape(separation(a, b))}.</li>"
-            for a, b in diag.ambiguous) + "</ul>")
-    if diag.evidence is not None:
-        parts.append(f"<p class='note'>{html.escape(diag.evidence.describe())}: candidate "
-                     "sets whose torque gain x displacement or torque offset disagree were "
-                     "not considered.</p>")
-    else:
-        parts.append("<p class='note'>No chamber pressures in the runs: torque gain, "
-                     "displacement and leakage are told apart by their signatures only; the "
-                     "columns p_a_bar and p_b_bar would separate them directly.</p>")
+    extended = f"extended ({', '.join(diag.named) or diag.cause})"
+    causes = [[c["cause"], ALL_CAUSES[c["cause"]].summary if c["cause"] in ALL_CAUSES
+               else "not in the catalogue: a residual model of physical features",
+               next(iter(c["parameters"]), ""),
+               next(iter(c["parameters"].values()), float("nan")),
+               " .. ".join(f"{v:.4g}" for v in next(iter(c["interval"].values()), [])),
+               c["share"]] for c in data["causes"]]
+    unexplained = None
     if diag.cause == "unexplained" and diag.residual is not None:
-        follows = ", ".join(f"{k} ({100 * v:.0f} %)" for k, v in diag.residual.follows()[:4])
-        parts.append("<h2>The unexplained error: what it follows, where it lives</h2>"
-                     f"<p>The residual model's correction is carried by: "
-                     f"{html.escape(follows)} (standardised weights). Where the error the "
-                     "catalogue leaves lives, by class:</p>")
         left = []
         for i, (x, r, m) in enumerate(zip(bench.base, diag.runs, masks)):
             est = np.array(x, dtype=float)
             est[m] = r.position_mm[m] + _nearest(diag, i)
             left.append(est)
-        for dim, st in breakdown(diag.runs, left).items():
-            parts.append(f"<h3>{dim}</h3>" + _table(
-                ["class", "time (s)", "error added (mm)", "per second (mm/s)", "RMS (mm)",
-                 "max |error| (mm)"],
-                [[x.name, x.time_s, x.error_added_mm, x.error_rate_mm_s, x.rms_error_mm,
-                  x.max_abs_error_mm] for x in st]))
+        unexplained = {
+            "follows": ", ".join(f"{k} ({100 * v:.0f} %)"
+                                 for k, v in diag.residual.follows()[:4]),
+            "breakdown": [(dim, [[x.name, x.time_s, x.error_added_mm, x.error_rate_mm_s,
+                                  x.rms_error_mm, x.max_abs_error_mm] for x in st])
+                          for dim, st in breakdown(diag.runs, left).items()]}
     b, e = data["baseline"], data["extended"]
-    rows = [["model as it is", b["max_abs_error_mm"], b["rms_error_mm"]]]
+    gain = [["model as it is", b["max_abs_error_mm"], b["rms_error_mm"]]]
     if bench.default_inertia:
         m = _errors([x[k] for x, k in zip(diag.model, masks)])
-        rows.append(["with the motor's inertia torque taken off the motor torque",
+        gain.append(["with the motor's inertia torque taken off the motor torque",
                      m["max_abs_error_mm"], m["rms_error_mm"]])
-    rows.append([f"extended ({', '.join(diag.named) or diag.cause}), each run fitted "
-                 "without it", e["max_abs_error_mm"],
+    gain.append([f"{extended}, each run fitted without it", e["max_abs_error_mm"],
                  e["rms_error_mm"]])
-    parts.append("<h2>Gain on held-out runs</h2>" + _table(
-        ["", "max |error| (mm)", "RMS error (mm)"], rows))
-    if bench.default_inertia:
-        parts.append("<p class='note'>The motor torque also accelerates the rotor and pumps; "
-                     "the tables hold pump torque. Taking J d(omega)/dt off lowered the error "
-                     "on these runs, so none is judged on that basis; each cause is fitted "
-                     "both ways and keeps the better (extension flag motor_inertia).</p>")
-    parts.append("<h2>Why: the candidate causes</h2>" + _table(
-        ["cause", "score", "parameter", "fitted", "per held-out run (range)", "resolution",
-         "signature"],
-        [[f.cause.name, f.score, f.cause.parameter or "", next(iter(f.parameters.values()),
-                                                              float("nan")),
-          _range(f.fold_values), _resolution(f.cause), f.cause.signature]
-         for f in diag.fits]))
-    parts.append(_img(ranking_figure([f.cause.name for f in diag.fits],
-                                     [f.score for f in diag.fits], MIN_SCORE, diag.cause),
-                      "ranking"))
-    parts.append(
-        f"<p class='note'>Score: share of the squared error on held-out runs (each run "
-        f"predicted by the cause fitted on the other runs) that the extension removes, minus "
-        f"{PENALTY_PER_PARAMETER:g} per fitted parameter. A cause is named when its score "
-        f"reaches {MIN_SCORE:g} and its parameter is further from neutral than the model's "
-        "own error can mimic (the resolution column); otherwise the answer is none.</p>")
     sig = signature(shown, bench)
-    parts.append(f"<h2>The feature that gives {html.escape(shown)} away</h2>")
-    parts.append(_img(signature_figure(sig, signature_errors(sig, bench, before),
+    return render_page(
+        "diagnosis.html.j2",
+        title=f"ddh-vsensor diagnosis: {diag.actuator}",
+        actuator=diag.actuator, mode=diag.mode, cause=diag.cause,
+        reason=diag.decision.reason, causes=causes, extension_file=data["extension_file"],
+        ambiguous=[(a, b, separation(a, b)) for a, b in diag.ambiguous],
+        evidence=None if diag.evidence is None else diag.evidence.describe(),
+        unexplained=unexplained, gain=gain, default_inertia=bench.default_inertia,
+        candidates=[[f.cause.name, f.score, f.cause.parameter or "",
+                     next(iter(f.parameters.values()), float("nan")),
+                     _range(f.fold_values), _resolution(f.cause), f.cause.signature]
+                    for f in diag.fits],
+        ranking_png=ranking_figure([f.cause.name for f in diag.fits],
+                                   [f.score for f in diag.fits], MIN_SCORE, diag.cause),
+        penalty_per_parameter=PENALTY_PER_PARAMETER, min_score=MIN_SCORE, shown=shown,
+        signature_png=signature_figure(sig, signature_errors(sig, bench, before),
                                        signature_errors(sig, bench, after), shown),
-                      "residual against feature"))
-    parts.append("<h2>Error before and after, per run</h2>")
-    parts.append(_img(errors_per_run(names, [r.time_s for r in diag.runs], before, after,
-                                     f"extended ({', '.join(diag.named) or diag.cause}), "
-                                     "held out",
-                                     diag.model if bench.default_inertia else None),
-                      "errors per run"))
-    parts.append("<h2>Runs</h2>" + _table(
-        ["run", "duration (s)", "oil (degC)", "max |torque| (N*m)", "max |error| before",
-         "RMS before", "max |error| after", "RMS after"],
-        [[Path(r.name).name, r.duration_s,
-          f"{np.min(r.oil_temp_c):.1f}-{np.max(r.oil_temp_c):.1f}",
-          float(np.max(np.abs(r.torque_nm))), float(np.nanmax(np.abs(eb))),
-          float(np.sqrt(np.nanmean(eb ** 2))), float(np.max(np.abs(h))),
-          float(np.sqrt(np.mean(h ** 2)))]
-         for r, eb, h in zip(diag.runs, before, diag.heldout)]))
-    parts.append("<h2>What is wrong: the error of the model as it is, by class</h2>")
-    parts.append(_img(breakdown_figure(stats), "breakdown"))
-    for dim, st in stats.items():
-        parts.append(f"<h3>{dim}</h3>" + _table(
-            ["class", "time (s)", "travel (mm)", "error added (mm)", "per second (mm/s)",
-             "per metre (mm/m)", "RMS error (mm)", "max |error| (mm)"],
-            [[s.name, s.time_s, s.travel_mm, s.error_added_mm, s.error_rate_mm_s,
-              s.error_per_m_mm, s.rms_error_mm, s.max_abs_error_mm] for s in st]))
-    parts.append("</body></html>")
-    return "\n".join(parts)
+        errors_png=errors_per_run([r.name for r in diag.runs], [r.time_s for r in diag.runs],
+                                  before, after, f"{extended}, held out",
+                                  diag.model if bench.default_inertia else None),
+        runs=[[r.name, r.duration_s,
+               f"{np.min(r.oil_temp_c):.1f}-{np.max(r.oil_temp_c):.1f}",
+               float(np.max(np.abs(r.torque_nm))), float(np.nanmax(np.abs(eb))),
+               float(np.sqrt(np.nanmean(eb ** 2))), float(np.max(np.abs(h))),
+               float(np.sqrt(np.mean(h ** 2)))]
+              for r, eb, h in zip(diag.runs, before, diag.heldout)],
+        breakdown_png=breakdown_figure(stats),
+        breakdown=[(dim, [[s.name, s.time_s, s.travel_mm, s.error_added_mm,
+                           s.error_rate_mm_s, s.error_per_m_mm, s.rms_error_mm,
+                           s.max_abs_error_mm] for s in st])
+                   for dim, st in stats.items()])
 
 
 def _nearest(diag: Diagnosis, i: int) -> np.ndarray:

@@ -4,9 +4,7 @@ extension file to load; HTML (figures embedded, readable from disk) plus a JSON 
 
 from __future__ import annotations
 
-import base64
 import datetime as dt
-import html
 import io
 import json
 from pathlib import Path
@@ -16,6 +14,7 @@ import numpy as np
 
 from ddh_vsensor.config import Config
 from ddh_vsensor.diagnosis.causes import ALL_CAUSES
+from ddh_vsensor.diagnosis.report import render_page
 from ddh_vsensor.estimator.extension import Extension
 from ddh_vsensor.fleet.trend import DAY_S, UnitTrend, from_u
 
@@ -105,14 +104,8 @@ def summary(trends: list[UnitTrend], tolerance_mm: float, horizon_days: float,
     return out
 
 
-def _table(table_id: str, head: list[str], rows: list[list[Any]]) -> str:
-    def cell(v: Any) -> str:
-        if isinstance(v, float):
-            return "" if not np.isfinite(v) else f"{v:.3f}"
-        return html.escape("" if v is None else str(v))
-    return (f"<table id='{table_id}'><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head)
-            + "</tr>" + "".join("<tr>" + "".join(f"<td>{cell(v)}</td>" for v in r) + "</tr>"
-                                for r in rows) + "</table>")
+def _parameter(entry: dict[str, Any]) -> str:
+    return ", ".join(f"{k}={v:.4g}" for k, v in entry.get("parameter", {}).items())
 
 
 def write_report(trends: list[UnitTrend], out: Path, tolerance_mm: float,
@@ -121,43 +114,21 @@ def write_report(trends: list[UnitTrend], out: Path, tolerance_mm: float,
     ext_dir = out.parent / f"{out.stem}_extensions"
     entries = summary(trends, tolerance_mm, horizon_days, ext_dir, cfg)
     alarms = [e for e in entries if e["alarm"]]
-    parts = ["<!DOCTYPE html><html><head><meta charset='utf-8'><title>ddh-vsensor fleet "
-             "report</title><style>body{font-family:sans-serif;max-width:1000px;margin:auto}"
-             "table{border-collapse:collapse;font-size:.85em}td,th{border:1px solid #ccc;"
-             "padding:2px 6px}.alarm{color:#b00;font-weight:bold}</style></head><body>",
-             "<h1>Fleet diagnosis from references and holds</h1>",
-             f"<p>{store_summary['machines']} machines, {store_summary['logs']} logs "
-             f"({store_summary['log_hours']:.2f} log-hours), {store_summary['rejected']} "
-             f"rejected. Tolerance {tolerance_mm:g} mm, horizon {horizon_days:g} days.</p>",
-             f"<h2>Alarms ({len(alarms)})</h2>"]
-    parts.append(_table("alarms", ["machine", "unit", "cause", "parameter", "expected error "
-                                   "(mm)", "projected (mm)", "crosses tolerance", "first alarm",
-                                   "extension to load"],
-                        [[e["machine"], e["actuator"], e["cause"],
-                          ", ".join(f"{k}={v:.4g}" for k, v in e.get("parameter", {}).items()),
-                          e["expected_error_mm"], e["projected_error_mm"], e.get("crossing"),
-                          (e["first_alarm"] or {}).get("date"), e["extension_file"]]
-                         for e in alarms]))
-    parts.append("<h2>Machines</h2>")
-    parts.append(_table("machines", ["machine", "unit", "logs", "last log", "cause",
-                                     "parameter", "90 % interval", "error at refs, nominal "
-                                     "(mm)", "expected error (mm)", "projected (mm)", "alarm"],
-                        [[e["machine"], e["actuator"], e["logs"], e["last_log"], e["cause"],
-                          ", ".join(f"{k}={v:.4g}" for k, v in e.get("parameter", {}).items()),
-                          " .. ".join(f"{v:.4g}" for v in e.get("interval", [])),
-                          e["reference_error_mm"], e["expected_error_mm"],
-                          e["projected_error_mm"], "ALARM" if e["alarm"] else ""]
-                         for e in entries]))
-    parts.append("<h2>Per machine and unit</h2>")
-    for tr in trends:
-        if not tr.times_s:
-            continue
-        png = base64.b64encode(_figure(tr, tolerance_mm)).decode()
-        parts.append(f"<h3 id='{tr.machine}-{tr.actuator}'>{html.escape(tr.machine)} "
-                     f"{tr.actuator}</h3><img class='trend' alt='trend {tr.machine} "
-                     f"{tr.actuator}' src='data:image/png;base64,{png}'>")
-    parts.append("</body></html>")
-    out.write_text("\n".join(parts), encoding="utf-8")
+    out.write_text(render_page(
+        "fleet.html.j2", title="ddh-vsensor fleet report", store=store_summary,
+        tolerance_mm=tolerance_mm, horizon_days=horizon_days,
+        alarms=[[e["machine"], e["actuator"], e["cause"], _parameter(e),
+                 e["expected_error_mm"], e["projected_error_mm"], e.get("crossing"),
+                 (e["first_alarm"] or {}).get("date"), e["extension_file"]]
+                for e in alarms],
+        machines=[[e["machine"], e["actuator"], e["logs"], e["last_log"], e["cause"],
+                   _parameter(e), " .. ".join(f"{v:.4g}" for v in e.get("interval", [])),
+                   e["reference_error_mm"], e["expected_error_mm"], e["projected_error_mm"],
+                   "ALARM" if e["alarm"] else ""]
+                  for e in entries],
+        trends=[{"machine": tr.machine, "actuator": tr.actuator,
+                 "png": _figure(tr, tolerance_mm)} for tr in trends if tr.times_s]),
+        encoding="utf-8")
     data = {"tolerance_mm": tolerance_mm, "horizon_days": horizon_days, **store_summary,
             "units": entries}
     out.with_suffix(".json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")

@@ -1,11 +1,13 @@
-"""``ddh-vsensor config``: print, write, validate."""
+"""``ddh-vsensor config``: print, write, validate, export the JSON Schema."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from ddh_vsensor.cli.main import main
 from ddh_vsensor.config import DEFAULT_CONFIG
+from ddh_vsensor.config.jsonschema import json_schema
 
 
 def test_print_default_is_the_shipped_file(capsys) -> None:
@@ -41,3 +43,16 @@ def test_one_of_the_actions_is_required(capsys) -> None:
     with pytest.raises(SystemExit) as exit_:
         main(["config"])
     assert exit_.value.code == 2
+
+
+def test_json_schema_to_stdout_or_a_file(tmp_path: Path, capsys) -> None:
+    assert main(["config", "--json-schema"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json_schema() and printed["required"][:2] == ["oil", "hydraulics"]
+    out = tmp_path / "ddh-vsensor.schema.json"
+    assert main(["config", "--json-schema", str(out)]) == 0
+    assert capsys.readouterr().out.strip() == f"{out}: written"
+    assert json.loads(out.read_text()) == printed
+    assert main(["config", "--json-schema", str(tmp_path / "no" / "dir" / "s.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot write" in err[0]
