@@ -10,8 +10,17 @@
   degC, 500 kg paper cycles, dig-dump at speeds 2-3, four random cycles per temperature with
   0-1040 kg and 40 % of the moves into an end stop, seeds 401..), which checked the rules the
   first set had shown (README); ``--draw SEED`` a set designed for nothing, drawn from SEED.
+- ``--structure typical|double`` (only that set): the main sweep's runs on a plant whose
+  structure the estimator's model does not share (``sim.effects.STRUCTURE_TYPICAL``: orifice
+  and speed-dependent pump leakage, pressure-dependent seal friction, hose expansion and
+  entrained air, the drive's torque an estimate, the tank sensor lagging the pumps' oil),
+  every effect at its typical value or twice it (``none``: the nominal plant, for
+  comparison); the `dynamic` mode with and without references. Per unit and temperature:
+  the worst error and the share of samples published beyond their published uncertainty
+  with no flag set (a plain, trusted reading that is wrong by more than it says).
 Run: python bench/accuracy.py [--cycles 50] [--skip-sweep | --sweep-only] [--sweep main|check]
-     [--draw SEED]
+     [--draw SEED] [--structure none|typical|double [--structure-only EFFECT]
+     [--temps DEGC ...]]
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ from ddh_vsensor.estimator.accuracy import accuracy  # noqa: E402
 from ddh_vsensor.estimator.estimator import Estimator  # noqa: E402
 from ddh_vsensor.sim.control import PIDSettings  # noqa: E402
 from ddh_vsensor.sim.cycles import dig_dump_cycle, random_cycle  # noqa: E402
+from ddh_vsensor.sim.effects import NOMINAL, STRUCTURE_TYPICAL, structure_effects  # noqa: E402
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
@@ -219,6 +229,72 @@ def temperature_sweep(cfg, tables, figures: dict[str, object], which: str = "mai
         print(f"{temp:5g} {mode:8} {actuator:8} {worst:7.2f} {rms:7.2f}  {run}")
 
 
+STRUCTURE_SCALES = {"none": 0.0, "typical": 1.0, "double": 2.0}
+
+
+def structure_set(cfg, tables, figures: dict[str, object], level: str,
+                  temps_c: tuple[float, ...], only: str | None = None) -> None:
+    """The main sweep's runs with the structure effects at ``level`` on every unit (``only``:
+    that one of them): the `dynamic` mode's worst error and its unflagged excursions beyond
+    the uncertainty."""
+    scale = STRUCTURE_SCALES[level]
+    effects = structure_effects(scale) if scale else NOMINAL
+    if only is not None:
+        effects = dataclasses.replace(NOMINAL, **{only: getattr(effects, only)})
+    figures["structure_effects"] = effects.non_neutral()
+    rows = []
+    totals: dict[tuple[str, str], list[float]] = {}
+    for temp in temps_c:
+        t0 = time.perf_counter()
+        specs = [dataclasses.replace(s, effects={a: effects for a in cfg.unit_names})
+                 for s in sweep_specs(cfg, temp)]
+        runs = simulate_campaign(cfg, specs)
+        print(f"{temp:g} degC: simulated {len(specs)} runs in {time.perf_counter() - t0:.0f} s",
+              flush=True)
+        for refs in (False, True):
+            kind = "refs" if refs else "norefs"
+            for actuator in cfg.unit_names:
+                worst, worst_run, beyond, unflagged, count = 0.0, "", 0, 0, 0
+                for spec, run in zip(specs, runs):
+                    r = run[actuator]
+                    est = _estimate(cfg, tables, actuator, r, "dynamic", refs)
+                    err = np.abs(est.position_mm - r.position_mm)
+                    ok = np.isfinite(err)
+                    over = ok & (err > est.uncertainty_mm)
+                    beyond += int(over.sum())
+                    unflagged += int((over & (est.flags == 0)).sum())
+                    count += int(ok.sum())
+                    if np.max(err[ok]) > worst:
+                        worst = float(np.max(err[ok]))
+                        worst_run = (spec.cycle.name if not isinstance(spec.cycle, str)
+                                     else f"paper speed {spec.speed}") + \
+                            f" {spec.payload_kg:g} kg"
+                key = f"structure_{level}_{kind}_{actuator}_{temp:g}C"
+                figures[f"{key}_max_abs_error_mm"] = round(worst, 3)
+                figures[f"{key}_worst_run"] = worst_run
+                figures[f"{key}_beyond_uncertainty_share"] = round(beyond / count, 5)
+                figures[f"{key}_unflagged_beyond_uncertainty_share"] = round(
+                    unflagged / count, 5)
+                tot = totals.setdefault((kind, actuator), [0.0, 0, 0, 0])
+                tot[0] = max(tot[0], worst)
+                tot[1] += beyond
+                tot[2] += unflagged
+                tot[3] += count
+                rows.append((temp, kind, actuator, worst, beyond / count, unflagged / count,
+                             worst_run))
+    for (kind, actuator), (worst, beyond, unflagged, count) in totals.items():
+        key = f"structure_{level}_{kind}_{actuator}"
+        figures[f"{key}_max_abs_error_mm"] = round(worst, 3)
+        figures[f"{key}_beyond_uncertainty_share"] = round(beyond / count, 5)
+        figures[f"{key}_unflagged_beyond_uncertainty_share"] = round(unflagged / count, 5)
+        figures[f"{key}_samples"] = count
+    print(f"{'oil':>5} {'refs':6} {'actuator':8} {'max mm':>7} {'beyond':>7} "
+          f"{'unflagged':>9}  worst run")
+    for temp, kind, actuator, worst, beyond, unflagged, run in rows:
+        print(f"{temp:5g} {kind:6} {actuator:8} {worst:7.2f} {beyond:7.2%} {unflagged:9.2%}  "
+              f"{run}")
+
+
 def nominal_and_drift(cfg, tables, figures: dict[str, object], cycles: int) -> None:
     """The 27 degC table and the multi-cycle drift / references run."""
     t0 = time.perf_counter()
@@ -307,6 +383,14 @@ def main() -> None:
                         help="the simulator's integration step (default 1 ms); the torque "
                              "it logs is the one applied over the last step, half a step "
                              "behind the speed")
+    parser.add_argument("--structure", choices=tuple(STRUCTURE_SCALES), default=None,
+                        help="only the structure-mismatch set: the main sweep's runs with "
+                             "every structure effect at its typical value (or twice it; "
+                             "none: the nominal plant)")
+    parser.add_argument("--structure-only", choices=tuple(STRUCTURE_TYPICAL), default=None,
+                        metavar="EFFECT",
+                        help="with --structure: only this one of the structure effects "
+                             "(what each contributes)")
     args = parser.parse_args()
     if not (0.0 <= args.lost <= 0.5 and args.late_s >= 0.0 and args.jitter_s >= 0.0):
         parser.error("--lost 0..0.5, --late-s and --jitter-s >= 0")
@@ -332,6 +416,16 @@ def main() -> None:
             for name, unit in cfg.units.items()})
     tables = {a: build_unit_tables(cfg, a) for a in cfg.unit_names}
     figures: dict[str, object] = {}
+    if args.structure is not None:
+        if args.draw is not None or args.sweep != "main":
+            parser.error("--structure runs the main sweep's runs (no --draw, --sweep)")
+        structure_set(cfg, tables, figures, args.structure,
+                      tuple(args.temps) if args.temps else SWEEP_TEMPS_C, args.structure_only)
+        only = f"_{args.structure_only}" if args.structure_only else ""
+        publish(f"accuracy_structure_{args.structure}{only}", figures)
+        return
+    if args.structure_only is not None:
+        parser.error("--structure-only needs --structure")
     if not args.sweep_only:
         nominal_and_drift(cfg, tables, figures, args.cycles)
     if not args.skip_sweep:

@@ -47,6 +47,64 @@ Deviations the diagnosis' catalogue does not have (for testing it on the unknown
     A scored bore: over the middle third of the stroke the piston seal passes oil from the
     higher-pressure chamber to the other, linearly with the pressure difference and
     independent of the viscosity; elsewhere it seals.
+
+Plant structure the estimator's model does not share (:data:`STRUCTURE_TYPICAL` holds each
+at its typical value; every one is neutral at 0):
+
+``leak_orifice`` (% of the pumps' leakage at the rating point, 0..90, neutral 0, typical 30)
+    Part of each pump's leakage passes orifice-like paths (gear tip and side-plate gaps at
+    their narrowest, relief of the trapped volume) where the flow is turbulent:
+    q = k_lam dp / mu + k_orf sign(dp) sqrt(|dp|), the orifice part this share of the total
+    at the rating point (hydraulics' nominal pressure and viscosity), the total there
+    unchanged. Below the rating pressure the orifice part leaks more than laminar leakage
+    would, and it does not thin with temperature. Typical 30 %: a gear pump's leakage paths
+    are neither purely laminar nor purely turbulent (its volumetric efficiency falls less
+    with warm, thin oil than 1/mu predicts); about a third turbulent at the rating point is
+    taken as the middle of that mixed regime, not fitted to anything.
+``leak_speed`` (gain c, 0..2, neutral 0, typical 0.25)
+    Pump leakage grows with shaft speed: q_leak x (1 + c |n_pump| / n_rated) / (1 + c), the
+    rating speed's leakage unchanged, standstill's 1/(1 + c) of it. Typical 0.25: the
+    compression of the pump's trapped volumes alone loses ~dp n V_trapped / beta, about a
+    tenth of the leakage at the rating point (trapped ~0.3 x displacement, 250 bar over
+    1.6 GPa, against 5..7 % leakage); the gaps' flow dragged by the moving gears and the
+    shorter sealing time per tooth add to it, hence 0.2..0.3.
+``seal_friction`` (% friction coefficient, 0..20, neutral 0, typical 3)
+    The seals' friction rises with the pressure pressing their lips: the Coulomb and static
+    friction each gain mu_p (p_a A_a,ring + p_b A_b,ring), gauge pressures above zero, over
+    the seals' contact rings of width :data:`SEAL_CONTACT_M` (4 mm): the piston seal's on
+    the bore for both chambers, the rod seal's on the rod for B. Typical 3 %: lubricated
+    polyurethane and PTFE compound seals on honed or chromed steel run at friction
+    coefficients of a few percent under their contact pressure, which a chamber pressure
+    adds to; for the reference boom (2 x 114 mm bore) at its 60 bar holding pressure it is
+    ~0.5 kN, of the order of the configured Coulomb friction.
+``hose_expansion`` (% of the dead volume per 100 bar, 0..20, neutral 0, typical 1)
+    The dead volume (hoses and fittings between pumps and cylinder) expands with pressure:
+    a chamber's capacitance gains V_dead e_hose, i.e. 1/beta_eff = 1/beta_oil +
+    1/beta_hose with beta_hose = 100 bar / e over the dead volume, beyond what the
+    configured bulk modulus holds. Typical 1 %/100 bar (beta_hose = 1 GPa): wire-braided
+    high-pressure hose has an effective wall modulus of the order of 1 GPa (hydraulics texts
+    put a hose's effective bulk modulus well below the oil's 1.4..1.8 GPa; hose makers
+    publish the volumetric expansion for that reason). The pressure dependence of the
+    effective modulus is entrained air's (``compressibility``), which the structure set
+    turns on as well (typical 0.5 % at atmospheric pressure: a mobile machine's oil, well
+    below foaming).
+``torque_lag`` (ms, 0..50, neutral 0, typical 3), ``torque_ripple`` (% of the motor's
+torque limit, 0..20, neutral 0, typical 1) and ``torque_speed_offset`` (N*m at the speed
+limit, -20..20, neutral 0, typical 1.5)
+    The drive's torque is an estimate from its currents, not the shaft's torque. It trails
+    the shaft torque by a first-order lag (the estimate's filter: a few ms is typical of
+    a drive's reported torque, well above the ~0.2 ms of its current loop), carries ripple
+    with the rotor angle (:data:`RIPPLE_ORDER` per revolution: cogging and the current
+    ripple of a 4-pole-pair machine's 6th harmonic; 1 % of rated torque is a typical
+    permanent-magnet motor's, aliased to noise at the logger's rate), and includes the
+    motor's own losses (iron and windage) as an offset proportional to the speed, in the
+    direction of turning: 1.5 N*m at 6000 rpm is ~1 kW, typical of a 20..30 kW machine.
+``oil_temp_lag`` (s, 0..3600, neutral 0, typical 180)
+    The tank's temperature sensor reads the tank's mixed oil, which trails the oil the pumps
+    work (a DDH circuit exchanges only its leakage and the rod's volume with the tank): a
+    first-order lag, started in the steady state of the run's warm-up (the sensor
+    drift x tau below the pumps' oil). Typical 3 min: a few litres of circuit oil exchanged
+    at a few L/min, plus an immersion sensor's own tens of seconds.
 """
 
 from __future__ import annotations
@@ -55,9 +113,10 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import Callable, Iterable, Mapping, Sequence
 
+from ddh_vsensor.config import HydraulicsConfig
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.physics.unit import DDHUnit
-from ddh_vsensor.physics.conversions import BAR_PA, LPM_M3S
+from ddh_vsensor.physics.conversions import BAR_PA, CST_M2S, LPM_M3S
 from ddh_vsensor.physics.valves import ReliefValve
 from ddh_vsensor.sim.plant import RowSpec
 
@@ -100,7 +159,34 @@ EFFECTS: dict[str, EffectDef] = {e.name: e for e in (
               "0 <= % <= 20", "pumps fill short at speed: flow lost ~ speed squared"),
     EffectDef("bore_leak", "L/min at 100 bar", 0.0, lambda v: 0.0 <= v <= 20.0,
               "0 <= L/min <= 20", "the piston seal leaks over the middle third of the stroke"),
+    EffectDef("leak_orifice", "% at the rating point", 0.0, lambda v: 0.0 <= v <= 90.0,
+              "0 <= % <= 90", "share of the pumps' leakage through orifices (~ sqrt dp)"),
+    EffectDef("leak_speed", "gain", 0.0, lambda v: 0.0 <= v <= 2.0, "0 <= gain <= 2",
+              "pump leakage x (1 + gain |n| / n_rated) / (1 + gain)"),
+    EffectDef("seal_friction", "% of the pressure force on the seal rings", 0.0,
+              lambda v: 0.0 <= v <= 20.0, "0 <= % <= 20",
+              "seal friction rising with the chamber pressures"),
+    EffectDef("hose_expansion", "% of the dead volume per 100 bar", 0.0,
+              lambda v: 0.0 <= v <= 20.0, "0 <= % <= 20", "the hoses' walls expand with pressure"),
+    EffectDef("torque_lag", "ms", 0.0, lambda v: 0.0 <= v <= 50.0, "0 <= ms <= 50",
+              "the drive's torque trails the shaft's by a first-order lag"),
+    EffectDef("torque_ripple", "% of the torque limit", 0.0, lambda v: 0.0 <= v <= 20.0,
+              "0 <= % <= 20", "the drive's torque carries ripple with the rotor angle"),
+    EffectDef("torque_speed_offset", "N*m at the speed limit", 0.0,
+              lambda v: -20.0 <= v <= 20.0, "-20 <= N*m <= 20",
+              "the drive's torque includes the motor's speed-proportional losses"),
+    EffectDef("oil_temp_lag", "s", 0.0, lambda v: 0.0 <= v <= 3600.0, "0 <= s <= 3600",
+              "the tank sensor trails the pumps' oil by a first-order lag"),
 )}
+
+# The structure the estimator's model does not share, each effect at its typical value
+# (the module docstring argues each), entrained air included.
+STRUCTURE_TYPICAL: dict[str, float] = {
+    "leak_orifice": 30.0, "leak_speed": 0.25, "seal_friction": 3.0, "hose_expansion": 1.0,
+    "compressibility": 0.005, "torque_lag": 3.0, "torque_ripple": 1.0,
+    "torque_speed_offset": 1.5, "oil_temp_lag": 180.0}
+SEAL_CONTACT_M = 4.0e-3         # contact width of a compact piston or rod seal
+RIPPLE_ORDER = 24               # torque ripple periods per motor revolution
 
 VALVE_LEAK_OPEN_BAR = 40.0
 
@@ -122,26 +208,73 @@ class UnitEffects:
     valve_leak: float = 0.0
     pump_fill: float = 0.0
     bore_leak: float = 0.0
+    leak_orifice: float = 0.0
+    leak_speed: float = 0.0
+    seal_friction: float = 0.0
+    hose_expansion: float = 0.0
+    torque_lag: float = 0.0
+    torque_ripple: float = 0.0
+    torque_speed_offset: float = 0.0
+    oil_temp_lag: float = 0.0
 
     def non_neutral(self) -> dict[str, float]:
         return {f.name: getattr(self, f.name) for f in fields(self)
                 if getattr(self, f.name) != EFFECTS[f.name].neutral}
 
-    def row(self, unit: DDHUnit, payload_kg: float) -> RowSpec:
-        """The plant row of ``unit`` with these effects applied."""
+    def row(self, unit: DDHUnit, payload_kg: float,
+            hydraulics: HydraulicsConfig | None = None) -> RowSpec:
+        """The plant row of ``unit`` with these effects applied (``hydraulics``: the pumps'
+        rating point, which ``leak_orifice`` and ``leak_speed`` keep)."""
+        if (self.leak_orifice or self.leak_speed) and hydraulics is None:
+            raise ValueError("leak_orifice and leak_speed need the pumps' rating point")
         if self.pump_leakage != 1.0 or self.displacement != 1.0:
             unit = unit.with_pumps(leakage=self.pump_leakage, displacement=self.displacement)
+        orifice_a = orifice_b = 0.0
+        if self.leak_orifice:
+            # k_orf sqrt(dp_r) = share x the rating point's leakage k dp_r / mu_r
+            share = self.leak_orifice / 100.0
+            dp_r = hydraulics.nominal_pressure_bar * BAR_PA
+            t_r = unit.oil.temperature_at_viscosity_c(hydraulics.nominal_viscosity_cst)
+            mu_r = hydraulics.nominal_viscosity_cst * CST_M2S * float(unit.oil.density_kg_m3(t_r))
+            orifice_a, orifice_b = (share * s.pump.leak_coeff_m3 * math.sqrt(dp_r) / mu_r
+                                    for s in unit.sides)
+            unit = unit.with_pumps(leakage=1.0 - share)
         if self.valve_leak:
             seep = ReliefValve(VALVE_LEAK_OPEN_BAR * BAR_PA,
                                self.valve_leak * LPM_M3S / (100.0 * BAR_PA))
             unit = replace(unit, a=replace(unit.a, relief=seep), b=replace(unit.b, relief=seep))
+        seal_a, seal_b = seal_rings_m2(unit)
+        mu_p = self.seal_friction / 100.0
         return RowSpec(unit=unit, payload_kg=payload_kg, air_fraction=self.compressibility,
                        belt_slip_per_nm=self.belt_slip / 100.0 / 100.0,
                        fill_loss=self.pump_fill / 100.0,
-                       bore_leak_m3_s_pa=self.bore_leak * LPM_M3S / (100.0 * BAR_PA))
+                       bore_leak_m3_s_pa=self.bore_leak * LPM_M3S / (100.0 * BAR_PA),
+                       orifice_leak_a_m3_s_sqrt_pa=orifice_a,
+                       orifice_leak_b_m3_s_sqrt_pa=orifice_b,
+                       leak_speed_gain=self.leak_speed,
+                       leak_rated_pump_speed_rpm=(hydraulics.nominal_pump_speed_rpm
+                                                  if hydraulics else 1.0),
+                       seal_friction_a_n_per_pa=mu_p * seal_a,
+                       seal_friction_b_n_per_pa=mu_p * seal_b,
+                       hose_compliance_per_pa=self.hose_expansion / 100.0 / (100.0 * BAR_PA))
 
 
 NOMINAL = UnitEffects()
+
+
+def seal_rings_m2(unit: DDHUnit) -> tuple[float, float]:
+    """Contact areas the chamber pressures press seals onto (all cylinders): A's the piston
+    seal's on the bore, B's the piston seal's and the rod seal's."""
+    cyl = unit.cylinder
+    bore = math.sqrt(4.0 * cyl.area_a_m2 / (cyl.count * math.pi))
+    rod = math.sqrt(4.0 * max(cyl.area_a_m2 - cyl.area_b_m2, 0.0) / (cyl.count * math.pi))
+    ring = cyl.count * math.pi * SEAL_CONTACT_M
+    return ring * bore, ring * (bore + rod)
+
+
+def structure_effects(scale: float = 1.0) -> UnitEffects:
+    """Every unit's effects with the structure at ``scale`` x its typical values."""
+    return replace(NOMINAL, **{k: v * scale for k, v in STRUCTURE_TYPICAL.items()})
 
 
 def check_effect(name: str, value: float) -> float:

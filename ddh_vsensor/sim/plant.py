@@ -38,6 +38,18 @@ Effects that are plant changes enter per row: pump leakage and displacement thro
 ``DDHUnit`` (``unit.with_pumps``), entrained air through the effective bulk modulus
 (:func:`ddh_vsensor.physics.air.compliance`), belt slip as a speed-ratio drop proportional to |motor torque|
 (the torque of the previous step: slip is slow, this keeps the step linear).
+
+Plant structure the estimator's model does not share (``effects``: ``leak_orifice``,
+``leak_speed``, ``seal_friction``, ``hose_expansion``) enters the same way, each with its
+coefficient zero in a row that does not have it, so that row's arithmetic is the nominal one
+to the bit. The nonlinear parts are taken at the step's start (they move little within a
+step and the fixed point, the steady state, is exact):
+
+- pump leakage  q = [k_lam dp / mu + k_orf dp / sqrt(max(|dp|, p_t))] (b + s_pump |n|), the
+  orifice share's conductance at the start pressure (laminar below p_t = 1 bar, where a gap's
+  Reynolds number is low), the speed factor at the start speed;
+- seal friction F_c + F_p and F_s + F_p, F_p = c_a max(dp_a, 0) + c_b max(dp_b, 0);
+- hose wall compliance: a chamber's capacitance V/beta + V_dead e_hose (implicit, linear).
 """
 
 from __future__ import annotations
@@ -58,6 +70,7 @@ M_POS, M_NEG, M_STUCK, M_LIM_POS, M_LIM_NEG, M_SPEED = 1, -1, 0, 2, -2, 3
 MAX_ITERATIONS = 16
 AIR_PASSES = 8                     # secant bulk-modulus updates per step at most (with air)
 AIR_TOLERANCE_PA = 1.0             # ... until the pressures move less than this between them
+ORIFICE_LAMINAR_PA = 1.0e5         # below this an orifice leak path flows laminar (linear)
 # gain-table offset (direction * 4) of each motor state + 2: -2, -1 -> negative; 0 -> standstill;
 # 1, 2 -> positive; 3 (speed mode) is looked up from the command's sign instead
 _DIRECTION4 = np.array([0, 0, 4, 8, 8, 4], dtype=np.int64)
@@ -73,6 +86,16 @@ class RowSpec:
     belt_slip_per_nm: float = 0.0   # fractional speed-ratio drop per N*m of |motor torque|
     fill_loss: float = 0.0          # share of the flow lost at the speed limit (~ speed^2)
     bore_leak_m3_s_pa: float = 0.0  # A -> B across the piston in the stroke's middle third
+    # orifice (turbulent) leakage of each side's pumps, q = k sign(dp) sqrt(|dp|)
+    orifice_leak_a_m3_s_sqrt_pa: float = 0.0
+    orifice_leak_b_m3_s_sqrt_pa: float = 0.0
+    # leakage x (1 + gain |n_pump| / rated) / (1 + gain): the rating point's leakage kept
+    leak_speed_gain: float = 0.0
+    leak_rated_pump_speed_rpm: float = 1.0
+    # seal friction per pascal of each chamber's (positive) gauge pressure, N/Pa
+    seal_friction_a_n_per_pa: float = 0.0
+    seal_friction_b_n_per_pa: float = 0.0
+    hose_compliance_per_pa: float = 0.0   # hoses' (dead volume's) wall expansion dV/V per Pa
 
 
 class Plant:
@@ -119,6 +142,23 @@ class Plant:
         self.has_fill = bool(np.any(self.fill > 0.0))
         self.bore_leak = col(lambda r: r.bore_leak_m3_s_pa)
         self.has_bore_leak = bool(np.any(self.bore_leak > 0.0))
+        self.orifice_a = col(lambda r: r.orifice_leak_a_m3_s_sqrt_pa)
+        self.orifice_b = col(lambda r: r.orifice_leak_b_m3_s_sqrt_pa)
+        gain = col(lambda r: r.leak_speed_gain)
+        rated = col(lambda r: r.leak_rated_pump_speed_rpm)
+        self.has_leak_shape = bool(np.any(self.orifice_a > 0.0) or np.any(self.orifice_b > 0.0)
+                                   or np.any(gain > 0.0))
+        # leakage factor base + slope |n| per side, 1 and 0 without the effect
+        self.leak_base = 1.0 / (1.0 + gain)
+        self.leak_slope_a = col(lambda r: abs(u(r).a.pump.speed_ratio)) * gain / rated \
+            * self.leak_base
+        self.leak_slope_b = col(lambda r: abs(u(r).b.pump.speed_ratio)) * gain / rated \
+            * self.leak_base
+        self.seal_a = col(lambda r: r.seal_friction_a_n_per_pa)
+        self.seal_b = col(lambda r: r.seal_friction_b_n_per_pa)
+        self.has_seal = bool(np.any(self.seal_a > 0.0) or np.any(self.seal_b > 0.0))
+        self.hose = col(lambda r: r.hose_compliance_per_pa)
+        self.has_hose = bool(np.any(self.hose > 0.0))
         # pump flow per motor rpm, signed into the chamber; leakage coefficient (m^3)
         self.q_a = col(lambda r: u(r).a.pump.geometric_flow_m3_s(1.0))
         self.q_b = col(lambda r: u(r).b.pump.geometric_flow_m3_s(1.0))
@@ -169,6 +209,8 @@ class Plant:
         self._nha, self._hb = -h * self.area_a, h * self.area_b
         self._inv_beta = 1.0 / self.beta_oil
         self._h_leak_a, self._h_leak_b = h * self.leak_a, h * self.leak_b
+        self._h_orifice_a, self._h_orifice_b = h * self.orifice_a, h * self.orifice_b
+        self._hose_c = self.dead * self.hose          # m^3/Pa of wall expansion per side
         self._mu = None
         self._jp = self.inertia * RPM_RAD_S / h      # N*m per rpm of speed change in a step
         self._mp = self.mass / h
@@ -222,6 +264,27 @@ class Plant:
         self.regime_b = self._regime(self.dp_b, self.crack_b, self.relief_b)
         self.torque = self.pump_torque(self.dp_a, self.dp_b, self.n)
 
+    def _capacitances(self, va: np.ndarray, vb: np.ndarray, inv_ba: np.ndarray,
+                      inv_bb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Oil taken in per pascal by each chamber: the oil's (and air's) compression, plus
+        the hoses' wall expansion."""
+        ca, cb = va * inv_ba, vb * inv_bb
+        if self.has_hose:
+            ca, cb = ca + self._hose_c, cb + self._hose_c
+        return ca, cb
+
+    def _leak_conductances(self, pa0: np.ndarray, pb0: np.ndarray, n0: np.ndarray,
+                           mu_pa_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """h x the leakage conductance per side (m^3/Pa) with an orifice share and speed
+        dependence, both taken at the step's start."""
+        ga = (self._h_leak_a / mu_pa_s + self._h_orifice_a
+              / np.sqrt(np.maximum(np.abs(pa0), ORIFICE_LAMINAR_PA)))
+        gb = (self._h_leak_b / mu_pa_s + self._h_orifice_b
+              / np.sqrt(np.maximum(np.abs(pb0), ORIFICE_LAMINAR_PA)))
+        speed = np.abs(n0)
+        return (ga * (self.leak_base + self.leak_slope_a * speed),
+                gb * (self.leak_base + self.leak_slope_b * speed))
+
     def _air_only(self, inv_beta: np.ndarray) -> np.ndarray:
         """Rows without air keep exactly 1/beta_oil (results independent of the batch)."""
         return np.where(self.air > 0.0, inv_beta, self._inv_beta)
@@ -252,6 +315,8 @@ class Plant:
             self._mu = mu_pa_s
             self._ga, self._gb = self._h_leak_a / mu_pa_s, self._h_leak_b / mu_pa_s
         ga, gb = self._ga, self._gb
+        if self.has_leak_shape:
+            ga, gb = self._leak_conductances(pa0, pb0, n0, mu_pa_s)
         qa, qb = self._hq_a, self._hq_b
         if self.has_slip:
             ratio = np.maximum(1.0 - self.slip * np.abs(self.torque), 0.0)
@@ -266,13 +331,17 @@ class Plant:
                                                          self.reservoir))
         else:
             inv_ba = inv_bb = self._inv_beta
-        ca, cb = va * inv_ba, vb * inv_bb
+        ca, cb = self._capacitances(va, vb, inv_ba, inv_bb)
         gca, gcb = ca + ga, cb + gb
         cross = 0.0                                # oil passing the piston (m^3), explicit
         if self.has_bore_leak:                     # (slow next to the step)
             scored = np.abs(x / self.stroke - 0.5) < 1.0 / 6.0
             cross = np.where(scored, h * self.bore_leak * (pa0 - pb0), 0.0)
         cpa, cpb = ca * pa0 - cross, cb * pb0 + cross
+        f_coulomb, f_static = self.f_coulomb, self.f_static
+        if self.has_seal:                          # seals pressed by the start pressures
+            seal = (self.seal_a * np.maximum(pa0, 0.0) + self.seal_b * np.maximum(pb0, 0.0))
+            f_coulomb, f_static = f_coulomb + seal, f_static + seal
         jp = self._jp
         area_a, area_b = self.area_a, self.area_b
         psi = tau + jp * n0                        # torque the pump must take at n = 0
@@ -315,7 +384,7 @@ class Plant:
                 r1 = np.where(torque_mode, r1, n_fix)
             m21 = area_b * a_b - area_a * a_a
             m22 = self._mpc + area_b * b_b - area_a * b_a
-            r2 = inertia_force - mf * self.f_coulomb + area_a * al_a - area_b * al_b
+            r2 = inertia_force - mf * f_coulomb + area_a * al_a - area_b * al_b
             if not all_moving:
                 m21 = np.where(moving, m21, 0.0)
                 m22 = np.where(moving, m22, 1.0)
@@ -338,8 +407,8 @@ class Plant:
             stuck = mf == F_STUCK
             if not all_moving:
                 force0 = inertia_force + area_a * pa - area_b * pb
-                f_hi = np.where(x >= self.stroke, np.inf, self.f_static)   # an end stop
-                f_lo = np.where(x <= 0.0, -np.inf, -self.f_static)         # takes any force
+                f_hi = np.where(x >= self.stroke, np.inf, f_static)   # an end stop
+                f_lo = np.where(x <= 0.0, -np.inf, -f_static)         # takes any force
                 bad |= stuck & ((force0 > f_hi) | (force0 < f_lo))
             other_motor = (not all_torque) and bool(((mm != M_SPEED) & ~torque_mode).any())
             if other_motor:
@@ -360,7 +429,7 @@ class Plant:
                         pa0, pa, self.air, self.beta_oil, self.reservoir))
                     inv_bb = self._air_only(secant_compliance(
                         pb0, pb, self.air, self.beta_oil, self.reservoir))
-                    ca, cb = va * inv_ba, vb * inv_bb
+                    ca, cb = self._capacitances(va, vb, inv_ba, inv_bb)
                     gca, gcb = ca + ga, cb + gb
                     cpa, cpb = ca * pa0 - cross, cb * pb0 + cross
                     air_passes -= 1

@@ -98,7 +98,7 @@ def _prepare(cfg: Config, spec: RunSpec) -> _Prepared:
     rows = {}
     for a in cfg.unit_names:
         unit = DDHUnit.from_config(cfg, a)
-        row = effects[a].row(unit, spec.payload_kg)
+        row = effects[a].row(unit, spec.payload_kg, cfg.hydraulics)
         force = unit.load_force_n(spec.payload_kg)
         try:
             speed = holding_speed(row.unit, force, spec.oil_temp_c).speed_rpm

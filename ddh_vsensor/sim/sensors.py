@@ -21,14 +21,23 @@ interpolation between samples), i.e. they lag the logged position; the torque re
 ``torque_gain`` x true + ``torque_offset``, the oil temperature true + ``oil_temp_offset``,
 the draw-wire ``position_scale`` x true + ``position_offset`` (the Hall switches see the
 true position).
+
+The drive's torque is an estimate, not the shaft's torque (``torque_lag``, ``torque_ripple``,
+``torque_speed_offset``): a first-order lag of the shaft torque, plus ripple with the rotor
+angle (``effects.RIPPLE_ORDER`` periods per revolution), plus the motor's own losses
+proportional to speed; the logging effects above then apply to that estimate. The tank's
+temperature sensor (``oil_temp_lag``) is a first-order lag of the pumps' oil, started in the
+steady state of the run's warm-up. Both lags take the signal linear between samples.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.signal import lfilter
 
 from ddh_vsensor.config import UnitConfig
 from ddh_vsensor.measured import Run
@@ -114,6 +123,49 @@ def lagged(time_s: np.ndarray, signal: np.ndarray, lag_s: float) -> np.ndarray:
     return np.interp(time_s - lag_s, time_s, signal)
 
 
+def first_order_lag(time_s: np.ndarray, signal: np.ndarray, tau_s: float,
+                    start_slope_per_s: float = 0.0) -> np.ndarray:
+    """y' = (u - y) / tau for u linear between the (evenly spaced) samples, exactly; y starts
+    settled on a ramp of ``start_slope_per_s`` (tau x slope below u; 0: at u)."""
+    u = np.asarray(signal, dtype=float)
+    if tau_s == 0.0 or len(u) < 2:
+        return u
+    dt = np.diff(time_s)
+    if np.ptp(dt) > 1e-9 * dt[0]:
+        raise ValueError("first_order_lag needs evenly spaced samples")
+    a = math.exp(-float(dt[0]) / tau_s)
+    # e = y - u: e_{k+1} = a e_k - (1 - a) tau (u_{k+1} - u_k) / dt
+    e0 = -tau_s * start_slope_per_s
+    drive = -(1.0 - a) * tau_s * np.diff(u) / dt[0]
+    e = lfilter([1.0], [1.0, -a], drive, zi=[a * e0])[0]
+    return u + np.concatenate(([e0], e))
+
+
+def drive_torque(time_s: np.ndarray, torque_nm: np.ndarray, speed_rpm: np.ndarray,
+                 unit_cfg: UnitConfig, e: UnitEffects) -> np.ndarray:
+    """The drive's torque estimate of the shaft torque (the true one without the effects)."""
+    if not (e.torque_lag or e.torque_ripple or e.torque_speed_offset):
+        return torque_nm
+    from ddh_vsensor.sim.effects import RIPPLE_ORDER
+    out = first_order_lag(time_s, torque_nm, e.torque_lag * 1e-3)
+    if e.torque_ripple:
+        revs = np.concatenate(([0.0], np.cumsum(0.5 * (speed_rpm[1:] + speed_rpm[:-1])
+                                               * np.diff(time_s)))) / 60.0
+        out = out + (e.torque_ripple / 100.0 * unit_cfg.motor.torque_limit_nm
+                     * np.sin(2.0 * math.pi * RIPPLE_ORDER * revs))
+    if e.torque_speed_offset:
+        out = out + e.torque_speed_offset * speed_rpm / unit_cfg.motor.speed_limit_rpm
+    return out
+
+
+def tank_temperature(time_s: np.ndarray, oil_temp_c: np.ndarray, lag_s: float) -> np.ndarray:
+    """The tank sensor's reading of the pumps' oil: lagging it, settled on its warm-up."""
+    if lag_s == 0.0 or len(time_s) < 2:
+        return oil_temp_c
+    slope = (oil_temp_c[1] - oil_temp_c[0]) / (time_s[1] - time_s[0])
+    return first_order_lag(time_s, oil_temp_c, lag_s, slope)
+
+
 def measure(truth: Truth, unit_cfg: UnitConfig, settings: SensorSettings,
             rng: np.random.Generator, position_step_mm: float,
             chain: "UnitEffects | None" = None, comments: list[str] | None = None,
@@ -123,7 +175,8 @@ def measure(truth: Truth, unit_cfg: UnitConfig, settings: SensorSettings,
     e = chain or NOMINAL
     t = truth.time_s
     speed = quantise(lagged(t, truth.speed_rpm, e.time_offset), settings.speed_step_rpm)
-    torque = quantise(e.torque_gain * lagged(t, truth.torque_nm, e.time_offset)
+    drive = drive_torque(t, truth.torque_nm, truth.speed_rpm, unit_cfg, e)
+    torque = quantise(e.torque_gain * lagged(t, drive, e.time_offset)
                       + e.torque_offset, settings.torque_step_nm)
     x_mm = truth.x_m * 1e3
     noise = rng.standard_normal(len(t)) * settings.position_noise_mm
@@ -136,7 +189,7 @@ def measure(truth: Truth, unit_cfg: UnitConfig, settings: SensorSettings,
     p_a = quantise((truth.dp_a_pa + truth.reservoir_pa) / BAR_PA, settings.pressure_step_bar)
     p_b = quantise((truth.dp_b_pa + truth.reservoir_pa) / BAR_PA, settings.pressure_step_bar)
     return Run(time_s=t_out, speed_rpm=speed, torque_nm=torque,
-               oil_temp_c=quantise(truth.oil_temp_c + e.oil_temp_offset,
-                                   settings.oil_temp_step_c),
+               oil_temp_c=quantise(tank_temperature(t, truth.oil_temp_c, e.oil_temp_lag)
+                                   + e.oil_temp_offset, settings.oil_temp_step_c),
                position_mm=position, p_a_bar=p_a, p_b_bar=p_b, refs=refs,
                comments=list(comments or []), source=source, ref_edge_s=edges)

@@ -138,7 +138,9 @@ def test_same_effect_twice_is_an_error():
     assert set(EFFECTS) == {"pump_leakage", "compressibility", "belt_slip", "displacement",
                             "time_offset", "oil_temp_offset", "torque_gain", "torque_offset",
                             "position_scale", "position_offset", "valve_leak",
-                            "pump_fill", "bore_leak"}
+                            "pump_fill", "bore_leak", "leak_orifice", "leak_speed",
+                            "seal_friction", "hose_expansion", "torque_lag", "torque_ripple",
+                            "torque_speed_offset", "oil_temp_lag"}
 
 
 def test_measurement_chain_effects_change_the_log_not_the_plant(runs):
