@@ -1,12 +1,14 @@
 """Output files that are either wholly old or wholly new: write a temp file beside the target,
 fsync, rename over it, fsync the directory. A crash or power cut mid-write leaves the old
 file, and a kill may leave a temp file behind: :func:`remove_temp_files` clears those at the
-next start. Also the output directories they go into."""
+next start. Also the checks that an output directory or file can be written, made before
+the work that produces it."""
 
 from __future__ import annotations
 
 import glob
 import os
+import tempfile
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -75,11 +77,51 @@ def atomic_write(path: str | Path, mode: str = "w") -> Iterator[IO]:
             yield fh
 
 
-def output_dir(path: str | Path, what: str = "output directory") -> Path:
-    """Create a directory for output (early, so a bad path fails before long work)."""
+def _probe(directory: Path, out: Path, what: str) -> None:
+    """Create and delete a file in ``directory``: the only sure test that writing there
+    works (permissions, read-only mounts, root's override of mode bits)."""
+    try:
+        tempfile.TemporaryFile(dir=directory, prefix=".ddh-vsensor-probe-").close()
+    except OSError as exc:
+        raise UserError(f"{out}: cannot write the {what} in {directory}: "
+                        f"{exc.strerror or exc}") from None
+
+
+def output_dir(path: str | Path, what: str = "output directory", create: bool = True) -> Path:
+    """Create a directory for output and check it can be written (early, so a bad path
+    fails before long work). ``create=False`` checks only, where a later check of the other
+    inputs must leave nothing behind: the directory, or the nearest part of its path that
+    exists, takes new files."""
     out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: cannot create the {what}: a file of that name exists")
+    if not create:
+        base = next(p for p in (out, *out.absolute().parents) if p.exists())
+        if not base.is_dir():
+            raise UserError(f"{out}: cannot create the {what}: {base} is a file")
+        _probe(base, out, what)
+        return out
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"{out}: cannot create the {what}: {exc.strerror or exc}") from None
+    _probe(out, out, what)
+    return out
+
+
+def output_file(path: str | Path, what: str = "output file",
+                suffixes: tuple[str, ...] = ()) -> Path:
+    """Check that ``path`` can be written before the work that produces it: a known
+    extension (``suffixes``, lower case with the dot, when the writer picks the format by
+    it), not a directory, in an existing directory that takes new files."""
+    out = Path(path)
+    if suffixes and out.suffix.lower() not in suffixes:
+        raise UserError(f"{out}: cannot write the {what}: its extension must be one of "
+                        f"{', '.join(suffixes)} (not {out.suffix or 'none'})")
+    if out.is_dir():
+        raise UserError(f"{out}: cannot write the {what}: a directory of that name exists")
+    parent = out.parent
+    if not parent.is_dir():
+        raise UserError(f"{out}: cannot write the {what}: no directory {parent}")
+    _probe(parent, out, what)
     return out

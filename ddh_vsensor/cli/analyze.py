@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from ddh_vsensor.atomic import output_dir
 from ddh_vsensor.cli.common import add_actuator_arg, add_config_arg, config_from
 from ddh_vsensor.cli.progress import ProgressBar
 
@@ -53,6 +54,7 @@ def _run(args: argparse.Namespace) -> int:
         from ddh_vsensor.cli.analyze_references import lacks_position, read_any, run_references
         raw = [read_any(path, args.actuator, cfg) for path in args.runs]
         if args.truth == "references" or lacks_position(raw):
+            output_dir(args.report, "report directory")
             return run_references(args, cfg, mode, raw)
     runs = [load_analysis_run(path, args.actuator, cfg) for path in args.runs]
     prepare_report_dir(args.report)

@@ -15,7 +15,7 @@ from ddh_vsensor.cli.progress import ProgressBar
 def read_any(path: str, actuator: str, cfg: Config) -> Run:
     """A CSV of the measured-data format or a CAN log, position optional."""
     if path.lower().endswith(".csv"):
-        return read_csv(path)
+        return read_csv(path, actuator=actuator)
     from ddh_vsensor.io.log import read_can_log
     return read_can_log(path, actuator, cfg)
 

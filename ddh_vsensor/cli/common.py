@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-
+from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ddh_vsensor.atomic import output_file
 from ddh_vsensor.config import Config, load_config
 
 if TYPE_CHECKING:
@@ -29,6 +30,14 @@ def config_from(args: argparse.Namespace) -> Config:
     if getattr(args, "actuator", None) is not None:
         cfg.require_unit(args.actuator)
     return cfg
+
+
+def figure_path(path: str, what: str = "figure") -> Path:
+    """A figure's output path, checked before the work: writable, and an extension
+    matplotlib writes (it picks the format by it)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+    suffixes = tuple(sorted(f".{s}" for s in FigureCanvasBase.get_supported_filetypes()))
+    return output_file(path, what, suffixes)
 
 
 def load_tables_for(args: argparse.Namespace, cfg: Config, actuator: str) -> "UnitTables":

@@ -6,7 +6,7 @@ import argparse
 
 import cantools
 
-from ddh_vsensor.atomic import atomic_path
+from ddh_vsensor.atomic import atomic_path, output_file
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.cli.common import add_config_arg, config_from
 
@@ -26,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from ddh_vsensor.canbus.layout import machine_database
     cfg = config_from(args)
+    output_file(args.out, "DBC")
     db = machine_database(cfg)
     try:
         with atomic_path(args.out) as tmp:

@@ -16,14 +16,18 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import dataclasses
+import logging
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
+from ddh_vsensor.atomic import output_dir, output_file
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.cli.common import add_config_arg, add_extension_arg, config_from, extensions_from
 
@@ -66,6 +70,7 @@ class _Pairing:
     times: np.ndarray          # log time of each Sevcon frame of the unit, in send order
     truth_t: np.ndarray
     truth_mm: np.ndarray
+    skip: int = 0              # Sevcon frames of the standing machine before the cycle
     pending_mm: float | None = None
     received: int = 0          # unwrapped diag input counter
     last_raw: int = 0
@@ -77,13 +82,15 @@ class _Pairing:
 
     def on_diag(self, input_frames: int, uncertainty_mm: float
                 ) -> tuple[float, float, float] | None:
-        """Pair the pending position with the truth; (log time, published, true)."""
+        """Pair the pending position with the truth; (log time, published, true). Only
+        values that include a Sevcon frame of the cycle count: not those of the standing
+        machine before it (commissioning) or after it (the service stopping)."""
         self.received += (input_frames - self.last_raw) % 0x10000
         self.last_raw = input_frames
-        if self.pending_mm is None or self.received == 0:
+        n = self.received - self.skip
+        if self.pending_mm is None or not 1 <= n <= len(self.times):
             return None
-        k = min(self.received, len(self.times)) - 1
-        t = float(self.times[k])
+        t = float(self.times[n - 1])
         true_mm = float(np.interp(t, self.truth_t, self.truth_mm))
         est, self.pending_mm = self.pending_mm, None
         self.errors.append((t, est - true_mm))
@@ -101,8 +108,11 @@ def _run(args: argparse.Namespace) -> int:
         raise UserError(f"--rate {args.rate}: outside 0.05..1000")
     if not 1 <= args.cycles <= 100:
         raise UserError(f"--cycles {args.cycles}: outside 1..100")
-    if not args.no_figure and not args.figure.lower().endswith(".png"):
-        raise UserError(f"--figure {args.figure}: a .png file name")
+    if not args.no_figure:
+        if Path(args.figure).suffix.lower() != ".png":
+            raise UserError(f"--figure {args.figure}: a .png file name")
+        output_dir(Path(args.figure).parent, "figure's directory")
+        output_file(args.figure, "figure")
     cfg = config_from(args)
     extensions = extensions_from(args, cfg)
     spec = RunSpec(speed=args.speed, cycles=args.cycles, payload_kg=args.payload_kg,
@@ -125,16 +135,26 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def write_figure(pairing: dict[str, "_Pairing"], truths: dict, path: str) -> Path:
-    """The paper's Figures 6/8 for each cylinder: true and published position (left), their
-    difference with the published uncertainty (right)."""
+    """The paper's Figures 6/8 for each cylinder (:func:`figure`) as a PNG."""
+    import matplotlib.pyplot as plt
+    out = Path(path)
+    fig = figure(pairing, truths)
+    try:
+        fig.savefig(out, dpi=110)
+    except OSError as exc:
+        raise UserError(f"--figure {path}: {exc.strerror or exc}") from None
+    finally:
+        plt.close(fig)
+    return out
+
+
+def figure(pairing: dict[str, "_Pairing"], truths: dict):
+    """True and published position (left), their difference with the published
+    uncertainty (right), per cylinder. The difference's axis is scaled to the difference:
+    the band shows where the uncertainty lies within it, a wider one fills the panel."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    out = Path(path)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"--figure {path}: {exc.strerror or exc}") from None
     fig, axes = plt.subplots(len(pairing), 2, figsize=(12, 3.8 * len(pairing)), squeeze=False)
     for (actuator, p), (left, right) in zip(pairing.items(), axes):
         truth = truths[actuator]
@@ -146,6 +166,8 @@ def write_figure(pairing: dict[str, "_Pairing"], truths: dict, path: str) -> Pat
             right.plot(t, est - true, color="tab:blue", lw=1.0, label="published − true")
             right.fill_between(t, -u, u, color="tab:blue", alpha=0.12,
                                label="± published uncertainty")
+            span_mm = max(float(np.max(np.abs(est - true))), 0.01)
+            right.set_ylim(-1.5 * span_mm, 1.5 * span_mm)
         left.set_ylabel(f"{actuator} position (mm)")
         right.set_ylabel(f"{actuator} difference (mm)")
         for ax in (left, right):
@@ -154,13 +176,7 @@ def write_figure(pairing: dict[str, "_Pairing"], truths: dict, path: str) -> Pat
             ax.legend(loc="best", fontsize="small")
     fig.suptitle("ddh-vsensor demo: the machine's work cycle, the service's output on the bus")
     fig.tight_layout()
-    try:
-        fig.savefig(out, dpi=110)
-    except OSError as exc:
-        raise UserError(f"--figure {path}: {exc.strerror or exc}") from None
-    finally:
-        plt.close(fig)
-    return out
+    return fig
 
 
 async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
@@ -170,7 +186,6 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
     from ddh_vsensor.canbus.dbc import FrameCodec, message_name
     from ddh_vsensor.config import DEFAULT_BUS
     from ddh_vsensor.service import Service, ServiceOptions
-    from ddh_vsensor.master.client import sdo_network
     from ddh_vsensor.master.replay import replay
     from ddh_vsensor.master.watch import OutputWatcher, flag_text
     from ddh_vsensor.tables.build import build_unit_tables
@@ -194,15 +209,38 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
     watcher = OutputWatcher(cfg, codec)
     view = _View(sys.stdout)
     log_end = frames[-1].timestamp
+    stand: _Standing | None = None
+    standing: asyncio.Task | None = None
+    last_stamp = [0.0]
     try:
-        await service.start()
+        # The service opens its bus in start() and reports there that nothing came yet
+        # (READY without inputs): true of every start, no news in a demo whose machine
+        # starts sending in the same instant. Its later warnings all show.
+        with _quiet(logging.getLogger("ddh_vsensor.service")):
+            await service.start()
+        # The machine stands in its first state (a first round of its frames before the
+        # service's first tick) while the service is commissioned, and in its last one
+        # while the service stops: inputs never stop under a running service.
+        stand = _Standing(machine, frames, True, time.time(), 1.0)
+        stand.send_due()
+        standing = asyncio.get_running_loop().create_task(stand.run())
         # Commissioning over SDO, from a master node on the bus: true start positions as
-        # presets, and the diagnostic frame every position frame.
-        with sdo_network(master) as network:
-            await asyncio.get_running_loop().run_in_executor(
-                None, _commission, network, cfg, truths)
+        # presets, and the diagnostic frame every position frame. All of it in a thread:
+        # closing the network joins its reader, which must not stall the standing machine.
+        await asyncio.get_running_loop().run_in_executor(None, _commission, master, cfg,
+                                                         truths)
+        stand.stop.set()
+        await standing
+        for a, p in pairing.items():
+            p.skip = stand.sent.get(codec.ids[message_name("sevcon", a)], 0)
+        # the cycle starts once the service has taken in the standing machine's last frames
+        deadline_s = time.monotonic() + 1.0
+        while time.monotonic() < deadline_s and any(
+                service.inputs.units[a].received < p.skip for a, p in pairing.items()):
+            await asyncio.sleep(0.001)
         now_log = [0.0]
-        latest: dict[str, tuple[float, float, float]] = {}
+        # per unit the last paired value: log time, published, true, uncertainty, flags
+        latest: dict[str, tuple[float, float, float, float, int]] = {}
         done = asyncio.Event()
 
         async def show() -> None:
@@ -219,17 +257,17 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
                     elif what == "diag":
                         paired = pairing[actuator].on_diag(r.input_frames, r.uncertainty_mm)
                         if paired is not None:
-                            latest[actuator] = paired
+                            latest[actuator] = (*paired, r.uncertainty_mm, r.flags)
                 lines = []
                 for a in cfg.can.units:
-                    r = watcher.readings[a]
-                    if a not in latest or r.uncertainty_mm is None:
+                    # the view ends with the cycle's last sample, not the standing after it
+                    if a not in latest:
                         lines.append(f"  {a:<6}  waiting for the sensor's frames")
                         continue
-                    t, est, true = latest[a]
+                    _t, est, true, u, flags = latest[a]
                     lines.append(f"  {a:<6} true {true:7.1f} mm   estimated {est:7.1f} mm   "
-                                 f"error {est - true:+6.2f} mm   +-{r.uncertainty_mm:5.2f} mm  "
-                                 f"[{flag_text(r.flags)}]")
+                                 f"error {est - true:+6.2f} mm   +-{u:5.2f} mm  "
+                                 f"[{flag_text(flags)}]")
                 header = f"  t = {now_log[0]:5.1f} s of {log_end:.1f} s (x{rate:g})"
                 if view.tty or now_log[0] >= next_block or done.is_set():
                     view.show([header, *lines])
@@ -243,30 +281,98 @@ async def _demo(cfg, frames: list, truths: dict, rate: float, extensions: dict
         def progress(t: float) -> None:
             now_log[0] = t
 
-        stats = await replay(frames, lambda m: machine.send(m), rate=rate, stamp="log",
-                             progress=progress)
-        await asyncio.sleep(1.5 * service.ticker.period_s)    # the last tick, not yet stale
+        def send(msg: can.Message) -> None:
+            last_stamp[0] = msg.timestamp
+            machine.send(msg)
+
+        stats = await replay(frames, send, rate=rate, stamp="log", progress=progress)
+        stand = _Standing(machine, frames, False, last_stamp[0], rate)
+        standing = asyncio.get_running_loop().create_task(stand.run())
+        await asyncio.sleep(3 * service.ticker.period_s)      # the cycle's last values out
         done.set()
         await viewer
     finally:
         await service.shutdown()
+        if stand is not None and standing is not None:
+            stand.stop.set()
+            await standing
         for bus in (machine, listener, master):
             bus.shutdown()
     _summary(cfg, service, pairing, stats, sevcon_ids)
     return pairing
 
 
-def _commission(network, cfg, truths: dict) -> None:
+@contextlib.contextmanager
+def _quiet(logger: logging.Logger):
+    """``logger`` and its children log errors only, within the block."""
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+class _Standing:
+    """The machine standing in the cycle's first (or last) state: the frame of each ID that
+    the cycle sends first (last), each at its own period in the log (Sevcon and oil every
+    10 ms, heartbeats every 100 ms ...), stamped on from ``stamp_s`` in log time, which runs
+    ``rate`` times the wall clock."""
+
+    def __init__(self, bus, frames: list, first: bool, stamp_s: float, rate: float) -> None:
+        times: dict[int, list[float]] = {}
+        for msg in frames:
+            times.setdefault(msg.arbitration_id, []).append(msg.timestamp)
+        chosen: dict[int, object] = {}
+        for msg in frames if first else reversed(frames):
+            chosen.setdefault(msg.arbitration_id, msg)
+        self.bus, self.rate = bus, rate
+        self.frames = list(chosen.values())
+        self.period_s = {i: float(np.median(np.diff(t))) if len(t) > 1 else 0.1
+                         for i, t in times.items()}
+        # before the cycle from ``stamp_s`` on; after it, one period after its last frame
+        self.due_s = {i: stamp_s + (0.0 if first else self.period_s[i]) for i in chosen}
+        self.stamp_s = stamp_s
+        self.sent: dict[int, int] = {}
+        self.stop = asyncio.Event()
+
+    def send_due(self) -> None:
+        import can
+        for msg in self.frames:
+            i = msg.arbitration_id
+            while self.due_s[i] <= self.stamp_s:
+                self.sent[i] = self.sent.get(i, 0) + 1
+                self.bus.send(can.Message(timestamp=self.due_s[i], arbitration_id=i,
+                                          is_extended_id=msg.is_extended_id, dlc=msg.dlc,
+                                          data=msg.data))
+                self.due_s[i] += self.period_s[i]
+
+    async def run(self) -> None:
+        """Until :attr:`stop`: the due frames every millisecond of wall time."""
+        wall_s = time.monotonic()
+        while not self.stop.is_set():
+            self.send_due()
+            try:
+                await asyncio.wait_for(self.stop.wait(), 0.001)
+            except asyncio.TimeoutError:
+                pass
+            now = time.monotonic()
+            self.stamp_s += (now - wall_s) * self.rate
+            wall_s = now
+
+
+def _commission(bus, cfg, truths: dict) -> None:
     import canopen
 
-    from ddh_vsensor.master.client import clients
-    for unit, client in clients(network, cfg).items():
-        try:
-            client.diag_timer_ms = client.event_timer_ms
-            client.preset(float(truths[unit].x_m[0] * 1e3))
-        except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
-            raise UserError(f"demo: commissioning the {unit} sensor over SDO failed: "
-                            f"{exc}") from None
+    from ddh_vsensor.master.client import clients, sdo_network
+    with sdo_network(bus) as network:
+        for unit, client in clients(network, cfg).items():
+            try:
+                client.diag_timer_ms = client.event_timer_ms
+                client.preset(float(truths[unit].x_m[0] * 1e3))
+            except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+                raise UserError(f"demo: commissioning the {unit} sensor over SDO failed: "
+                                f"{exc}") from None
 
 
 class _View:

@@ -5,17 +5,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ddh_vsensor.atomic import atomic_write
+from ddh_vsensor.atomic import atomic_write, output_file
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.cli.common import add_config_arg, config_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eds", help="write the EDS of one unit's emulated position sensor",
-                       description="The packaged CiA 406 template with the unit's node ID "
-                       "(DeviceComissioning), measuring step, stroke, TPDO1 event timer and "
-                       "EMCY setting from the configuration; loadable by canopen and any "
-                       "CANopen master.")
+                       description="The packaged CiA 406 template with the unit's measuring "
+                       "step, stroke, TPDO1 event timer, EMCY setting, identity and consumer "
+                       "heartbeat time from the configuration; loadable by canopen and any "
+                       "CANopen master. An --out ending in .dcf writes the unit's DCF: the "
+                       "same with its node ID (DeviceComissioning).")
     add_config_arg(p)
     p.add_argument("--unit", metavar="UNIT", required=True,
                    help="which unit of the configured machine")
@@ -28,6 +29,7 @@ def _run(args: argparse.Namespace) -> int:
     from ddh_vsensor.canbus.eds import write_unit_eds
     cfg = config_from(args)
     unit = cfg.require_unit(args.unit)
+    output_file(args.out, "EDS")
     try:
         with atomic_write(args.out) as fh:
             write_unit_eds(cfg, unit, fh, Path(args.out).name)

@@ -8,12 +8,15 @@ import json
 import numpy as np
 
 from ddh_vsensor.config import Config
+from ddh_vsensor.errors import UserError
 from ddh_vsensor.estimator.accuracy import accuracy
 from ddh_vsensor.estimator.estimator import Estimator
 from ddh_vsensor.measured import Run
 from ddh_vsensor.io.csv import write_csv
 from ddh_vsensor.io.reader import read_run
-from ddh_vsensor.cli.common import add_actuator_arg, add_config_arg, config_from, load_tables_for
+from ddh_vsensor.atomic import output_file
+from ddh_vsensor.cli.common import (add_actuator_arg, add_config_arg, config_from, figure_path,
+                                    load_tables_for)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -66,7 +69,14 @@ def estimate_run(args: argparse.Namespace, cfg: Config, run: Run, actuator: str)
 
 def _run(args: argparse.Namespace) -> int:
     cfg = config_from(args)
+    if args.out:
+        output_file(args.out, "estimate")
+    if args.plot:
+        figure_path(args.plot, "plot")
     run = read_run(args.run, cfg, args.actuator)
+    if not (args.out or args.plot) and not np.isfinite(run.position_mm).any():
+        raise UserError(f"{args.run}: no reference position (position_mm) to score the "
+                        "estimate against; --out writes the estimate without a score")
     est, res = estimate_run(args, cfg, run, args.actuator)
     score = accuracy(res.position_mm, run.position_mm)
     if args.out:

@@ -10,11 +10,26 @@ import argparse
 import time
 from pathlib import Path
 
+from ddh_vsensor.atomic import output_dir, output_file
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.cli.common import add_config_arg
 from ddh_vsensor.cli.progress import ProgressBar
 
+DEFAULT_WORKER_TIMEOUT_S = 30.0
+
 LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc", ".csv")
+FLEET_EXTRA = ("dask.distributed", "pyarrow", "duckdb")
+
+
+def require_fleet_extra() -> None:
+    """The fleet tools' libraries, or one line saying how to install them."""
+    import importlib
+    for name in FLEET_EXTRA:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            raise UserError(f"needs {name.split('.')[0]}, part of the fleet extra: "
+                            'pip install "ddh-vsensor[fleet]"') from None
 
 
 def _cluster_args(p: argparse.ArgumentParser) -> None:
@@ -23,6 +38,9 @@ def _cluster_args(p: argparse.ArgumentParser) -> None:
                         "cluster on 127.0.0.1")
     p.add_argument("--workers", type=int, default=2,
                    help="worker processes of the local cluster (default 2)")
+    p.add_argument("--worker-timeout-s", type=float, default=DEFAULT_WORKER_TIMEOUT_S,
+                   metavar="S", help="with --scheduler: how long to wait for a first worker "
+                                     "(default %(default)g s)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -74,14 +92,18 @@ def _expand(items: list[str]) -> list[str]:
         p = Path(item)
         if p.is_dir():
             out += sorted(str(f) for f in p.iterdir() if f.suffix.lower() in LOG_SUFFIXES)
+        elif p.exists():
+            out.append(item)
         else:
-            out.append(item)          # a missing file is reported as rejected, not fatal
+            raise UserError(f"{item}: no such file or directory")
     if not out:
-        raise UserError("no logs given (directories hold no .blf/.asc/.log/.trc files)")
+        raise UserError(f"no logs in {', '.join(items)} (looked for "
+                        f"{'/'.join(LOG_SUFFIXES)} files)")
     return out
 
 
 def _ingest(args: argparse.Namespace) -> int:
+    require_fleet_extra()
     from ddh_vsensor.config import load_config
     from ddh_vsensor.fleet.cluster import dask_client, run_batched
     from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, compile_pattern, ingest_batch
@@ -97,7 +119,7 @@ def _ingest(args: argparse.Namespace) -> int:
                       str(store.root.resolve()), args.config, pattern) for p in logs]
     bar = ProgressBar("ingest")
     started = time.monotonic()
-    with dask_client(args.scheduler, args.workers) as client:
+    with dask_client(args.scheduler, args.workers, args.worker_timeout_s) as client:
         results = run_batched(client, ingest_batch, jobs,
                             lambda d, n, r: bar.update(d / n, Path(r["path"]).name))
     wall = time.monotonic() - started
@@ -113,10 +135,14 @@ def _ingest(args: argparse.Namespace) -> int:
     print(f"{frames} frames, {hours:.3f} log-hours in {wall:.1f} s: "
           f"{frames / max(wall, 1e-9):.0f} frames/s, {hours * 3600 / max(wall, 1e-9):.1f} "
           "log-seconds/s")
+    if not counts["ingested"] and not counts["present"]:
+        raise UserError(f"nothing ingested: {counts['rejected']} log(s) given, every one "
+                        "rejected")
     return 0
 
 
 def _report(args: argparse.Namespace) -> int:
+    require_fleet_extra()
     from ddh_vsensor.config import load_config
     from ddh_vsensor.fleet.analysis import analyse_machine
     from ddh_vsensor.fleet.cluster import dask_client, run_tasks
@@ -125,16 +151,14 @@ def _report(args: argparse.Namespace) -> int:
     from ddh_vsensor.fleet.trend import unit_trend
     if not args.tolerance_mm > 0 or not args.horizon_days > 0:
         raise UserError("--tolerance-mm and --horizon-days must be positive")
-    out = Path(args.out)
-    if not out.parent.is_dir():
-        raise UserError(f"--out {args.out}: directory {out.parent} does not exist")
+    out = output_file(args.out, "report")
     cfg = load_config(args.config)
     store = Store(args.store)
     machines = sorted(store.machine_logs())
     if not machines:
         raise UserError(f"--store {args.store}: no ingested logs")
     bar = ProgressBar("analyse")
-    with dask_client(args.scheduler, args.workers) as client:
+    with dask_client(args.scheduler, args.workers, args.worker_timeout_s) as client:
         run_tasks(client, analyse_machine,
                   [(str(store.root.resolve()), m, args.config) for m in machines],
                   lambda d, n, r: bar.update(d / n, r["machine"]))
@@ -163,6 +187,7 @@ def _simulate(args: argparse.Namespace) -> int:
     from ddh_vsensor.config import load_config
     from ddh_vsensor.sim.fleet import LOG_S, plan_fleet, simulate_fleet
     cfg = load_config(args.config)
+    output_dir(args.out, create=False)       # made when written, the other inputs checked
     plan = plan_fleet(cfg, args.machines, args.days, args.seed, args.log_s or LOG_S)
     bar = ProgressBar("simulate fleet")
     written = simulate_fleet(cfg, plan, args.out, progress=bar.update)

@@ -32,6 +32,10 @@ DEFAULT_STATE_DIR = "/var/lib/ddh-vsensor"
 DEFAULT_PREFIX = "/usr/local"
 STATE_BASE = PurePosixPath("/var/lib")      # systemd's StateDirectory= is relative to it
 CONFIG_BASE = PurePosixPath("/etc")         # ... and ConfigurationDirectory= to this
+# What the unit's sandbox hides from the service: an installation there cannot start.
+HIDDEN = (("/tmp", "PrivateTmp=yes"), ("/var/tmp", "PrivateTmp=yes"),
+          ("/home", "ProtectHome=yes"), ("/root", "ProtectHome=yes"),
+          ("/run/user", "ProtectHome=yes"))
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -54,16 +58,56 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--state-dir", metavar="DIR", default=DEFAULT_STATE_DIR,
                    help=f"persisted estimates, below {STATE_BASE} as systemd's StateDirectory= "
                         f"requires (default {DEFAULT_STATE_DIR})")
+    p.add_argument("--config", metavar="FILE", default=None,
+                   help=f"the machine's configuration to install into --config-dir under its "
+                        f"own name (default: the packaged {CONFIG_NAME}); validated first, "
+                        "never overwrites a configuration that is there")
+    p.add_argument("--force", action="store_true",
+                   help="install even where the unit's sandbox hides this installation from "
+                        "the service (under /tmp or /home: PrivateTmp=, ProtectHome=)")
     p.set_defaults(func=_run)
+
+
+def _script() -> Path | None:
+    script = Path(sys.executable).parent / "ddh-vsensor"
+    return script if script.is_file() and os.access(script, os.X_OK) else None
 
 
 def service_command() -> str:
     """This installation's ``ddh-vsensor``: the script next to the interpreter, else
     ``python -m ddh_vsensor``."""
-    script = Path(sys.executable).parent / "ddh-vsensor"
-    if script.is_file() and os.access(script, os.X_OK):
+    script = _script()
+    if script is not None:
         return _unit_word(str(script))
     return f"{_unit_word(sys.executable)} -m ddh_vsensor"
+
+
+def hidden_by_sandbox(path: str | PurePosixPath) -> str | None:
+    """The unit's setting that hides ``path`` from the service, None if it is visible."""
+    posix = PurePosixPath(path)
+    for base, setting in HIDDEN:
+        if posix == PurePosixPath(base) or posix.is_relative_to(base):
+            return setting
+    return None
+
+
+def check_visible(force: bool) -> None:
+    """Refuse an installation the service could not run from: its ``ddh-vsensor`` lies
+    where the hardened unit hides it (a venv in /tmp or a home directory)."""
+    executable = _script() or Path(sys.executable)
+    setting = hidden_by_sandbox(os.path.abspath(executable))
+    if setting is not None and not force:
+        raise UserError(f"{executable}: the unit's {setting} hides this from the service, "
+                        "which could not start; install ddh-vsensor elsewhere (e.g. a venv in "
+                        "/opt) or give --force")
+
+
+def unit_description(cfg) -> str:
+    """The unit's Description=: the machine's cylinders, named by its configuration."""
+    names = list(cfg.unit_names)
+    listed = names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+    return (f"ddh-vsensor virtual position sensor on %i (DDH {listed.replace('%', '%%')} "
+            f"cylinder{'s' if len(names) > 1 else ''})")
 
 
 def _unit_word(text: str) -> str:
@@ -91,8 +135,8 @@ def _relative(option: str, path: PurePosixPath, base: PurePosixPath) -> str:
 
 def render_unit(template: str, *, command: str, config_path: PurePosixPath,
                 doc_path: PurePosixPath, state_dir: PurePosixPath,
-                config_dir: PurePosixPath) -> str:
-    """The shipped unit with this installation's paths."""
+                config_dir: PurePosixPath, description: str | None = None) -> str:
+    """The shipped unit with this installation's paths and, given, its Description=."""
     state_rel = _relative("--state-dir", state_dir, STATE_BASE)
     try:
         config_rel: str | None = _relative("--config-dir", config_dir, CONFIG_BASE)
@@ -109,6 +153,8 @@ def render_unit(template: str, *, command: str, config_path: PurePosixPath,
                 SHIPPED_CONFIG, _unit_word(str(config_path)))
         elif key == "Documentation":
             line = f"Documentation=file://{_unit_word(str(doc_path))}"
+        elif key == "Description" and description is not None:
+            line = f"Description={description}"
         elif key == "StateDirectory":
             line = f"StateDirectory={state_rel}"
         elif key == "ConfigurationDirectory":
@@ -139,16 +185,37 @@ def _below(root: Path, path: PurePosixPath) -> Path:
     return root / str(path).lstrip("/")
 
 
+def _write_config(path: Path, source: Path | None) -> str:
+    """The packaged default, or ``source``, to ``path`` unless a file is there."""
+    if source is None:
+        return write_default(path)
+    text = source.read_text(encoding="utf-8")
+    if path.exists():
+        return "unchanged" if path.is_file() and path.read_text(
+            encoding="utf-8", errors="replace") == text else "kept"
+    return _write_if_changed(path, text)
+
+
 def install(root: Path, *, prefix: PurePosixPath, unit_dir: PurePosixPath,
-            config_dir: PurePosixPath, state_dir: PurePosixPath) -> list[str]:
-    """Put everything in place; returns one line per step. A step that cannot be done raises
-    UserError; an existing configuration that does not load is reported (every other step
-    done) and raised."""
-    config_path = config_dir / CONFIG_NAME
+            config_dir: PurePosixPath, state_dir: PurePosixPath,
+            config: Path | None = None) -> list[str]:
+    """Put everything in place; returns one line per step. ``config`` is the machine's
+    configuration (default: the packaged one), checked before anything is written. A step
+    that cannot be done raises UserError; an existing configuration that does not load is
+    reported (every other step done) and raised."""
+    cfg = load_config(config)
+    config_path = config_dir / (config.name if config is not None else CONFIG_NAME)
+    installed = _below(root, config_path)
+    if installed.is_file():               # kept: the unit runs the machine's own
+        try:
+            cfg = load_config(installed)
+        except ConfigError:
+            pass                          # reported below
     doc_path = prefix / "share" / "doc" / "ddh-vsensor" / "README.md"
     unit = render_unit((DATA / UNIT_NAME).read_text(encoding="utf-8"),
                        command=service_command(), config_path=config_path,
-                       doc_path=doc_path, state_dir=state_dir, config_dir=config_dir)
+                       doc_path=doc_path, state_dir=state_dir, config_dir=config_dir,
+                       description=unit_description(cfg))
     report, invalid = [], None
     try:
         path = _below(root, unit_dir / UNIT_NAME)
@@ -157,7 +224,7 @@ def install(root: Path, *, prefix: PurePosixPath, unit_dir: PurePosixPath,
         readme = (DATA / "README.md").read_text(encoding="utf-8")
         report.append(f"readme  {path}: {_write_if_changed(path, readme)}")
         path = _below(root, config_path)
-        done = write_default(path)
+        done = _write_config(path, config)
         if done == "kept":
             try:
                 done = f"kept (differs from the default; valid: {describe(load_config(path))})"
@@ -179,10 +246,12 @@ def install(root: Path, *, prefix: PurePosixPath, unit_dir: PurePosixPath,
 
 def _run(args: argparse.Namespace) -> int:
     root = Path(args.root)
+    check_visible(args.force)
     report = install(root, prefix=_absolute("--prefix", args.prefix),
                      unit_dir=_absolute("--unit-dir", args.unit_dir),
                      config_dir=_absolute("--config-dir", args.config_dir),
-                     state_dir=_absolute("--state-dir", args.state_dir))
+                     state_dir=_absolute("--state-dir", args.state_dir),
+                     config=Path(args.config) if args.config else None)
     for line in report:
         print(line)
     if str(root) == "/":

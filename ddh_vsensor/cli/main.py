@@ -14,7 +14,7 @@ from ddh_vsensor.cli.logs import configure_logging
 # Subcommand modules under ddh_vsensor.cli, each exposing register(subparsers).
 SUBCOMMANDS = ("tables", "steady", "simulate", "estimate", "analyze",
                "run", "replay", "monitor", "status", "demo", "config", "install", "fleet",
-               "dbc", "eds")
+               "dbc", "eds", "commission")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,6 +33,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def one_line(message: str) -> str:
+    """A message on one line (a library's may span several: YAML's shows the spot)."""
+    return "; ".join(part for part in (line.strip() for line in message.splitlines()) if part)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -46,7 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except UserError as exc:
-        print(f"ddh-vsensor {args.command}: error: {exc}", file=sys.stderr)
+        print(f"ddh-vsensor {args.command}: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

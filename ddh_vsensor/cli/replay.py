@@ -67,7 +67,9 @@ def _run(args: argparse.Namespace) -> int:
     skip = set(args.skip_id)
     codec = FrameCodec(cfg)
     if args.inputs_only:
-        keep = {codec.ids[OIL_TEMP], codec.ids[IO_MODULE]} | {
+        from ddh_vsensor.io.log import heartbeat_ids
+        keep = {codec.ids[OIL_TEMP], codec.ids[IO_MODULE],
+                *heartbeat_ids(cfg, list(cfg.can.units))} | {
             codec.ids[message_name(k, a)] for a in cfg.can.units for k in ("sevcon", "heartbeat")}
         skip |= {m.arbitration_id for m in frames} - keep
     from ddh_vsensor.config import DEFAULT_BUS

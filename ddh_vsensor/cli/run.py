@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ddh_vsensor.atomic import output_dir
 from ddh_vsensor.config import Config
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.cli.common import (add_config_arg, add_extension_arg, config_from, extensions_from,
@@ -80,9 +81,9 @@ def _run(args: argparse.Namespace) -> int:
     cfg = config_from(args)
     bus = bus_from_args(args, cfg)
     tables = {a: load_tables_for(args, cfg, a) for a in cfg.can.units}
-    options = ServiceOptions(state_dir=None if args.no_state else
-                             Path(args.state_dir) if args.state_dir else default_state_dir(),
-                             extensions=extensions_from(args, cfg))
+    state_dir = None if args.no_state else \
+        output_dir(args.state_dir or default_state_dir(), "state directory")
+    options = ServiceOptions(state_dir=state_dir, extensions=extensions_from(args, cfg))
     if args.heartbeat_timeout is not None:
         if not 0.01 <= args.heartbeat_timeout <= 600:
             raise UserError(f"--heartbeat-timeout {args.heartbeat_timeout}: outside 0.01..600 s")

@@ -15,6 +15,7 @@ from ddh_vsensor.sim.cycles import RANDOM, WORK, Profile, cycle_names, random_cy
 from ddh_vsensor.sim.effects import EFFECTS, build_effects, describe
 from ddh_vsensor.sim.run import DEFAULT_STEP_S, RunSpec, simulate, write_run_dir
 from ddh_vsensor.sim.sensors import SensorSettings
+from ddh_vsensor.atomic import output_dir
 from ddh_vsensor.cli.common import add_config_arg, config_from
 from ddh_vsensor.cli.progress import ProgressBar
 
@@ -66,6 +67,11 @@ def _cycle(cfg: Config, args: argparse.Namespace) -> str | Path | Profile:
     if args.cycle == WORK or args.cycle in cycle_names(cfg):
         return require_cycle(cfg, args.cycle)
     if Path(args.cycle).is_file():
+        try:
+            Path(args.cycle).read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
+            raise UserError(f"--cycle {args.cycle}: not UTF-8 text ({exc.reason} at byte "
+                            f"{exc.start}), not a profile CSV") from None
         return Path(args.cycle)
     names = ", ".join((WORK,) + cycle_names(cfg) + (RANDOM,))
     raise UserError(f"--cycle {args.cycle}: neither a cycle of this machine ({names}) nor a "
@@ -84,6 +90,7 @@ def _run(args: argparse.Namespace) -> int:
                    sensors=replace(SensorSettings(), rate_hz=args.rate_hz,
                                    oil_temp_drift_c_per_s=args.oil_temp_drift),
                    controller=PIDSettings())
+    output_dir(args.out, create=False)       # made when written, the other inputs checked
     bar = ProgressBar("simulate")
     started = time.monotonic()
     runs = simulate(cfg, spec, progress=bar.update)

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from ddh_vsensor.tables.build import build_unit_tables
 from ddh_vsensor.tables.store import load_tables, save_unit_tables
-from ddh_vsensor.cli.common import add_config_arg, config_from
+from ddh_vsensor.atomic import output_dir
+from ddh_vsensor.cli.common import add_config_arg, config_from, figure_path
 from ddh_vsensor.cli.progress import ProgressBar
 
 
@@ -30,6 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _build(args: argparse.Namespace) -> int:
     cfg = config_from(args)
+    output_dir(args.out, "tables directory")
     bar = ProgressBar("tables")
     started = time.perf_counter()
     units = cfg.unit_names
@@ -47,6 +49,7 @@ def _build(args: argparse.Namespace) -> int:
 def _plot(args: argparse.Namespace) -> int:
     from ddh_vsensor.tables.plot import plot_figure5     # matplotlib only when plotting
     cfg = config_from(args)
+    figure_path(args.out)
     plot_figure5(load_tables(args.tables, cfg), cfg, args.out, speed_rpm=args.speed_rpm)
     print(f"wrote {args.out}")
     return 0

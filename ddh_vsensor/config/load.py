@@ -26,6 +26,9 @@ def _read_bounded(path: Path, source: str) -> str:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError as exc:
         raise ConfigError(source, "", f"cannot read: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(os.fstat(fd).st_mode):          # fdopen refuses it with a traceback
+        os.close(fd)
+        raise ConfigError(source, "", "a directory, not a configuration file")
     with os.fdopen(fd, "rb") as fh:
         st = os.fstat(fh.fileno())
         if not stat.S_ISREG(st.st_mode):

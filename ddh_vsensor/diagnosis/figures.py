@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import io
 from collections.abc import Sequence
-from pathlib import Path
 
 import matplotlib
 
@@ -45,7 +44,7 @@ def errors_per_run(names: Sequence[str], times: Sequence[np.ndarray],
                     label="with the motor inertia")
         ax.plot(times[i], after[i], color=AFTER, lw=0.9, label=after_label)
         ax.axhline(0.0, color="k", lw=0.5)
-        ax.set_title(Path(names[i]).name, fontsize=8)
+        ax.set_title(names[i], fontsize=8)
         ax.grid(True, alpha=0.3)
         ax.tick_params(labelsize=7)
         if i % cols == 0:

@@ -115,13 +115,12 @@ def prepare_run(run: Run, lines: list[int] | None = None) -> AnalysisRun:
 
 
 def load_analysis_run(path: str | Path, actuator: str, cfg: Config) -> AnalysisRun:
-    """A CSV of the measured-data format or a CAN log, checked for diagnosis.
-
-    Comment lines of a CSV are skipped by the reader and never looked at here.
-    """
+    """A CSV of the measured-data format or a CAN log, checked for diagnosis; a CSV whose
+    ``# actuator:`` line names another unit is refused. ``name`` is the path as given: the
+    report titles the run by it."""
     path = str(path)
     if path.lower().endswith(".csv"):
-        run = read_csv(path, require_position=True)
+        run = read_csv(path, require_position=True, actuator=actuator)
         return prepare_run(run, _data_lines(path))
     from ddh_vsensor.io.log import read_can_log
     return prepare_run(read_can_log(path, actuator, cfg))

@@ -16,9 +16,12 @@ DEFAULT_WORKERS = 2
 
 
 @contextmanager
-def dask_client(scheduler: str | None = None, workers: int = DEFAULT_WORKERS) -> Iterator[Any]:
-    """A Dask client: to ``scheduler`` (``tcp://host:port``) or to a LocalCluster of
-    ``workers`` single-threaded processes bound to 127.0.0.1, without dashboard. The
+def dask_client(scheduler: str | None = None, workers: int = DEFAULT_WORKERS,
+                worker_timeout_s: float = 30.0) -> Iterator[Any]:
+    """A Dask client: to ``scheduler`` (``tcp://host:port``), once it has a worker (at most
+    ``worker_timeout_s``: a scheduler without workers would hold every task forever), or
+    to a LocalCluster of ``workers`` single-threaded processes bound to 127.0.0.1, without
+    dashboard. The
     scheduler's HTTP server (health, metrics) is served anyway, on 8787 unless told: a free
     port of 127.0.0.1, so that two clusters on one host do not contend for it."""
     import logging
@@ -31,6 +34,12 @@ def dask_client(scheduler: str | None = None, workers: int = DEFAULT_WORKERS) ->
         except (OSError, TimeoutError) as exc:
             raise UserError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
         try:
+            try:
+                client.wait_for_workers(1, timeout=worker_timeout_s)
+            except TimeoutError:
+                raise UserError(f"--scheduler {scheduler}: no worker joined within "
+                                f"{worker_timeout_s:g} s (start one with 'dask worker "
+                                f"{scheduler}')") from None
             yield client
         finally:
             client.close()

@@ -58,10 +58,11 @@ def compile_pattern(pattern: str) -> re.Pattern:
 
 def read_log(path: str, cfg: Config, raw: bytes | None = None
              ) -> tuple[dict[str, Run], int, float | None]:
-    """Runs per actuator, the number of frames and the log's wall-clock start (if any)."""
+    """Runs per actuator, the number of frames and the log's wall-clock start (if any). A
+    cut-off BLF is refused: a day's log in part would pass for a shorter day."""
     if path.lower().endswith(".blf"):
         from ddh_vsensor.io.blf import frames_to_runs, read_frames
-        frames = read_frames(path, raw)
+        frames = read_frames(path, raw, need_whole=True)
         runs = frames_to_runs(frames, cfg, path)
         t0 = float(frames.timestamp_s.min()) if len(frames) else None
         return runs, len(frames), t0

@@ -22,6 +22,7 @@ import duckdb
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from ddh_vsensor.atomic import output_dir
 from ddh_vsensor.errors import UserError
 
 TABLES = ("meta", "samples", "events", "holds")
@@ -63,6 +64,7 @@ class Store:
     def __init__(self, root: str | Path, create: bool = False) -> None:
         self.root = Path(root)
         if create:
+            output_dir(self.root, "fleet store")
             try:
                 for sub in ("logs", "rejected", "fits", "tmp"):
                     (self.root / sub).mkdir(parents=True, exist_ok=True)

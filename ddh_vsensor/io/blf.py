@@ -11,6 +11,8 @@ check: same timestamps, IDs and data; same run as :func:`.log.read_can_log`.
 
 from __future__ import annotations
 
+import io
+import logging
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -23,14 +25,68 @@ from can.io import blf
 from ddh_vsensor.config import Config
 from ddh_vsensor.measured import MeasuredDataError, Run
 from ddh_vsensor.canbus.dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
-from ddh_vsensor.io.log import (_BLF_WALL_CLOCK_MIN_S, _latest, edge_times, io_frames,
-                  io_sends_on_change)
+from ddh_vsensor.io.log import (_BLF_WALL_CLOCK_MIN_S, NMT_OPERATIONAL, _latest, edge_times,
+                                heartbeat_ids, heartbeat_times, io_frames, io_sends_on_change)
 
 # One classic CAN frame with a v1 object header: base (16) + v1 (16) + CAN_MSG (16) bytes.
 _FRAME = np.dtype([("sig", "S4"), ("hsize", "<u2"), ("hver", "<u2"), ("size", "<u4"),
                    ("type", "<u4"), ("flags", "<u4"), ("client", "<u2"), ("ver", "<u2"),
                    ("ts", "<u8"), ("channel", "<u2"), ("mflags", "u1"), ("dlc", "u1"),
                    ("id", "<u4"), ("data", "u1", (8,))])
+
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Cut:
+    """Where a BLF stops in the middle of an object (a copy or a logger stopped short): the
+    objects before ``at_byte`` are whole, the rest of the file is not read."""
+
+    at_byte: int
+    size_bytes: int
+
+    @property
+    def problem(self) -> str:
+        return f"object at byte {self.at_byte} cut off"
+
+    def warning(self, source: str) -> str:
+        return (f"{source}: truncated BLF: {self.problem}; read the whole objects before it, "
+                f"{self.at_byte} of {self.size_bytes} bytes "
+                f"({100.0 * self.at_byte / self.size_bytes:.0f} %)")
+
+
+def whole_part(source: str, raw: bytes, need_whole: bool = False) -> bytes:
+    """The bytes of a BLF up to the end of its last whole object: the one truncation check
+    of every reader of the project (bulk here, python-can's in :mod:`.log`). A cut is logged
+    as a warning naming the file and how much was read, or, with ``need_whole`` (a tool
+    that must not work on part of a log), refused. MeasuredDataError when the file is empty
+    or not a BLF."""
+    hs, base = blf.FILE_HEADER_STRUCT, blf.OBJ_HEADER_BASE_STRUCT
+    if not raw:
+        raise MeasuredDataError(source, "cannot read CAN log: the file is empty")
+    if len(raw) < hs.size or raw[:4] != b"LOGG":
+        raise MeasuredDataError(source, "cannot read CAN log: not a BLF file (no BLF header)")
+    pos = hs.unpack_from(raw)[1]
+    while pos < len(raw):
+        if pos + base.size > len(raw):
+            break
+        sig, _, _, size, _ = base.unpack_from(raw, pos)
+        if sig != b"LOBJ" or size < base.size:
+            raise MeasuredDataError(source, f"cannot read CAN log: no object at byte {pos}")
+        if pos + size > len(raw):
+            break
+        pos += size + size % 4
+    if pos >= len(raw):
+        return raw
+    cut = Cut(pos, len(raw))
+    if pos == hs.unpack_from(raw)[1]:
+        raise MeasuredDataError(source, f"cannot read CAN log: {cut.problem}, the first: no "
+                                "whole frame")
+    if need_whole:
+        raise MeasuredDataError(source, f"cannot read CAN log: {cut.problem}")
+    log.warning(cut.warning(source))
+    return raw[:pos]
 
 
 @dataclass
@@ -47,8 +103,8 @@ class Frames:
         return len(self.timestamp_s)
 
 
-def _via_python_can(path: str | Path) -> Frames:
-    with can.BLFReader(path) as reader:
+def _via_python_can(raw: bytes) -> Frames:
+    with can.BLFReader(io.BytesIO(raw)) as reader:
         start = reader.start_timestamp
         msgs = [m for m in reader if not (m.is_error_frame or m.is_fd)]
     data = np.zeros((len(msgs), 8), np.uint8)
@@ -59,20 +115,21 @@ def _via_python_can(path: str | Path) -> Frames:
                   np.array([m.dlc for m in msgs], np.uint8), data, start)
 
 
-def read_frames(path: str | Path, raw: bytes | None = None) -> Frames:
-    """The frames of a BLF file (its bytes ``raw`` when the caller has read them already);
-    MeasuredDataError when it is not a readable BLF."""
-    source = str(path)
+def read_blf_bytes(path: str | Path) -> bytes:
+    """A BLF file's bytes, MeasuredDataError when it cannot be read."""
     try:
-        raw = Path(path).read_bytes() if raw is None else raw
+        return Path(path).read_bytes()
     except OSError as exc:
-        raise MeasuredDataError(source, f"cannot read: {exc.strerror or exc}") from None
-    hs = blf.FILE_HEADER_STRUCT
-    if len(raw) < hs.size:
-        raise MeasuredDataError(source, "cannot read CAN log: too short for a BLF header")
-    header = hs.unpack_from(raw)
-    if header[0] != b"LOGG":
-        raise MeasuredDataError(source, "cannot read CAN log: not a BLF file")
+        raise MeasuredDataError(str(path), f"cannot read: {exc.strerror or exc}") from None
+
+
+def read_frames(path: str | Path, raw: bytes | None = None, need_whole: bool = False) -> Frames:
+    """The frames of a BLF file (its bytes ``raw`` when the caller has read them already),
+    of its whole objects if it is cut off (:func:`whole_part`); MeasuredDataError when it is
+    not a readable BLF."""
+    source = str(path)
+    raw = whole_part(source, read_blf_bytes(path) if raw is None else raw, need_whole)
+    header = blf.FILE_HEADER_STRUCT.unpack_from(raw)
     start = blf.systemtime_to_timestamp(header[14:22])
     pos, chunks = header[1], []
     base, cont = blf.OBJ_HEADER_BASE_STRUCT, blf.LOG_CONTAINER_STRUCT
@@ -81,10 +138,8 @@ def read_frames(path: str | Path, raw: bytes | None = None) -> Frames:
             sig, _, _, size, kind = base.unpack_from(raw, pos)
             if sig != b"LOBJ" or size < base.size + cont.size:
                 raise ValueError(f"no object at byte {pos}")
-            if pos + size > len(raw):
-                raise ValueError(f"object at byte {pos} cut off")
             if kind != blf.LOG_CONTAINER:
-                return _via_python_can(path)
+                return _via_python_can(raw)
             method, _ = cont.unpack_from(raw, pos + base.size)
             body = raw[pos + base.size + cont.size:pos + size]
             if method == blf.ZLIB_DEFLATE:
@@ -92,18 +147,18 @@ def read_frames(path: str | Path, raw: bytes | None = None) -> Frames:
             elif method == blf.NO_COMPRESSION:
                 chunks.append(body)
             else:
-                return _via_python_can(path)
+                return _via_python_can(raw)
             pos += size + size % 4
     except (ValueError, zlib.error) as exc:
         raise MeasuredDataError(source, f"cannot read CAN log: {exc}") from None
     data = b"".join(chunks)
     if len(data) % _FRAME.itemsize:
-        return _via_python_can(path)
+        return _via_python_can(raw)
     rec = np.frombuffer(data, _FRAME)
     if not (np.all(rec["sig"] == b"LOBJ") and np.all(rec["size"] == _FRAME.itemsize)
             and np.all(rec["hver"] == 1) and np.all(np.isin(rec["type"], (1, 86)))
             and not np.any(rec["mflags"] & 0x80) and not np.any(rec["id"] & 0x80000000)):
-        return _via_python_can(path)
+        return _via_python_can(raw)
     factor = np.where(rec["flags"] == 1, 1e5, 1e9)
     ts = rec["ts"].astype(np.float64) / factor + start
     return Frames(ts, rec["id"].astype(np.uint32), rec["dlc"].copy(), rec["data"].copy(), start)
@@ -212,7 +267,8 @@ def frames_to_runs(frames: Frames, cfg: Config, source: str,
 
 def write_blf_inputs(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> int:
     """The frames :func:`.log.write_blf` writes for runs without positions (Sevcon, oil,
-    I/O module), encoded a column at a time; returns the number of frames."""
+    I/O module, the controllers' heartbeats), encoded a column at a time; returns the
+    number of frames."""
     from ddh_vsensor.atomic import atomic_path
     codec = FrameCodec(cfg)
     actuators = list(runs)
@@ -234,6 +290,11 @@ def write_blf_inputs(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> 
             codec.messages[name], {"TorqueActual": runs[a].torque_nm,
                                     "VelocityActual": runs[a].speed_rpm}),
             codec.ids[name], codec.messages[name].length))
+    hb_time = heartbeat_times(runs)
+    hb_data = np.zeros((len(hb_time), 8), np.uint8)
+    hb_data[:, 0] = NMT_OPERATIONAL
+    parts += [(hb_time, 3, i, hb_data, frame_id, 1)
+              for i, frame_id in enumerate(heartbeat_ids(cfg, actuators))]
     t = np.concatenate([p[0] for p in parts])
     kind = np.concatenate([np.full(len(p[0]), p[1]) for p in parts])
     act = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])

@@ -16,6 +16,12 @@ from ddh_vsensor.measured import (MAY_BE_EMPTY, PRESSURES, REF_PREFIX, REQUIRED,
                                   Run)
 
 
+# A log from a machine in service has no position sensor: the whole column may be missing
+# (docs: measured-data), and reads as never sampled.
+POSITION = "position_mm"
+NEEDED = tuple(name for name in REQUIRED if name != POSITION)
+
+
 def _empty_is_nan(cell: str) -> float:
     return float(cell) if cell.strip() else float("nan")
 
@@ -50,8 +56,22 @@ def _line_numbers(body: list[str], first_line: int) -> np.ndarray:
     return first_line + np.flatnonzero(np.fromiter((bool(s) for s in body), bool, len(body)))
 
 
-def read_csv(path: str | Path, *, require_position: bool = False) -> Run:
-    """Read one run; any problem raises MeasuredDataError naming file, line and column."""
+def header_actuator(comments: list[str]) -> str | None:
+    """The unit an ``# actuator: NAME`` comment line names (the simulator writes one)."""
+    for text in comments:
+        key, colon, value = text.partition(":")
+        if colon and key.strip().lower() == "actuator" and value.strip():
+            return value.strip()
+    return None
+
+
+def read_csv(path: str | Path, *, require_position: bool = False,
+             actuator: str | None = None) -> Run:
+    """Read one run; any problem raises MeasuredDataError naming file, line and column.
+    Without a ``position_mm`` column the position is NaN throughout, unless
+    ``require_position`` (a tool that compares with it) makes that an error. ``actuator``
+    (the unit the caller takes the run for) must match the file's ``# actuator:`` line,
+    where it has one."""
     source = str(path)
     try:
         with open(path, encoding="utf-8-sig", newline="") as f:
@@ -73,9 +93,13 @@ def read_csv(path: str | Path, *, require_position: bool = False) -> Run:
     if header_index == len(lines):
         raise MeasuredDataError(source, "no header row (expected columns "
                                 f"{', '.join(REQUIRED)})")
+    named = header_actuator(comments)
+    if actuator is not None and named is not None and named != actuator:
+        raise MeasuredDataError(source, f"a run of the {named} (its '# actuator: {named}' "
+                                f"line), not of the {actuator} (--actuator {actuator})")
     header_line = header_index + 1
     header = [name.strip() for name in next(csv.reader([lines[header_index]]))]
-    missing = [name for name in REQUIRED if name not in header]
+    missing = [name for name in NEEDED if name not in header]
     if missing:
         raise MeasuredDataError(source, f"missing column(s) {', '.join(missing)} (header: "
                                 f"{', '.join(header)})", header_line)
@@ -126,7 +150,9 @@ def read_csv(path: str | Path, *, require_position: bool = False) -> Run:
         word = "repeats" if step_s[row - 1] == 0.0 else "goes backwards"
         raise MeasuredDataError(source, f"time_s {word} ({values['time_s'][row - 1]!r} then "
                                 f"{values['time_s'][row]!r})", line_of(row))
-    if require_position and np.isnan(values["position_mm"]).all():
+    if POSITION not in values:
+        values[POSITION] = np.full(len(values["time_s"]), np.nan)
+    if require_position and np.isnan(values[POSITION]).all():
         raise MeasuredDataError(source, "position_mm is never given (this tool needs the "
                                 "reference position)")
 

@@ -6,6 +6,7 @@ frames (torque 1/16 N·m, speed 1 rpm, oil 0.1 °C, position one measuring step)
 
 from __future__ import annotations
 
+import io
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
@@ -17,13 +18,15 @@ from ddh_vsensor.config import Config, ConfigError
 from ddh_vsensor.atomic import atomic_path
 from ddh_vsensor.measured import MeasuredDataError, Run
 from ddh_vsensor.canbus.dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
+from ddh_vsensor.canbus.layout import SEVCON_HEARTBEAT_MS
 
 # python-can's BLF header holds wall-clock start times only (from 1990 on); earlier, relative
 # times would be shifted to the first frame, so the writer is pinned to a zero start instead.
 _BLF_WALL_CLOCK_MIN_S = 631152000.0
 # Frame order within one timestamp: the oil temperature and Hall inputs of a sample come before
 # its Sevcon frame, so a reader integrating on Sevcon frames sees them in the same step.
-_OIL, _IO, _SEVCON, _POSITION = range(4)
+_OIL, _IO, _SEVCON, _POSITION, _HEARTBEAT = range(5)
+NMT_OPERATIONAL = 0x05          # CiA 301 heartbeat byte of a node in OPERATIONAL
 
 
 # The I/O module's event timer: without a change of its inputs it sends at least this often.
@@ -90,6 +93,22 @@ def edge_times(io_time_s: np.ndarray, io_state: np.ndarray, sample_time_s: np.nd
     return out
 
 
+def heartbeat_ids(cfg: Config, units: list[str]) -> list[int]:
+    """The heartbeat COB-ID (0x700 + node ID) of each unit's motor controller: the node the
+    service watches (``faults.heartbeat_node_ids``), else its Sevcon's node."""
+    return [0x700 + cfg.faults.heartbeat_node_ids.get(
+        unit, cfg.can.units[unit].sevcon_node_id) for unit in units]  # type: ignore[index]
+
+
+def heartbeat_times(runs: Mapping[str, Run]) -> np.ndarray:
+    """When the controllers send their heartbeats: every :data:`SEVCON_HEARTBEAT_MS` (the
+    producer time of the frame layout) from the first sample to the last."""
+    start = min(float(run.time_s[0]) for run in runs.values())
+    end = max(float(run.time_s[-1]) for run in runs.values())
+    period_s = SEVCON_HEARTBEAT_MS / 1000.0
+    return start + period_s * np.arange(int(np.floor((end - start) / period_s + 1e-9)) + 1)
+
+
 def _position_speed_mm_s(run: Run) -> np.ndarray:
     """Speed a draw-wire sensor would report, from the sampled positions (0 if too few)."""
     speed = np.zeros(len(run.time_s))
@@ -122,7 +141,8 @@ def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
     Per sample: the Sevcon TPDO1 of its actuator, the oil temperature (from the first run)
     and the CiA 406 position frame where the position was sampled; frame timestamps are
     time_s. The I/O module's input bytes, every actuator's switch states, as
-    :func:`io_frames` schedules them.
+    :func:`io_frames` schedules them. The controllers' OPERATIONAL heartbeats
+    (:func:`heartbeat_times`), as a service replayed this log expects them.
     """
     if not runs:
         raise MeasuredDataError(str(path), "no run to write")
@@ -145,6 +165,9 @@ def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
     # One row per frame: time, kind, actuator index, sample index; sorted by time then kind.
     parts = [(runs[oil_actuator].time_s, _OIL, 0, np.arange(len(runs[oil_actuator].time_s))),
              (io_time_s, _IO, 0, np.arange(len(io_time_s)))]
+    hb_time_s, hb_ids = heartbeat_times(runs), heartbeat_ids(cfg, actuators)
+    parts += [(hb_time_s, _HEARTBEAT, index, np.zeros(len(hb_time_s), int))
+              for index in range(len(actuators))]
     for index, actuator in enumerate(actuators):
         run = runs[actuator]
         sampled = np.flatnonzero(~np.isnan(run.position_mm))
@@ -166,6 +189,9 @@ def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
         if k == _IO:
             return codec.encode_inputs({b: {name: state[i] for name, state in refs[b].items()}
                                         for b in actuators}, t)
+        if k == _HEARTBEAT:
+            return can.Message(timestamp=t, arbitration_id=hb_ids[a], is_extended_id=False,
+                               data=bytes([NMT_OPERATIONAL]))
         return codec.encode_position(actuator, position_mm[i], speed_mm_s[i], 0, t)
 
     try:
@@ -185,12 +211,37 @@ def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
 
 
 def _frames(path: str | Path) -> Iterator[can.Message]:
-    """Frames of any log python-can reads; any reader failure means the file is unreadable."""
+    """Frames of any log python-can reads; any reader failure means the file is unreadable.
+    A BLF goes through the project's one truncation check first (:func:`.blf.whole_part`):
+    of a cut-off log, the whole objects are read and the cut is logged."""
+    source = str(path)
+    if Path(path).is_dir():
+        raise MeasuredDataError(source, "cannot read CAN log: a directory, not a file")
+    if Path(path).suffix.lower() == ".blf":
+        from ddh_vsensor.io.blf import read_blf_bytes, whole_part
+        raw = whole_part(source, read_blf_bytes(path))
+        opened = can.BLFReader(io.BytesIO(raw))
+    else:
+        try:
+            opened = can.LogReader(path)
+        except FileNotFoundError:
+            raise MeasuredDataError(source, "cannot read: no such file") from None
+        except Exception as exc:  # each log format fails in its own way
+            raise MeasuredDataError(source, f"cannot read CAN log: {exc}") from None
     try:
-        with can.LogReader(path) as reader:
+        with opened as reader:
             yield from reader
     except Exception as exc:      # each log format fails in its own way
-        raise MeasuredDataError(str(path), f"cannot read CAN log: {exc}") from exc
+        raise MeasuredDataError(source, f"cannot read CAN log: {exc}") from None
+
+
+def read_messages(path: str | Path) -> list[can.Message]:
+    """Every frame of a CAN log (BLF, ASC, candump, CSV, TRC, MF4 ...), for a tool that
+    sends or shows them one by one; MeasuredDataError when there is none."""
+    frames = list(_frames(path))
+    if not frames:
+        raise MeasuredDataError(str(path), "the log holds no frames")
+    return frames
 
 
 def read_can_log(path: str | Path, actuator: str, cfg: Config) -> Run:

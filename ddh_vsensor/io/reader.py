@@ -15,9 +15,10 @@ from ddh_vsensor.io.csv import read_csv
 def read_run(path: str | Path, cfg: Config | None = None, unit: str | None = None) -> Run:
     """One unit's run. A ``.csv`` file is the measured-data format (one unit per file); any
     other file is a CAN log, for which ``unit`` picks the unit (the configuration's only unit
-    when it has one)."""
+    when it has one). A CSV whose ``# actuator:`` line names another unit than ``unit`` is
+    refused."""
     if str(path).lower().endswith(".csv"):
-        return read_csv(path)
+        return read_csv(path, actuator=unit)
     from ddh_vsensor.io.log import read_can_log
     cfg = cfg if cfg is not None else load_config()
     if unit is None:

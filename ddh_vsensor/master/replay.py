@@ -39,17 +39,11 @@ class ReplayStats:
 
 
 def read_log(path: str | Path) -> list[can.Message]:
-    """All frames of a CAN log python-can reads (BLF, ASC, CSV, candump log, TRC, MF4)."""
-    try:
-        with can.LogReader(path) as reader:
-            frames = list(reader)
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such file") from None
-    except Exception as exc:      # each format fails in its own way
-        raise UserError(f"{path}: cannot read CAN log: {exc}") from None
-    if not frames:
-        raise UserError(f"{path}: the log holds no frames")
-    return frames
+    """All frames of a CAN log python-can reads (BLF, ASC, CSV, candump log, TRC, MF4), read
+    as every tool of the project reads a log (a cut-off BLF: its whole part, with a
+    warning)."""
+    from ddh_vsensor.io.log import read_messages
+    return read_messages(path)
 
 
 async def replay(frames: Iterable[can.Message], send: Callable[[can.Message], object], *,
@@ -180,14 +174,13 @@ def _input_frames(cfg: Config, runs: Mapping[str, Run]) -> Iterator[can.Message]
 def _heartbeats(cfg: Config, runs: Mapping[str, Run],
                 period_s: float) -> Iterator[can.Message]:
     """Every unit's controller reporting OPERATIONAL every ``period_s`` from 0 s to the end
-    of the longest run."""
+    of the longest run (the IDs the log writers use: :func:`.io.log.heartbeat_ids`)."""
     import numpy as np
 
-    from ddh_vsensor.canbus.dbc import FrameCodec, message_name
-    codec = FrameCodec(cfg)
-    ids = [codec.ids[message_name("heartbeat", u)] for u in runs]
+    from ddh_vsensor.io.log import NMT_OPERATIONAL, heartbeat_ids
+    ids = heartbeat_ids(cfg, list(runs))
     end = max(float(r.time_s[-1]) for r in runs.values())
     for t in np.arange(0.0, end + 1e-9, period_s).tolist():
         for frame_id in ids:
             yield can.Message(timestamp=t, arbitration_id=frame_id, is_extended_id=False,
-                              data=bytes([5]))
+                              data=bytes([NMT_OPERATIONAL]))

@@ -88,7 +88,7 @@ def test_the_wheel_carries_its_data_as_real_files(venv: Path, tmp_path: Path) ->
 
 
 def _install(venv: Path, root: Path) -> list[str]:
-    return _run([venv / "bin" / "ddh-vsensor", "install", "--root", root], root.parent
+    return _run([venv / "bin" / "ddh-vsensor", "install", "--force", "--root", root], root.parent
                 ).stdout.splitlines()
 
 
@@ -122,7 +122,7 @@ def test_install_puts_everything_in_place_idempotently(venv: Path, tmp_path: Pat
     assert config.read_text() == edited
 
     config.write_text(edited.replace("stroke_mm: 311.15", "stroke_mm: -1"))
-    broken = _run([venv / "bin" / "ddh-vsensor", "install", "--root", root], tmp_path,
+    broken = _run([venv / "bin" / "ddh-vsensor", "install", "--force", "--root", root], tmp_path,
                   check=False)
     assert broken.returncode == 2
     assert "NOT VALID" in broken.stdout

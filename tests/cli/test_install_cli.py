@@ -3,9 +3,19 @@ systemd cannot honour are refused in one line (the wheel-to-venv path: test_inst
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
+import pytest
+
 from ddh_vsensor.cli.main import main
+
+
+@pytest.fixture(autouse=True)
+def _installed_in_opt(monkeypatch) -> None:
+    """As from a venv the unit's sandbox leaves visible, wherever the tests' own Python is
+    (a home or /tmp one is refused: test_install_edges.py)."""
+    monkeypatch.setattr(sys, "executable", "/opt/ddh-vsensor/bin/python")
 
 
 def _unit(root: Path) -> str:

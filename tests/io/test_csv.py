@@ -66,7 +66,7 @@ OK_ROWS = "0.0,1,2,40,\n0.1,1,2,40,5\n"
 
 
 @pytest.mark.parametrize("text, where, problem", [
-    ("time_s,speed_rpm,oil_temp_c\n0,1,2\n", ":1", "missing column.*torque_nm, position_mm"),
+    ("time_s,speed_rpm,oil_temp_c\n0,1,2\n", ":1", "missing column\\(s\\) torque_nm \\("),
     ("# c\n" + HEADER + "\n" + OK_ROWS + "0.2,x1,2,40,\n", ":5", "'speed_rpm': 'x1' is not a"),
     (HEADER + "\n" + OK_ROWS + "0.2,1,,40,\n", ":4", "'torque_nm': empty cell"),
     (HEADER + ",p_a_bar\n0,1,2,40,,1\n0.1,1,2,40,?,1\n", ":3", "'position_mm': '\\?' is not"),

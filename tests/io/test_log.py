@@ -106,8 +106,8 @@ def test_other_log_formats_and_node_ids(tmp_path: Path, cfg: Config) -> None:
 
 
 @pytest.mark.parametrize("content, problem", [
-    (None, "cannot read CAN log"),
-    (b"this is not a BLF file at all" * 10, "cannot read CAN log"),
+    (None, "cannot read: No such file"),
+    (b"this is not a BLF file at all" * 10, "cannot read CAN log: not a BLF file"),
 ])
 def test_unreadable_log_names_the_file(tmp_path: Path, cfg: Config, content: bytes | None,
                                        problem: str) -> None:

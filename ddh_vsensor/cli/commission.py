@@ -1,0 +1,133 @@
+"""``ddh-vsensor commission``: a machine's Hall switches measured on its calibration runs (the
+draw-wire position still fitted), written into its configuration."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from ddh_vsensor.atomic import output_dir, output_file
+from ddh_vsensor.cli.progress import ProgressBar
+from ddh_vsensor.commission.switches import (KIND_WORDS, KINDS, SPREAD_FACTOR, UnitCalibration,
+                                             calibrate_unit)
+from ddh_vsensor.config import Config, load_config
+from ddh_vsensor.errors import UserError
+from ddh_vsensor.io.csv import header_actuator, read_csv
+from ddh_vsensor.measured import Run
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "commission", help="measure the Hall switches' switching points on calibration runs "
+                           "with the position sensor fitted; write the machine's configuration",
+        description="Finds every Hall switch's edges in the runs, the rod's measured position "
+                    "at each, and fits the configuration's switch positions, window and "
+                    "hysteresis to them; the tolerance becomes the fit's largest residual plus "
+                    "k x the edges' spread. Writes the datasheet configuration with those keys "
+                    "set and commented with their evidence; a switch the runs do not calibrate "
+                    "keeps its values, with the run that would calibrate it.")
+    p.add_argument("runs", nargs="+", metavar="RUN",
+                   help="calibration runs: CSV of the measured-data format with position_mm "
+                        "(one unit each, its '# actuator:' line or --actuator), or CAN logs "
+                        "with the draw-wire frames (every unit, or --actuator's)")
+    p.add_argument("--config", metavar="FILE", required=True,
+                   help="the datasheet configuration the machine was filled in with")
+    p.add_argument("--out", metavar="FILE.yaml", required=True,
+                   help="the commissioned configuration (the datasheet file with the switch "
+                        "keys set; not the datasheet itself)")
+    p.add_argument("--actuator", metavar="UNIT", default=None,
+                   help="commission this unit only (default: every unit the runs hold)")
+    p.add_argument("--report", metavar="DIR",
+                   help="write commission.json: every edge per switch, each kind's statistics")
+    p.add_argument("--spread-factor", type=float, default=SPREAD_FACTOR, metavar="K",
+                   help="the tolerance is the largest residual plus K standard deviations of "
+                        "the edges (default %(default)g)")
+    p.set_defaults(func=_run)
+
+
+def _has_position(run: Run) -> bool:
+    return bool(np.isfinite(run.position_mm).any())
+
+
+def read_runs(paths: list[str], cfg: Config, actuator: str | None) -> dict[str, list[Run]]:
+    """The runs per unit; a CSV is one unit's, a CAN log every unit's (those with position)."""
+    from ddh_vsensor.io.log import read_can_log
+    runs: dict[str, list[Run]] = {a: [] for a in ([actuator] if actuator else cfg.unit_names)}
+    bar = ProgressBar("commission")
+    for i, path in enumerate(paths):
+        bar.update(i / len(paths), Path(path).name)
+        if path.lower().endswith(".csv"):
+            run = read_csv(path, require_position=True, actuator=actuator)
+            unit = actuator or header_actuator(run.comments)
+            if unit is None:
+                if len(cfg.unit_names) != 1:
+                    raise UserError(f"{path}: no '# actuator:' line: say which unit it is "
+                                    f"(--actuator; units: {', '.join(cfg.unit_names)})")
+                unit = cfg.unit_names[0]
+            runs[cfg.require_unit(unit)].append(run)
+            continue
+        found = False
+        for unit, unit_runs in runs.items():
+            run = read_can_log(path, unit, cfg)
+            if _has_position(run):
+                unit_runs.append(run)
+                found = True
+        if not found:
+            raise UserError(f"{path}: no draw-wire position of "
+                            f"{'the ' + actuator if actuator else 'any unit'}: commissioning "
+                            f"needs the position sensor fitted")
+    bar.close(f"{len(paths)} runs read")
+    return {a: r for a, r in runs.items() if r}
+
+
+def _summary(cal: UnitCalibration) -> list[str]:
+    lines = []
+    for s in cal.switches.values():
+        if not s.calibrated:
+            lines.append(f"  {s.name}: not calibrated: {s.problem}")
+            continue
+        seen = ", ".join(f"{KIND_WORDS[k]} {s.kinds[k].mean_mm:.2f}" for k in KINDS
+                         if s.kinds[k].count)
+        lines.append(f"  {s.name}: {s.position_mm:.2f} mm (datasheet {s.configured_mm:g}) "
+                     f"+-{s.tolerance_mm:.2f}, {len(s.edges)} edges: {seen} mm")
+    lines.append(f"  window {cal.window_mm:.2f} mm (datasheet {cal.configured_window_mm:g}), "
+                 f"hysteresis {cal.hysteresis_mm:.2f} mm ({cal.configured_hysteresis_mm:g}), "
+                 f"tolerance {cal.tolerance_mm:.2f} mm ({cal.configured_tolerance_mm:g})")
+    lines += [f"  {note}" for note in cal.notes]
+    return lines
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ddh_vsensor.commission.machine import write_config, write_report
+    if not (args.spread_factor >= 0.0 and np.isfinite(args.spread_factor)):
+        raise UserError(f"--spread-factor must be a number >= 0, got {args.spread_factor:g}")
+    datasheet, out = Path(args.config), output_file(args.out, "commissioned configuration",
+                                                    (".yaml", ".yml"))
+    if out.exists() and datasheet.exists() and out.samefile(datasheet):
+        raise UserError(f"{out}: the datasheet configuration itself: write the machine's "
+                        "configuration beside it")
+    report = output_dir(args.report, "report directory", create=False) if args.report else None
+    cfg = load_config(datasheet)
+    if args.actuator is not None:
+        cfg.require_unit(args.actuator)
+    runs = read_runs(args.runs, cfg, args.actuator)
+    cals = {a: calibrate_unit(a, cfg.unit(a), r, cfg.estimator.debounce_s, args.spread_factor)
+            for a, r in runs.items()}
+    if not any(c.calibrated for c in cals.values()):
+        problems = [p for c in cals.values() for p in c.problems]
+        raise UserError("no switch calibrated: " + ("; ".join(problems) or "the runs hold no "
+                                                     "unit with its position"))
+    write_config(datasheet, out, cals, args.spread_factor)
+    for a, cal in cals.items():
+        print(f"{a}: {len(runs[a])} runs, {len(cal.calibrated)} of {len(cal.switches)} "
+              "switches calibrated")
+        print("\n".join(_summary(cal)))
+    missing = [a for a in cfg.unit_names if a not in cals and args.actuator is None]
+    if missing:
+        print(f"not commissioned (no run with its position): {', '.join(missing)}")
+    print(f"written: {out}")
+    if report is not None:
+        print(f"report: {write_report(output_dir(report, 'report directory'), cals)}")
+    return 0
