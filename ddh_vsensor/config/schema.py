@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 import re
 import json
 from dataclasses import dataclass, field
@@ -442,6 +443,7 @@ class Config:
     def check(self, path: str) -> list[tuple[str, str]]:
         problems = _check_unit_names(self)
         problems += _check_work_cycle(self)
+        problems += _check_table_size(self)
         for name, unit in self.units.items():
             missing = set(unit.references_mm) - set(self.can.units[name].hall_bits) \
                 if name in self.can.units else set()
@@ -502,17 +504,72 @@ class Config:
 
 
     def physics_hash(self) -> str:
-        """Hash of everything the physics and tables depend on (not the bus, not the source)."""
+        """Hash of everything the physics and tables depend on (not the bus, not the source).
+        Computed once and kept on the instance (the configuration is frozen): every state
+        save asks for it, and a deep ``asdict`` of the whole configuration per save would be
+        the service's largest allocation site, for a value that never changes."""
+        cached = self.__dict__.get("_physics_hash_value")
+        if cached is None:
+            cached = self._hash_physics()
+            object.__setattr__(self, "_physics_hash_value", cached)
+        return cached
+
+    def _hash_physics(self) -> str:
         data = dataclasses.asdict(self)
         for key in ("bus", "buses", "can", "estimator", "faults", "work_cycle", "source"):
             data.pop(key)
         for unit in data["units"].values():
-            for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm"):
+            for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm",
+                        "reference_tolerance_mm"):
                 unit.pop(key)
             unit["motor"].pop("torque_lag_s")          # how the drive reports, not physics
         blob = json.dumps(data, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
+
+
+# The movement tables of all units together (float64 cells, both kinds), at most: 2.4 times
+# the largest shipped machine's (config/excavator.yaml, 212 MiB by this count). The unit's
+# MemoryMax (systemd) leaves room for them beside the process.
+TABLE_BYTES_MAX = 512 * 2**20
+# The torque axis spans the relief valves' torque or the motor's limit, whichever is larger
+# (tables/build.py: torque_span_nm, physics this layer cannot import); the shipped machines'
+# span is 1.05..2.05 times the limit: counted here as this multiple of it.
+TORQUE_SPAN_FACTOR = 2.5
+
+
+def table_cells(cfg: Config) -> int:
+    """The cells of every unit's movement tables (full and paper) the grid keys ask for."""
+    tc = cfg.tables
+    t0, t1, dt = tc.temperatures_c
+    temps = round((t1 - t0) / dt) + 1
+    cells = 0
+    for unit in cfg.units.values():
+        speeds = 2 * math.ceil(unit.motor.speed_limit_rpm / tc.speed_step_rpm) + 1
+        torques = 2 * math.ceil(TORQUE_SPAN_FACTOR * unit.motor.torque_limit_nm
+                                / tc.torque_step_nm) + 1
+        cells += temps * torques * (speeds + 6)
+    return cells
+
+
+def _size(n_bytes: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if n_bytes < 1024 or unit == "PiB":
+            return f"{n_bytes:.3g} {unit}"
+        n_bytes /= 1024
+    return ""
+
+
+def _check_table_size(cfg: Config) -> list[tuple[str, str]]:
+    """Each grid key is bounded on its own; together they must not ask for more memory than
+    the tables may take (else numpy fails, or the host swaps, at the start)."""
+    n_bytes = 8 * table_cells(cfg)
+    if n_bytes <= TABLE_BYTES_MAX:
+        return []
+    return [("tables", f"temperatures_c, speed_step_rpm and torque_step_nm ask for "
+             f"{_size(n_bytes)} of movement tables ({len(cfg.units)} units, "
+             f"{n_bytes // 8:.3g} cells); at most {_size(TABLE_BYTES_MAX)}: a coarser "
+             "grid or a narrower temperature range")]
 
 
 def _check_unit_names(cfg: Config) -> list[tuple[str, str]]:

@@ -116,8 +116,9 @@ def load_state(path: str | Path, actuator: str, config_hash: str,
             reason = reason[:_REASON_CHARS - 3] + "..."
         log.warning("%s: corrupt state file ignored (%s)", path, reason)
         return None
-    if state.format != STATE_FORMAT:
-        log.warning("%s: state format %s, expected %s; ignored", path, state.format, STATE_FORMAT)
+    if type(state.format) is not int or state.format != STATE_FORMAT:
+        log.warning("%s: state format %r, expected %r; ignored", path, state.format,
+                    STATE_FORMAT)
         return None
     if state.actuator != actuator or state.config_hash != config_hash:
         log.warning("%s: state belongs to %.40s with config %.40s, not %s with %s; ignored",

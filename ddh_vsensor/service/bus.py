@@ -141,6 +141,14 @@ class BusLink:
         self.state = "closed"
         self.reason = ""
         self.rx_frames = self.tx_frames = self.tx_errors = 0
+        # The batch being handed over: when it was read (monotonic; by the reader thread, so
+        # that a loop busy elsewhere delays its handling, not what the arrival clock says),
+        # and the last time the bus was looked at before it and found with nothing newer
+        # (fd reading: the previous read; a reader thread: when the recv that returned its
+        # first frame began). A frame's predecessors that were read before ``watched_s`` arrived at
+        # least that long before it, whatever the frames' own stamps say.
+        self.received_s = self.watched_s = 0.0
+        self._last_read_s = 0.0
         self.bus_errors = self.error_frames = self.bus_off = self.reconnects = 0
         self._loop: asyncio.AbstractEventLoop | None = None
         self._generation = 0
@@ -233,6 +241,9 @@ class BusLink:
                 bus.shutdown()
             except Exception as exc:   # noqa: BLE001 - closing a broken bus may fail too
                 log.debug("bus shutdown: %s", exc)
+                # marked shut down as python-can does it: else its __del__ tries the dead
+                # connection again and prints a traceback (python-can-remote on a lost hub)
+                can.BusABC.shutdown(bus)
 
     # --- receiving -----------------------------------------------------------------------
 
@@ -242,6 +253,9 @@ class BusLink:
         assert loop is not None
         while generation == self._generation and not self._stopping:
             try:
+                # the bus is watched from here: a frame this recv returns arrived after it
+                # (however long a busy host keeps this thread from running meanwhile)
+                watched_s = time.monotonic()
                 msg = bus.recv(0.2)
                 if msg is None:
                     continue
@@ -259,7 +273,8 @@ class BusLink:
                         pass
                 return
             try:
-                loop.call_soon_threadsafe(self._deliver, generation, batch)
+                loop.call_soon_threadsafe(self._deliver, generation, batch, time.monotonic(),
+                                          watched_s)
             except RuntimeError:           # loop closed under us: the service is gone
                 return
 
@@ -334,6 +349,7 @@ class BusLink:
         """Frames handed over (-1: the bus failed)."""
         batch: list[can.Message] = []
         receive = self._receive
+        watched_s, self._last_read_s = self._last_read_s, time.monotonic()
         try:
             while len(batch) < BATCH_MAX:
                 msg = receive()
@@ -342,16 +358,19 @@ class BusLink:
                 batch.append(msg)
         except Exception as exc:   # noqa: BLE001
             if batch:
-                self._deliver(generation, batch)
+                self._deliver(generation, batch, self._last_read_s, watched_s)
             self._lost(generation, exc)
             return -1
         if batch:
-            self._deliver(generation, batch)
+            self._deliver(generation, batch, self._last_read_s, watched_s)
         return len(batch)
 
-    def _deliver(self, generation: int, batch: list[can.Message]) -> None:
+    def _deliver(self, generation: int, batch: list[can.Message],
+                 received_s: float | None = None, watched_s: float | None = None) -> None:
         if generation != self._generation:
             return
+        self.received_s = time.monotonic() if received_s is None else received_s
+        self.watched_s = self.received_s if watched_s is None else watched_s
         self.rx_frames += len(batch)
         for msg in batch:
             if msg.is_error_frame:

@@ -5,11 +5,12 @@ Sevcon TPDO -> that unit's estimator step with the frame's own timestamp; oil an
 -> latest values; NMT -> the canopen network of the bus it came on (a broadcast reaches that
 bus's nodes only); SYNC -> that bus's nodes' synchronous TPDOs; SDO requests and consumed
 heartbeats -> the network that serves them; a remote frame on a node's error-control ID (node
-guarding) -> that node; each canopen COB-ID through its own rate limiter; other frames on the
-emulated nodes' own IDs -> counted as ID clashes; anything else counted as unknown. A batch is
-handled at once when nothing is waiting and it is small (the common case, a few frames per
-wake), else queued for the dispatcher task, which works through the queue yielding between
-slices so that a flood never holds up the ticks. The backlog is capped
+guarding) -> that node; each canopen COB-ID through its own rate limiter (a controller's
+heartbeat ID one per reported state, frames that are no heartbeat dropped before it);
+other frames on the emulated nodes' own IDs -> counted as ID clashes; anything else counted as
+unknown. A batch is handled at once when nothing is waiting and it is small (the common
+case, a few frames per wake), else queued for the dispatcher task, which works through the
+queue yielding between slices so that a flood never holds up the ticks. The backlog is capped
 (``faults.backlog_max_frames``, and no batch older than BACKLOG_DROP_S): the oldest batches
 are dropped and counted, and the Sevcon frames lost with them are an unintegrated gap.
 """
@@ -48,6 +49,7 @@ CANOPEN_RATE_HZ = {"nmt": 20.0, "sdo": 500.0, "heartbeat": 50.0, "sync": 2000.0,
                    "guard": 200.0}
 CANOPEN_BURST = {"nmt": 10, "sdo": 100, "heartbeat": 10, "sync": 10, "guard": 10}
 LSS_ID = 0x7E5                   # not served
+NMT_HEARTBEAT_STATES = frozenset({0, 4, 5, 127})   # boot-up, stopped, operational, pre-op
 
 
 class Ingest:
@@ -55,15 +57,15 @@ class Ingest:
 
     def __init__(self, inputs: Inputs, units: Mapping[str, Unit],
                  networks: Mapping[str, ServiceNetwork],
-                 on_sevcon: Callable[[Unit, can.Message, float], None],
+                 on_sevcon: Callable[[Unit, can.Message, float, float | None], None],
                  on_sync: Callable[[str], None], faults: FaultsConfig) -> None:
         self.inputs, self.units, self.networks = inputs, units, networks
         self.on_sevcon, self.on_sync = on_sevcon, on_sync
         self.backlog_max_frames = faults.backlog_max_frames
         self._log = RateLimitedLog(log, faults.log_interval_s)
         self.routes = self._build_routes()
-        self._canopen_limiters: dict[tuple[str, int], RateLimiter] = {}
-        self.inbox: deque[tuple[float, str, list[can.Message]]] = deque()
+        self._canopen_limiters: dict[tuple[str, int, int], RateLimiter] = {}
+        self.inbox: deque[tuple[float, str, list[can.Message], float | None]] = deque()
         self._inbox_frames = 0
         self._event = asyncio.Event()
         self.dropped_frames = 0
@@ -96,17 +98,20 @@ class Ingest:
         """When the oldest batch waiting was received (monotonic); None: nothing waits."""
         return self.inbox[0][0] if self.inbox else None
 
-    def on_frames(self, batch: list[can.Message], bus: str = DEFAULT_BUS) -> None:
-        """A batch from a bus link: handled now, or queued (see the module's docstring)."""
-        now = time.monotonic()
+    def on_frames(self, batch: list[can.Message], bus: str = DEFAULT_BUS,
+                  received_s: float | None = None, watched_s: float | None = None) -> None:
+        """A batch from a bus link, read at ``received_s`` (monotonic; default: now), the
+        bus last found without it at ``watched_s`` (default: when read; see
+        :class:`.bus.BusLink`): handled now, or queued (see the module's docstring)."""
+        now = time.monotonic() if received_s is None else received_s
         if not self.inbox and len(batch) <= DISPATCH_SLICE_FRAMES:
-            self.handle(batch, now, bus)
+            self.handle(batch, now, bus, watched_s)
             return
-        self.inbox.append((now, bus, batch))
+        self.inbox.append((now, bus, batch, watched_s))
         self._inbox_frames += len(batch)
         while self._inbox_frames > self.backlog_max_frames or \
                 now - self.inbox[0][0] > BACKLOG_DROP_S:
-            _, _, dropped = self.inbox.popleft()
+            _, _, dropped, _ = self.inbox.popleft()
             self._inbox_frames -= len(dropped)
             self.dropped_frames += len(dropped)
             self._log.warning("backlog", "received frames not handled in time: %d dropped so "
@@ -116,10 +121,11 @@ class Ingest:
                 break
         self._event.set()
 
-    def handle(self, batch: list[can.Message], now: float, bus: str = DEFAULT_BUS) -> None:
+    def handle(self, batch: list[can.Message], now: float, bus: str = DEFAULT_BUS,
+               watched_s: float | None = None) -> None:
         for msg in batch:
             try:
-                self.route(msg, now, bus)
+                self.route(msg, now, bus, watched_s)
             except Exception:   # noqa: BLE001 - one bad frame must not stop the rest
                 self.canopen_errors += 1
                 self._log.warning("route", "frame 0x%03X could not be handled",
@@ -137,22 +143,23 @@ class Ingest:
             slice_start = time.perf_counter()
             done = 0
             while self.inbox:
-                received_s, bus, batch = self.inbox[0]
+                received_s, bus, batch, watched_s = self.inbox[0]
                 if len(batch) > DISPATCH_SLICE_FRAMES:      # split a huge batch
                     head, rest = batch[:DISPATCH_SLICE_FRAMES], batch[DISPATCH_SLICE_FRAMES:]
-                    self.inbox[0] = (received_s, bus, rest)
+                    self.inbox[0] = (received_s, bus, rest, watched_s)
                     batch = head
                 else:
                     self.inbox.popleft()
                 self._inbox_frames -= len(batch)
-                self.handle(batch, received_s, bus)
+                self.handle(batch, received_s, bus, watched_s)
                 done += len(batch)
                 if done >= DISPATCH_SLICE_FRAMES or \
                         time.perf_counter() - slice_start >= DISPATCH_SLICE_S:
                     await asyncio.sleep(0)     # let the tick run
                     slice_start, done = time.perf_counter(), 0
 
-    def route(self, msg: can.Message, now: float, bus: str = DEFAULT_BUS) -> None:
+    def route(self, msg: can.Message, now: float, bus: str = DEFAULT_BUS,
+              watched_s: float | None = None) -> None:
         if msg.is_error_frame:
             return
         if msg.timestamp <= 0.0:          # an interface without timestamps: arrival time
@@ -163,13 +170,14 @@ class Ingest:
             return
         kind, target = route
         if kind == "sevcon":
-            self.on_sevcon(target, msg, now)
+            self.on_sevcon(target, msg, now, watched_s)
         elif kind == "oil":
             self.inputs.oil(msg, now)
         elif kind == "io":
             self.inputs.io(msg, now)
         elif kind in ("sdo", "heartbeat"):
-            if msg.is_remote_frame or not self._canopen_allowed(msg, now, bus, kind):
+            if msg.is_remote_frame or (kind == "heartbeat" and not self._heartbeat_ok(msg)) \
+                    or not self._canopen_allowed(msg, now, bus, kind):
                 return
             target.notify(msg.arbitration_id, msg.data, msg.timestamp)
         elif kind == "guard":
@@ -192,14 +200,31 @@ class Ingest:
         else:
             self.inputs.clash(msg)
 
+    def _heartbeat_ok(self, msg: can.Message) -> bool:
+        """A heartbeat is one byte naming an NMT state; anything else on a controller's
+        heartbeat ID is junk, dropped (counted) before it can take a real heartbeat's
+        place in the rate limit."""
+        if not 0x700 < msg.arbitration_id < 0x780 or (
+                len(msg.data) == 1 and msg.data[0] & 0x7F in NMT_HEARTBEAT_STATES):
+            return True
+        self.canopen_dropped += 1
+        self._log.warning(f"heartbeat-junk-{msg.arbitration_id}", "frames on 0x%03X that are "
+                          "no heartbeat (%d bytes) dropped (%d canopen frames so far)",
+                          msg.arbitration_id, len(msg.data), self.canopen_dropped)
+        return False
+
     def _canopen_allowed(self, msg: can.Message, now: float, bus: str, kind: str) -> bool:
         """A rate limiter per bus and canopen COB-ID (its route's kind sets rate and burst),
-        on arrival time: the excess of a flood is dropped, counted."""
+        for heartbeats per COB-ID and state: a flood repeating one state cannot drown the
+        controller's own heartbeats reporting another. On arrival time: the excess of a flood
+        is dropped, counted."""
         can_id = msg.arbitration_id
-        limiter = self._canopen_limiters.get((bus, can_id))
+        key = (bus, can_id, msg.data[0] & 0x7F) if kind == "heartbeat" and msg.data \
+            else (bus, can_id, -1)
+        limiter = self._canopen_limiters.get(key)
         if limiter is None:
             limiter = RateLimiter(CANOPEN_RATE_HZ[kind], CANOPEN_BURST[kind])
-            self._canopen_limiters[(bus, can_id)] = limiter
+            self._canopen_limiters[key] = limiter
         if limiter.take(now):
             return True
         self.canopen_dropped += 1

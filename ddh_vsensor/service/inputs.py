@@ -1,7 +1,8 @@
 """The frames the service reads: routed by ID, decoded with the project's DBC, checked, counted.
 
-Nothing here raises on bad input. A frame with the wrong length, an implausible value or
-arriving faster than any controller sends is *rejected*: counted (per unit for the Sevcon
+Nothing here raises on bad input. A frame with the wrong length, an implausible value (an
+I/O state no rod position gives included) or arriving faster than any controller sends is
+*rejected*: counted (per unit for the Sevcon
 frames, they go out in the diagnostic frame) and logged at a limited rate. Frames on IDs the
 service does not read are counted as unknown (the first ``unknown_ids_max`` distinct IDs one
 by one, the rest together: a flood of random IDs costs no memory); frames on the service's own
@@ -97,6 +98,18 @@ class Inputs:
         self._io_change_between_samples = False
         self._io_change_unjudged_t: float | None = None   # the newest change, until a sample
         self._refs_cache: dict[str, tuple[bytes, dict[str, bool]]] = {}
+        # per unit, the bit masks of switch pairs too far apart for one rod's magnet to reach
+        # both (more than twice the reference window): such a state is no rod position
+        self._apart_masks: list[tuple[str, int]] = []
+        for a, unit_can in cfg.can.units.items():
+            unit = cfg.unit(a)
+            names = [n for n in unit.references_mm if n in unit_can.hall_bits]
+            for i, one in enumerate(names):
+                for other in names[i + 1:]:
+                    if abs(unit.references_mm[one] - unit.references_mm[other]) \
+                            > 2.0 * unit.reference_window_mm:
+                        self._apart_masks.append((a, (1 << unit_can.hall_bits[one])
+                                                  | (1 << unit_can.hall_bits[other])))
 
     # --- checks shared by all inputs ---------------------------------------------------
 
@@ -198,7 +211,8 @@ class Inputs:
         return True
 
     def io(self, msg: can.Message, now_s: float) -> bool:
-        if not (self._shape_ok(msg, "I/O module") and self._not_flooded(msg, "I/O module")):
+        if not (self._shape_ok(msg, "I/O module") and self._not_flooded(msg, "I/O module")
+                and self._one_position_each(msg)):
             self.counts["io_rejected"] += 1
             return False
         self._check_time(msg, "I/O module")
@@ -216,6 +230,19 @@ class Inputs:
                 del self._io_changes_t[0], self._io_changes[0]
         self.io_t_s = t_s
         self.counts["io"] += 1
+        return True
+
+    def _one_position_each(self, msg: can.Message) -> bool:
+        """The I/O module's inputs name at most one rod position per unit: two of a unit's
+        switches active that are further apart than its magnet reaches is no state of the
+        machine (a foreign frame on the module's ID), and its edges would be references."""
+        inputs = int.from_bytes(bytes(msg.data), "little")
+        for actuator, mask in self._apart_masks:
+            if inputs & mask == mask:
+                self.log.warning("io-implausible", "I/O module frame 0x%02X... rejected: %s's "
+                                 "switches active together that no rod position reaches "
+                                 "at once", inputs & 0xFF, actuator)
+                return False
         return True
 
     @property

@@ -127,6 +127,8 @@ class Service:
             self._bus_nodes[cfg.can.units[actuator].bus].append(unit.node)
         self.states = StateStore(cfg, self.options.state_dir)
         self.states.restore(self.units)
+        for unit in self.units.values():
+            unit.cap_uncertainty_at_stroke()
         self.ingest = Ingest(self.inputs, self.units, self.networks, self._on_sevcon,
                              self._on_sync, self.faults)
         link_kwargs = {"opener": opener} if opener is not None else {}
@@ -135,7 +137,8 @@ class Service:
         for name in self.bus_names:
             self.links[name] = BusLink(
                 settings[name], filters,
-                lambda batch, name=name: self.ingest.on_frames(batch, name),
+                lambda batch, name=name: self.ingest.on_frames(
+                    batch, name, self.links[name].received_s, self.links[name].watched_s),
                 on_state=lambda state, reason, name=name: self._bus_state(name, state, reason),
                 watch_fd=self.options.fd_reader, coalesce_s=self._coalesce_s(),
                 log_interval_s=self.faults.log_interval_s, **link_kwargs)
@@ -228,8 +231,9 @@ class Service:
 
     # --- per unit ----------------------------------------------------------------------------
 
-    def _on_sevcon(self, unit: Unit, msg: can.Message, now: float) -> None:
-        if unit.integrate(msg, now):
+    def _on_sevcon(self, unit: Unit, msg: can.Message, now: float,
+                   watched_s: float | None = None) -> None:
+        if unit.integrate(msg, now, watched_s):
             if self.options.record_latency:
                 self.latency_s.append(time.time() - msg.timestamp)
             if self._held and unit.actuator in self._held:

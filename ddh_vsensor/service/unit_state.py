@@ -5,12 +5,14 @@ Motion is never dropped silently. Sevcon frames are integrated whatever the cont
 heartbeat says (a consumed controller that is not OPERATIONAL sets
 Flags.CONTROLLER_NOT_OPERATIONAL). Any interval the estimator did not integrate (frames
 missing, held before the first oil temperature, dropped from the backlog; longer than
-``estimator.max_gap_s``) widens the uncertainty by the worst travel possible in it,
+``estimator.max_gap_s`` by the frames' clock or by their arrivals on this host's monotonic
+clock, whichever is longer) widens the uncertainty by the worst travel possible in it,
 ``Config.max_speed_mm_s`` x its length; when that reaches the stroke the unit is "not
 referenced" until the next Hall reference. A unit is stale while no Sevcon frame was
 integrated for 3 periods (the slower of the event timer, up to 10 ms, and the measured Sevcon
 period), while the newest integrated frame is older than that by its own timestamp (when frame
-timestamps are this host's wall clock: frames delivered late), or no oil temperature was ever
+timestamps are this host's wall clock: frames delivered late; a steady offset of the stamps
+is learnt as their clock's, see LATE_LEARN_S), or no oil temperature was ever
 received: position held, published speed 0, published uncertainty growing at the worst-case
 speed (capped at the stroke), Flags.STALE_INPUT set. The stale flag clears with the first
 integrated frame after the gap, because that frame brings the gap's worst-case travel into
@@ -26,7 +28,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import can
 from canopen.sdo import SdoAbortedError
@@ -51,6 +53,12 @@ STALE_TICK_CAP_S = 0.01
 # reception; a remote hub passes the sender's time on): then the newest integrated frame's
 # own age says how old the published position is, delivery delays included.
 WALL_CLOCK_MATCH_S = 5.0
+# Frames stamped behind this host's wall clock by a steady offset (a sender's clock passed on
+# by a hub, not quite this host's): after LATE_LEARN_S of stamps that many seconds behind,
+# within LATE_SPREAD_S of each other, the offset is the sender's clock, not a delivery delay,
+# and is taken off their age (reported once); a stamp less behind lowers it at once.
+LATE_LEARN_S = 10.0
+LATE_SPREAD_S = 0.02
 HOLD_SLACK_PERIODS = 0.25    # hold_for_input_s: the next frame's arrival, beyond one period
 WALL_STEP_MIN_S = 0.005       # wall clock slews (NTP) below this: no step
 WALL_READ_TRIES = 3
@@ -107,7 +115,6 @@ class Unit:
     last_rx_s: float | None = None           # monotonic time it was integrated
     last_wall_offset_s: float = 0.0          # wall less monotonic clock then
     last_wall_offset_err_s: float = 0.0      # how far that reading may be off
-    last_steps_back: int = 0                 # Inputs.clock_steps_back then
     input_period_s: float | None = None      # measured Sevcon period (smoothed)
     integrated: int = 0
     held: int = 0                            # frames not integrated: no oil temperature yet
@@ -126,6 +133,11 @@ class Unit:
     provisional: bool = False
     presets_accepted: int = 0
     presets_refused: int = 0
+    clock_disagreed: bool = False            # frame and arrival clocks disagreed (logged)
+    stamp_offset_s: float = 0.0              # learnt: how far the stamps run behind the wall
+    late_since_s: float | None = None        # monotonic start of the current steady window
+    late_lo_s: float = 0.0                   # the window's least and largest lag
+    late_hi_s: float = 0.0
     clock: Callable[[], float] = time.monotonic  # the service's monotonic time (a test's own)
 
     def __post_init__(self) -> None:
@@ -161,8 +173,15 @@ class Unit:
             self.log.warning(f"gap-{self.actuator}", "%s: %s: uncertainty widened by %.1f "
                              "mm (worst-case travel)", self.actuator, why, add)
 
-    def integrate(self, msg: can.Message, now: float) -> bool:
-        """A Sevcon frame: checked, then one estimator step with the latest oil temperature
+    def cap_uncertainty_at_stroke(self) -> None:
+        """A bound beyond the stroke (a restored state's) says no more than the stroke."""
+        est = self.estimator
+        if est.uncertainty_mm > self.stroke_mm:
+            est.restore(replace(est.snapshot(), uncertainty_mm=self.stroke_mm))
+
+    def integrate(self, msg: can.Message, now: float, watched_s: float | None = None) -> bool:
+        """A Sevcon frame read at ``now``, the bus last found without it at ``watched_s``
+        (default: ``now``): checked, then one estimator step with the latest oil temperature
         and Hall states (held until the first oil temperature). True when integrated."""
         sample = self.inputs.sevcon(self.actuator, msg, now)
         if sample is None:
@@ -179,8 +198,8 @@ class Unit:
         wall_s, wall_offset_s, offset_err_s = read_wall_offset()
         if since is not None:
             dt = sample.t_s - since
-            untracked_s = self.untracked_s(dt, now, sample.t_s, wall_s, wall_offset_s,
-                                           offset_err_s)
+            untracked_s = self.untracked_s(dt, now if watched_s is None else watched_s,
+                                           sample.t_s, wall_s, wall_offset_s, offset_err_s)
             if 0.0 < dt <= est.max_gap_s and untracked_s <= est.max_gap_s \
                     and self.last_frame_t is not None:
                 self.input_period_s = dt if self.input_period_s is None else \
@@ -202,7 +221,7 @@ class Unit:
         self.last_step = step
         self.last_frame_t, self.last_rx_s = sample.t_s, now
         self.last_wall_offset_s, self.last_wall_offset_err_s = wall_offset_s, offset_err_s
-        self.last_steps_back = self.inputs.clock_steps_back
+        self._learn_stamp_offset(wall_s - sample.t_s, now)
         self.integrated += 1
         if step.reference is not None and not was_referenced:
             # Taken in full from an unreferenced estimate: the edge lies somewhere within its
@@ -226,24 +245,56 @@ class Unit:
                           step.uncertainty_mm)
         return True
 
+    def _learn_stamp_offset(self, lag_s: float, now: float) -> None:
+        """How far behind the wall clock the stamps run (see LATE_LEARN_S)."""
+        if not 0.0 <= lag_s < WALL_CLOCK_MATCH_S:
+            self.late_since_s = None
+            return
+        self.stamp_offset_s = min(self.stamp_offset_s, lag_s)
+        excess_s = lag_s - self.stamp_offset_s
+        if excess_s <= STALE_TICK_CAP_S:
+            self.late_since_s = None
+            return
+        if self.late_since_s is None or not self.late_hi_s - LATE_SPREAD_S <= lag_s \
+                <= self.late_lo_s + LATE_SPREAD_S:
+            self.late_since_s, self.late_lo_s, self.late_hi_s = now, lag_s, lag_s
+            return
+        self.late_lo_s, self.late_hi_s = min(self.late_lo_s, lag_s), max(self.late_hi_s, lag_s)
+        if now - self.late_since_s >= LATE_LEARN_S:
+            self.stamp_offset_s, self.late_since_s = self.late_lo_s, None
+            self.log.warning(f"offset-{self.actuator}", "%s: Sevcon frame stamps run %.3f s "
+                             "behind this host's wall clock, steadily for %.0f s: taken as "
+                             "their clock's offset, not as frames delivered late",
+                             self.actuator, self.stamp_offset_s, LATE_LEARN_S)
+
     def untracked_s(self, dt: float, now: float, t_s: float, wall_s: float,
                     wall_offset_s: float, offset_err_s: float = 0.0) -> float:
         """How long the machine may have moved since the last integrated frame, by the
         clocks that can be trusted. Frames stamped by this host's wall clock: their interval,
         less any step of the wall clock against the monotonic one since (an NTP step during a
-        gap hides travel; a step within the two readings' own error is not one). Frames stamped by another clock (an interface's own, a campaign's):
-        their interval, unless that clock was seen going back (on any input) since; then the
-        longer of it and the arrival interval, which a step never shortens (and a backlog read
-        late lengthens: counted as travel, the safe side)."""
+        gap hides travel; a step within the two readings' own error is not one). Frames
+        stamped by another clock (an interface's own, a campaign's): their interval. Either
+        way never less than the arrival interval on this host's monotonic clock, which no
+        step of a frame clock shortens: a gap the host measured is a gap (a delivery delayed
+        beyond ``max_gap_s`` counts as travel, the safe side)."""
         if self.last_rx_s is None or dt <= 0.0:
             return dt
+        arrival_s = now - self.last_rx_s
         if abs(wall_s - t_s) < WALL_CLOCK_MATCH_S:
             stepped_s = wall_offset_s - self.last_wall_offset_s
             min_step_s = WALL_STEP_MIN_S + offset_err_s + self.last_wall_offset_err_s
-            return dt - stepped_s if abs(stepped_s) > min_step_s else dt
-        if self.inputs.clock_steps_back != self.last_steps_back:
-            return max(dt, now - self.last_rx_s)
-        return dt
+            framed_s = dt - stepped_s if abs(stepped_s) > min_step_s else dt
+        else:
+            framed_s = dt
+        if arrival_s - framed_s > self.estimator.max_gap_s and not self.clock_disagreed:
+            # a frame clock that steps back while nothing arrives (an interface passing a
+            # sender's stamps, an adapter whose own clock restarted) hides the gap's travel
+            self.clock_disagreed = True
+            self.log.warning(f"clock-{self.actuator}", "%s: Sevcon frame time says %.3f s "
+                             "passed, this host measured %.3f s since the last integrated "
+                             "frame: the host's interval counts (logged once)",
+                             self.actuator, framed_s, arrival_s)
+        return max(framed_s, arrival_s)
 
     def preset(self, position_mm: float, published: Published) -> None:
         """An SDO write of the preset (0x6010): accepted only as configured
@@ -317,7 +368,7 @@ class Unit:
         if now - self.last_rx_s > limit_s:
             return True, f"no Sevcon frame for {now - self.last_rx_s:.2f} s"
         if self.last_frame_t is not None:
-            age_s = time.time() - self.last_frame_t
+            age_s = time.time() - self.last_frame_t - self.stamp_offset_s
             if limit_s < age_s < WALL_CLOCK_MATCH_S:
                 return True, f"the newest Sevcon frame is {age_s:.2f} s old (delivered late)"
         return False, ""

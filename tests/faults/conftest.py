@@ -121,11 +121,13 @@ def run_row(hub: Hub, tmp_path: Path, cfg: Config, cfg_raw: dict, paper: Paper,
             t0: float, t1: float, *, heartbeats: bool = True,
             drop: Callable[[can.Message], bool] | None = None,
             hook: Callable[[float, can.BusABC], None] | None = None,
+            stamp: Callable[[float, float], float] | None = None,
             overrides: dict | None = None, watchdog_usec: int | None = None,
             preset: bool = True, settle_s: float = 0.3) -> Row:
     """Daemon up; diagnostic frames every 10 ms and (``preset``) both units preset to the
     truth at ``t0`` over SDO; the paper cycle from ``t0`` to ``t1`` fed in real time (less
-    the frames ``drop`` says, plus whatever ``hook`` injects); SIGTERM."""
+    the frames ``drop`` says, plus whatever ``hook`` injects; stamped as ``stamp`` says);
+    SIGTERM."""
     recorder = Recorder(hub)
     try:
         daemon = start_daemon(hub, tmp_path, cfg_raw, overrides=overrides,
@@ -138,7 +140,7 @@ def run_row(hub: Hub, tmp_path: Path, cfg: Config, cfg_raw: dict, paper: Paper,
                    {a: paper.at(a, t0) for a in cfg.can.units} if preset else None,
                    diag_ms=int(cfg.can.event_timer_ms), timeout_s=3.0)
         frames = [m for m in paper.segment(t0, t1, heartbeats) if drop is None or not drop(m)]
-        base_wall = feed(hub, frames, hook=hook)
+        base_wall = feed(hub, frames, hook=hook, stamp=stamp)
         time.sleep(settle_s)
     finally:
         code = daemon.stop(signal.SIGTERM)

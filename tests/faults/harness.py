@@ -209,10 +209,11 @@ class Recorder:
 
 
 def feed(hub: Hub, frames: list[can.Message], *, base_wall: float | None = None,
-         hook: Callable[[float, can.BusABC], None] | None = None) -> float:
+         hook: Callable[[float, can.BusABC], None] | None = None,
+         stamp: Callable[[float, float], float] | None = None) -> float:
     """Send ``frames`` (log time order) in real time, each stamped with its log time moved
-    to the wall clock: ``base_wall + t``. ``hook(t, bus)`` runs before each frame (inject
-    faults). Returns ``base_wall``."""
+    to the wall clock: ``base_wall + t``, or ``stamp(t, base_wall)`` (a sender's clock that
+    steps). ``hook(t, bus)`` runs before each frame (inject faults). Returns ``base_wall``."""
     bus = hub.bus(preserve_timestamps=True)
     try:
         t0 = frames[0].timestamp
@@ -225,7 +226,9 @@ def feed(hub: Hub, frames: list[can.Message], *, base_wall: float | None = None,
                 time.sleep(delay)
             if hook is not None:
                 hook(msg.timestamp, bus)
-            out = can.Message(timestamp=due, arbitration_id=msg.arbitration_id,
+            out = can.Message(timestamp=due if stamp is None else stamp(msg.timestamp,
+                                                                         base_wall),
+                              arbitration_id=msg.arbitration_id,
                               data=msg.data, dlc=msg.dlc, is_extended_id=msg.is_extended_id,
                               is_remote_frame=msg.is_remote_frame)
             bus.send(out)

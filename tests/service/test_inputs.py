@@ -134,3 +134,20 @@ def test_a_remote_request_on_a_sensor_id_is_no_id_clash(cfg) -> None:
     inputs.clash(can.Message(arbitration_id=0x180 + node_id, data=bytes(7),
                              is_extended_id=False))
     assert inputs.counts["id_clash"] == 1
+
+
+def test_an_io_state_no_rod_position_gives_is_rejected(cfg) -> None:
+    """A foreign frame on the I/O module's ID (a 1-byte "1": boom bottom, bucket mid and top)
+    would be Hall edges, references where the rods are not: two of the bucket's switches
+    425 mm apart cannot both see its magnet, so the frame is rejected, the states kept."""
+    codec = FrameCodec(cfg)
+    inputs = Inputs(cfg, codec)
+    assert inputs.io(codec.encode_inputs({"boom": {"mid": 1}, "bucket": {}}, 1.0), 0.0)
+    junk = can.Message(timestamp=1.01, arbitration_id=inputs.io_id, data=b"1",
+                       is_extended_id=False)
+    assert not inputs.io(junk, 0.0)
+    assert inputs.counts["io_rejected"] == 1
+    assert inputs.refs("bucket") == {"bottom": False, "mid": False, "top": False}
+    # one switch per unit, however far from the estimate, is a rod position: taken
+    assert inputs.io(codec.encode_inputs({"boom": {"top": 1}, "bucket": {"bottom": 1}}, 1.02),
+                     0.0)

@@ -27,9 +27,9 @@ def _handled_in_order(service) -> list[can.Message]:
     seen: list[can.Message] = []
     handle = service.ingest.handle
 
-    def recording(batch, now, bus=DEFAULT_BUS):
+    def recording(batch, now, bus=DEFAULT_BUS, watched_s=None):
         seen.extend(batch)
-        handle(batch, now, bus)
+        handle(batch, now, bus, watched_s)
     service.ingest.handle = recording
     return seen
 

@@ -86,7 +86,7 @@ def test_service_ready_status_watchdog_stopping(cfg, unit_tables, systemd) -> No
             await settle(0.2)
             pings_healthy = sum("WATCHDOG" in m for m in systemd.read())
             # a received batch nobody integrates for > 1 s: the integrator is not advancing
-            service.ingest.inbox.append((time.monotonic() - 5.0, "default", []))
+            service.ingest.inbox.append((time.monotonic() - 5.0, "default", [], None))
             n = len(systemd.read())
             await settle(0.2)
             pings_stuck = sum("WATCHDOG" in m for m in systemd.read()[n:])

@@ -1,7 +1,8 @@
 """What a unit counts as travel it did not integrate, when the clocks disagree: a frame clock
-that stepped back during a gap (seen on another input) must not shorten the gap; a backlog read
-late is no gap; a wall clock step (frames stamped by this host) is taken out of the interval,
-and a process preempted while it reads the two clocks sees no step. And which Hall states a sample meets when the I/O module's frames are read ahead of it."""
+that stepped back during a gap (seen on another input or not) must not shorten the gap: the
+interval this host measured between arrivals always counts; a wall clock step (frames stamped
+by this host) is taken out of the interval, and a process preempted while it reads the two
+clocks sees no step. And which Hall states a sample meets when the I/O module's frames are read ahead of it."""
 
 from __future__ import annotations
 
@@ -64,25 +65,32 @@ def test_a_clock_step_back_during_a_gap_does_not_shorten_it(driven, cfg) -> None
         cfg.max_speed_mm_s("boom") * arrival_gap_s, rel=1e-6)
 
 
-def test_without_a_step_the_frame_clock_is_trusted(driven, cfg) -> None:
-    """The same arrival gap, frames continuous by their own clock: a backlog read late."""
+def test_an_arrival_gap_counts_whatever_the_frame_clock_says(driven, cfg, caplog) -> None:
+    """Every input silent for 0.6 s, then frames whose clock reads on as if none were
+    missing (stepped back by the outage: a hub passing a sender's stamps, an adapter whose
+    own clock restarted): the interval this host measured is the gap, logged once."""
     boom = driven.service.units["boom"]
-    gaps = boom.gaps
+    widened = boom.gap_widening_mm
     driven.run(("boom", "bucket"), 50.5, 1001.1, 5)
-    assert boom.gaps == gaps
+    arrival_gap_s = 1001.1 - (1000.0 + 49 * PERIOD_S)
+    assert boom.gap_widening_mm - widened == pytest.approx(
+        cfg.max_speed_mm_s("boom") * arrival_gap_s, rel=1e-6)
+    driven.run(("boom", "bucket"), 50.55, 1001.8, 5)
+    assert sum("this host measured" in r.getMessage() and "boom" in r.getMessage()
+               for r in caplog.records) == 1
 
 
 def test_a_wall_clock_step_is_taken_out_of_the_frame_interval(driven) -> None:
     """Frames stamped by this host: the wall clock stepped back 1.5 s during a 2 s gap, so
     their interval says 0.5 s; the step against the monotonic clock gives the 2 s back. Read
-    late with no step: the frame interval stands."""
+    0.5 s after the last with no step, frames 10 ms apart: the 0.5 s this host measured."""
     boom = driven.service.units["boom"]
     wall_s = 1.8e9
     boom.last_rx_s, boom.last_wall_offset_s = 1000.0, wall_s - 1000.0
     assert boom.untracked_s(0.5, 1002.0, wall_s - 1.5 + 2.0, wall_s - 1.5 + 2.0,
                             wall_s - 1000.0 - 1.5) == pytest.approx(2.0)
     assert boom.untracked_s(0.01, 1000.5, wall_s + 0.01, wall_s + 0.5,
-                            wall_s - 1000.0) == pytest.approx(0.01)
+                            wall_s - 1000.0) == pytest.approx(0.5)
 
 
 class _PreemptedClocks:
@@ -297,3 +305,32 @@ def test_a_synchronous_tpdo_is_sent_on_sync_and_its_bus_read_as_frames_come(held
     boom.node.node.set_data(0x1800, 2, bytes([254]), check_writable=True)
     held.d.send(sync, held.d.now)
     assert not boom.node.synchronous and not link.prompt
+
+
+def test_stamps_steadily_behind_the_wall_clock_are_learnt_not_stale_forever(driven,
+                                                                             monkeypatch) -> None:
+    """Frames stamped 0.8 s behind this host's wall clock (a sender's clock a hub passes on):
+    stale at first (delivered late, as far as anyone can tell), then, the lag steady for
+    LATE_LEARN_S, taken as that clock's offset; a lag that grows beyond it is late again.
+    The wall clock here runs with the test's monotonic one."""
+    boom = driven.service.units["boom"]
+    monkeypatch.setattr(units_module.time, "time", lambda: 1.8e9 + driven.now)
+    monkeypatch.setattr(units_module.time, "monotonic", lambda: driven.now)
+
+    def send(k: int, lag_s: float) -> None:
+        for unit in ("boom", "bucket"):
+            driven.now += PERIOD_S / 2
+            driven.send(driven.codec.encode_sevcon(unit, 4.0, 0.0, 1.8e9 + driven.now - lag_s),
+                        driven.now)
+
+    send(0, 0.8)
+    assert "delivered late" in driven.service.stale(boom, driven.now)[1]
+    for k in range(int(units_module.LATE_LEARN_S / PERIOD_S * 0.5)):
+        send(k, 0.8)
+    assert driven.service.stale(boom, driven.now)[0]                    # not yet steady
+    for k in range(int(units_module.LATE_LEARN_S / PERIOD_S * 0.6)):
+        send(k, 0.8)
+    assert boom.stamp_offset_s == pytest.approx(0.8, abs=0.01)
+    assert not driven.service.stale(boom, driven.now)[0]
+    send(0, 1.5)
+    assert "delivered late" in driven.service.stale(boom, driven.now)[1]
