@@ -1,0 +1,280 @@
+"""Accuracy and performance figures from the benches' committed JSON (bench/results)."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+from gen_code import table
+
+MODES = ("dynamic", "full", "paper")
+
+
+def fmt(value: Any) -> str:
+    """A figure as the JSON holds it (the benches round; nothing is re-rounded here)."""
+    if isinstance(value, bool) or value is None:
+        return str(value).lower()
+    if isinstance(value, (int, float)):
+        return str(value)
+    if isinstance(value, list):
+        return ", ".join(fmt(v) for v in value)
+    return str(value)
+
+
+def load(root: Path, name: str) -> dict[str, Any]:
+    path = root / "bench" / "results" / f"{name}.json"
+    if not path.is_file():
+        raise ValueError(f"{path.relative_to(root)} is not there: run the bench and commit "
+                         "its JSON")
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
+def provenance(record: dict[str, Any]) -> str:
+    command = record.get("command")
+    how = f"`{command}`" if command else "a command line the file does not record"
+    load_avg = record.get("load_average_1min")
+    host = (f"{record.get('cpus', '?')} CPUs, {record.get('machine', '?')}, "
+            f"Python {record.get('python', '?')}")
+    if load_avg is not None:
+        host += f", 1-minute load average {load_avg} when it ended"
+    return (f"Measured by {how} ({host}; {record.get('when', 'time not recorded')}; "
+            f"`bench/results/{record['benchmark']}.json`).\n")
+
+
+def _flatten(figures: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    rows = []
+    for key, value in figures.items():
+        if isinstance(value, dict):
+            rows += _flatten(value, f"{prefix}{key}.")
+        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            for i, item in enumerate(value):
+                rows += _flatten(item, f"{prefix}{key}[{i}].")
+        else:
+            rows.append((f"{prefix}{key}", value))
+    return rows
+
+
+def _units(figures: dict[str, Any], pattern: str) -> list[str]:
+    seen: list[str] = []
+    for key in figures:
+        m = re.match(pattern, key)
+        if m and m.group("unit") not in seen:
+            seen.append(m.group("unit"))
+    return seen
+
+
+# --- accuracy.json -----------------------------------------------------------------------
+
+_WORST = r"^(?P<mode>dynamic|full|paper)_(?P<unit>[a-z0-9_]+?)_worst_max_abs_error_mm$"
+_NOMINAL = r"^(?P<mode>dynamic|full|paper)_(?P<unit>[a-z0-9_]+?)_speed(?P<speed>\d+)_(?P<kg>[\d.]+)kg$"
+_CYCLES = (r"^(?P<mode>dynamic|full|paper)_(?P<unit>[a-z0-9_]+?)_(?P<n>\d+)cycles_"
+           r"(?P<kind>norefs|refs_rows|refs)_(?P<what>max_abs_error_mm|first10_max_mm|"
+           r"last10_max_mm)$")
+_DRIFT = r"^(?P<mode>dynamic|full|paper)_(?P<unit>[a-z0-9_]+?)_drift_per_cycle_norefs_mm$"
+_KIND = {"norefs": "no references", "refs": "references timed by the I/O module",
+         "refs_rows": "references at the samples"}
+
+
+def _worst_table(figures: dict[str, Any], consumed: set[str]) -> str:
+    units = _units(figures, _WORST)
+    rows = []
+    for mode in MODES:
+        keys = [f"{mode}_{u}_worst_max_abs_error_mm" for u in units]
+        if all(k in figures for k in keys):
+            rows.append([f"`{mode}`", *(fmt(figures[k]) for k in keys)])
+            consumed.update(keys)
+    return table(["mode", *(f"{u}: worst \\|error\\| (mm)" for u in units)], rows)
+
+
+def accuracy_headline(root: Path) -> str:
+    """One sentence with the figure that matters: the default mode's worst error."""
+    figures = load(root, "accuracy")["figures"]
+    units = _units(figures, _WORST)
+    parts = [f"{u} {fmt(figures[f'dynamic_{u}_worst_max_abs_error_mm'])} mm" for u in units]
+    paper = [f"{fmt(figures[f'paper_{u}_worst_max_abs_error_mm'])}" for u in units
+             if f"paper_{u}_worst_max_abs_error_mm" in figures]
+    text = (f"Worst position error of the default `dynamic` mode over the paper's work cycle "
+            f"(simulated, oil at 27 °C, speeds 1–4, empty and 1040 kg, no references): "
+            f"**{', '.join(parts)}**")
+    if len(paper) == len(units):
+        text += f"; the paper's own method on the same runs: {' / '.join(paper)} mm"
+    return text + ".\n"
+
+
+def _accuracy(figures: dict[str, Any], consumed: set[str]) -> str:
+    out = ["### Worst error per mode\n", ("Over the nominal runs (the paper's cycle at "
+           "speeds 1–4, empty and 1040 kg, oil at 27 °C), no references.\n"),
+           _worst_table(figures, consumed)]
+    cells: dict[tuple[str, str], dict[str, str]] = {}
+    columns: list[str] = []
+    for key, value in figures.items():
+        m = re.match(_NOMINAL, key)
+        if not m or not isinstance(value, dict):
+            continue
+        column = f"speed {m['speed']}, {m['kg']} kg"
+        if column not in columns:
+            columns.append(column)
+        cells.setdefault((m["mode"], m["unit"]), {})[column] = (
+            f"{fmt(value.get('max_abs_error_mm'))} / {fmt(value.get('rms_error_mm'))}")
+        consumed.add(key)
+    if cells:
+        out += ["### Per run\n", "Maximum / RMS error (mm) per run, no references.\n",
+                table(["mode", "unit", *columns],
+                      [[f"`{mode}`", unit, *(row.get(c, "") for c in columns)]
+                       for (mode, unit), row in cells.items()])]
+    runs: dict[tuple[str, str, str, str], dict[str, Any]] = {}
+    for key, value in figures.items():
+        m = re.match(_CYCLES, key)
+        if m:
+            runs.setdefault((m["n"], m["mode"], m["unit"], m["kind"]), {})[m["what"]] = value
+            consumed.add(key)
+    if runs:
+        n = next(iter(runs))[0]
+        rows = []
+        for (_, mode, unit, kind), row in runs.items():
+            drift_key = f"{mode}_{unit}_drift_per_cycle_norefs_mm"
+            drift = fmt(figures[drift_key]) if kind == "norefs" and drift_key in figures else ""
+            consumed.add(drift_key)
+            rows.append([f"`{mode}`", unit, _KIND[kind], fmt(row.get("max_abs_error_mm")),
+                         fmt(row.get("first10_max_mm")), fmt(row.get("last10_max_mm")), drift])
+        out += [f"### {n} cycles in a row\n", (f"The paper's cycle {n} times at speed 4, "
+                "empty, the oil warming from 27 °C: worst error overall, over the first and "
+                "the last ten cycles, and the drift per cycle without references.\n"),
+                table(["mode", "unit", "references", "max (mm)", "first 10 (mm)",
+                       "last 10 (mm)", "drift per cycle (mm)"], rows)]
+    return "\n".join(out)
+
+
+_SWEEP = (r"^(?P<set>[a-z0-9.]+(?:_[a-z0-9.]+)*?)_(?P<mode>dynamic|full|paper)_"
+          r"(?P<unit>[a-z0-9]+)_(?P<temp>-?[\d.]+)C_(?P<what>max_abs_error_mm|rms_error_mm|"
+          r"worst_run)$")
+
+
+def _sweep(figures: dict[str, Any], consumed: set[str]) -> str:
+    """The temperature sweep: per oil temperature, mode and unit, max / RMS error."""
+    cells: dict[str, dict[str, dict[str, Any]]] = {}
+    columns: list[str] = []
+    sets: list[str] = []
+    for key, value in figures.items():
+        m = re.match(_SWEEP, key)
+        if not m:
+            continue
+        column = f"`{m['mode']}` {m['unit']}"
+        if column not in columns:
+            columns.append(column)
+        if m["set"] not in sets:
+            sets.append(m["set"])
+        cells.setdefault(m["temp"], {}).setdefault(column, {})[m["what"]] = value
+        consumed.add(key)
+    if not cells:
+        return ""
+    rows = [[f"{temp} °C", *(f"{fmt(c.get(col, {}).get('max_abs_error_mm'))} / "
+                               f"{fmt(c.get(col, {}).get('rms_error_mm'))}" for col in columns)]
+            for temp, c in cells.items()]
+    worst = [[f"{temp} °C", *(fmt(c.get(col, {}).get("worst_run", "")) for col in columns)]
+             for temp, c in cells.items()]
+    return "\n".join([
+        f"### Temperature sweep (`{', '.join(sets)}`)\n",
+        ("Per oil temperature, over the set's runs (the paper's cycle at several speeds and "
+        "payloads, the dig-dump cycle and random work cycles with end-stop contact), no "
+        "references: maximum / RMS error (mm).\n"),
+        table(["oil", *columns], rows),
+        "The run each maximum came from:\n",
+        table(["oil", *columns], worst)])
+
+
+def _accuracy_all(figures: dict[str, Any], consumed: set[str]) -> str:
+    return "\n".join(p for p in (_accuracy(figures, consumed), _sweep(figures, consumed)) if p)
+
+
+_DAEMON_COLUMNS = (("latency_p50_ms", "latency p50 (ms)"), ("latency_p99_ms", "latency p99 (ms)"),
+                   ("jitter_p99_ms", "jitter p99 (ms)"), ("cpu_share_pct", "CPU share (%)"),
+                   ("sevcon_frames_lost", "Sevcon frames lost"))
+_DAEMON_GOALS = {"latency_p99_ms": "goal_latency_p99_ms", "jitter_p99_ms": "goal_jitter_p99_ms",
+                 "cpu_share_pct": "goal_cpu_share_pct"}
+
+
+def _daemon(figures: dict[str, Any], consumed: set[str]) -> str:
+    """Headline per mode and load: latency, jitter, CPU share, frames lost, and the goals."""
+    runs = []
+    for key in figures:
+        m = re.match(r"^(?P<run>[a-z]+_(?:nominal|saturated))_latency_p50_ms$", key)
+        if m:
+            runs.append(m["run"])
+    if not runs:
+        return ""
+    rows = []
+    for run in runs:
+        mode, load = run.split("_", 1)
+        row: list[object] = [f"`{mode}`", load]
+        for suffix, _ in _DAEMON_COLUMNS:
+            key = f"{run}_{suffix}"
+            row.append(fmt(figures[key]) if key in figures else "")
+            consumed.add(key)
+        rows.append(row)
+    goals: list[object] = ["goal", ""]
+    for suffix, _ in _DAEMON_COLUMNS:
+        key = _DAEMON_GOALS.get(suffix)
+        goals.append(f"≤ {fmt(figures[key])}" if key in figures else "")
+        consumed.add(key or "")
+    if "goal_lost_at_8000_fps" in figures:
+        goals[-1] = f"{fmt(figures['goal_lost_at_8000_fps'])} (saturated)"
+        consumed.add("goal_lost_at_8000_fps")
+    return "\n".join(["### Headline\n",
+                      table(["mode", "load", *(label for _, label in _DAEMON_COLUMNS)],
+                            [*rows, goals])])
+
+
+_DIAGNOSIS_COLUMNS = (("named_exactly", "named exactly"),
+                      ("false_unexplained", "false `unexplained`"),
+                      ("ambiguous", "ambiguous"), ("halved", "max error halved"),
+                      ("median_max_error_mm", "median max error (mm)"),
+                      ("interval_coverage", "90 % intervals cover"))
+
+
+def _diagnosis(figures: dict[str, Any], consumed: set[str]) -> str:
+    """Per hidden-effect class: how often the diagnosis answered right, and what it gained."""
+    suffixes = "|".join(suffix for suffix, _ in _DIAGNOSIS_COLUMNS)
+    classes: list[str] = []
+    for key in figures:
+        m = re.match(rf"^(?P<cls>[a-z_]+?)_(?:{suffixes})$", key)
+        if m and m["cls"] not in classes and not m["cls"].startswith(("goal", "single")):
+            classes.append(m["cls"])
+    rows = []
+    for cls in classes:
+        row: list[object] = [f"`{cls}`"]
+        for suffix, _ in _DIAGNOSIS_COLUMNS:
+            key = f"{cls}_{suffix}"
+            row.append(fmt(figures[key]) if key in figures else "")
+            consumed.add(key)
+        rows.append(row)
+    if not rows:
+        return ""
+    return "\n".join(["### Per class\n", ("A class is a hidden catalogue cause, a pair of "
+                      "them, or a deviation outside the catalogue (`outside`: named exactly "
+                      "means answered `unexplained`).\n"),
+                      table(["class", *(label for _, label in _DIAGNOSIS_COLUMNS)], rows)])
+
+
+CURATED = {"accuracy": _accuracy_all, "daemon": _daemon, "diagnosis": _diagnosis}
+
+
+def bench_section(root: Path, name: str) -> str:
+    """Where a bench's figures come from, its curated tables, then every other figure."""
+    if not re.fullmatch(r"[a-z0-9_]+", name):
+        raise ValueError(f"bench name {name!r}")
+    record = load(root, name)
+    figures = record["figures"]
+    consumed: set[str] = set()
+    out = [provenance(record)]
+    if name in CURATED:
+        out.append(CURATED[name](figures, consumed))
+    rest = [(k, v) for k, v in _flatten({k: v for k, v in figures.items()
+                                         if k not in consumed})]
+    if rest:
+        title = "All other figures" if name in CURATED else "Figures"
+        out += [f"### {title}\n" if name in CURATED else "",
+                table(["figure", "value"], [[f"`{k}`", fmt(v)] for k, v in rest])]
+    return "\n".join(o for o in out if o)
