@@ -11,6 +11,7 @@ the files go below it, the paths written into the unit do not include it.
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 from pathlib import Path, PurePosixPath
@@ -18,6 +19,8 @@ from pathlib import Path, PurePosixPath
 from ddh_vsensor.config import DEFAULT_CONFIG, ConfigError, load_config
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.cli.config import describe, write_default
+
+log = logging.getLogger(__name__)
 
 DATA = DEFAULT_CONFIG.parent
 UNIT_NAME = "ddh-vsensor@.service"
@@ -91,15 +94,20 @@ def hidden_by_sandbox(path: str | PurePosixPath) -> str | None:
     return None
 
 
-def check_visible(force: bool) -> None:
+def check_visible(force: bool, staged: bool = False) -> None:
     """Refuse an installation the service could not run from: its ``ddh-vsensor`` lies
-    where the hardened unit hides it (a venv in /tmp or a home directory)."""
+    where the hardened unit hides it (a venv in /tmp or a home directory). Staged below
+    another root (an image, a look at what would be written) it is said, not refused."""
     executable = _script() or Path(sys.executable)
     setting = hidden_by_sandbox(os.path.abspath(executable))
-    if setting is not None and not force:
-        raise UserError(f"{executable}: the unit's {setting} hides this from the service, "
-                        "which could not start; install ddh-vsensor elsewhere (e.g. a venv in "
-                        "/opt) or give --force")
+    if setting is None or force:
+        return
+    problem = (f"{executable}: the unit's {setting} hides this from the service, which could "
+               "not start; install ddh-vsensor elsewhere (e.g. a venv in /opt)")
+    if staged:
+        log.warning("%s before the staged unit is used", problem)
+        return
+    raise UserError(f"{problem} or give --force")
 
 
 def unit_description(cfg) -> str:
@@ -246,7 +254,7 @@ def install(root: Path, *, prefix: PurePosixPath, unit_dir: PurePosixPath,
 
 def _run(args: argparse.Namespace) -> int:
     root = Path(args.root)
-    check_visible(args.force)
+    check_visible(args.force, staged=root.resolve() != Path("/"))
     report = install(root, prefix=_absolute("--prefix", args.prefix),
                      unit_dir=_absolute("--unit-dir", args.unit_dir),
                      config_dir=_absolute("--config-dir", args.config_dir),
