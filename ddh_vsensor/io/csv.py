@@ -75,11 +75,17 @@ def read_csv(path: str | Path, *, require_position: bool = False,
     source = str(path)
     try:
         with open(path, encoding="utf-8-sig", newline="") as f:
-            lines = f.read().splitlines()
+            text = f.read()
     except OSError as exc:
         raise MeasuredDataError(source, f"cannot read: {exc.strerror or exc}") from None
     except UnicodeDecodeError as exc:
         raise MeasuredDataError(source, f"not UTF-8 text: {exc.reason}") from None
+    lines = text.splitlines()
+    if text and not text.endswith(("\n", "\r")):
+        # every line a writer finishes ends with its line end: without one the file was cut,
+        # and a number cut short in the last cell would still read as a number
+        raise MeasuredDataError(source, "cut off: the last line has no line end (the file "
+                                "is truncated)", len(lines))
 
     comments: list[str] = []
     header_index = 0

@@ -98,8 +98,11 @@ class SizedTerminal(FakeTerminal):
         return self.slave_fd
 
     def close(self) -> None:
-        os.close(self.slave_fd)
-        os.close(self.master_fd)
+        # once only: IOBase.__del__ closes again, and by then these numbers may be another
+        # object's descriptors (a double close once shut multiprocessing's resource tracker)
+        if not self.closed:
+            os.close(self.slave_fd)
+            os.close(self.master_fd)
         super().close()
 
 
