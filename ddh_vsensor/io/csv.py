@@ -81,7 +81,7 @@ def read_csv(path: str | Path, *, require_position: bool = False,
     except UnicodeDecodeError as exc:
         raise MeasuredDataError(source, f"not UTF-8 text: {exc.reason}") from None
     lines = text.splitlines()
-    if text and not text.endswith(("\n", "\r")):
+    if text and not text.endswith("\n"):
         # every line a writer finishes ends with its line end: without one the file was cut,
         # and a number cut short in the last cell would still read as a number
         raise MeasuredDataError(source, "cut off: the last line has no line end (the file "

@@ -138,8 +138,9 @@ def _bad_inputs(kind: str, tmp: Path, good: dict[str, Path]) -> dict[str, Path]:
                   "extensions": good["extension"], "profile": good["profile"]}[kind]
         raw = source.read_bytes()
         out["truncated"] = tmp / f"truncated{suffix}"
+        # cut a few bytes into a line past the middle: a file cut off, not a shorter whole one
         out["truncated"].write_bytes(raw[:300] if kind in ("log", "fleet-log")
-                                     else raw[:len(raw) // 2])
+                                     else raw[:raw.find(b"\n", len(raw) // 2) + 4])
         wrong = tmp / f"wrong{suffix}"
         if kind == "yaml":
             text = good["yaml"].read_text().replace("stroke_mm: ", "stroke_mm: -", 1)
