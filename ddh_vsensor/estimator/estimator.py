@@ -379,7 +379,7 @@ class Estimator:
                     if self.dynamic is not None:
                         self.dynamic.set_position(self.position_mm)
                 x = self.position_mm
-        flags = 0 if self._referenced and not self.reference_suspect else _NOT_REFERENCED
+        flags = 0 if self._referenced and self.suspect_switch is None else _NOT_REFERENCED
         if gain.enabled and (gain._up != 1.0 or gain._down != 1.0):
             flags |= _ADAPTING
         if x <= lower or x >= upper:
