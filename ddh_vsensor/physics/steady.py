@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import brentq
 
 from ddh_vsensor.physics.unit import DDHUnit, Side
 from ddh_vsensor.physics.conversions import BAR_PA, LPM_M3S
@@ -218,6 +217,8 @@ def holding_speed(unit: DDHUnit, load_force_n: float, oil_temp_c: float) -> Hold
                      - load_force_n - offset)
 
     lim = unit.motor.speed_limit_rpm
+
+    from scipy.optimize import brentq   # here: scipy costs every process 0.3 s to import
 
     def root(offset: float) -> float:
         return brentq(net, -lim, lim, args=(offset,), xtol=1e-9, rtol=1e-14)

@@ -37,7 +37,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.signal import lfilter
 
 from ddh_vsensor.config import UnitConfig
 from ddh_vsensor.measured import Run
@@ -137,6 +136,7 @@ def first_order_lag(time_s: np.ndarray, signal: np.ndarray, tau_s: float,
     # e = y - u: e_{k+1} = a e_k - (1 - a) tau (u_{k+1} - u_k) / dt
     e0 = -tau_s * start_slope_per_s
     drive = -(1.0 - a) * tau_s * np.diff(u) / dt[0]
+    from scipy.signal import lfilter   # here: scipy.signal costs every process 0.4 s
     e = lfilter([1.0], [1.0, -a], drive, zi=[a * e0])[0]
     return u + np.concatenate(([e0], e))
 
