@@ -9,7 +9,7 @@
   per actuator, no references. ``--sweep check`` runs the second set instead (oil at -5..75
   degC, 500 kg paper cycles, dig-dump at speeds 2-3, four random cycles per temperature with
   0-1040 kg and 40 % of the moves into an end stop, seeds 401..), which checked the rules the
-  first set had shown (README); ``--draw SEED`` a set designed for nothing, drawn from SEED.
+  first set had shown; ``--draw SEED`` a set designed for nothing, drawn from SEED.
 - ``--structure typical|double`` (only that set): the main sweep's runs on a plant whose
   structure the estimator's model does not share (``sim.effects.STRUCTURE_TYPICAL``: orifice
   and speed-dependent pump leakage, pressure-dependent seal friction, hose expansion and
@@ -92,7 +92,7 @@ RATES_TEMPS_C = (-10.0, 27.0, 80.0)
 
 
 def rates_specs(cfg, temp_c: float) -> list[RunSpec]:
-    """The fast-sampling set (README: fast sampling; run with --rate-hz): the paper cycle at
+    """The fast-sampling set (run with --rate-hz): the paper cycle at
     speeds 1/3/4 with 1040/500/0 kg, dig-dump at 4 (0 kg) and 3 (1040 kg), three 60 s random
     cycles with 30 % of the moves into an end stop and 0/400/1040 kg."""
     specs = [RunSpec(speed=s, payload_kg=p, oil_temp_c=temp_c)

@@ -172,23 +172,23 @@ class EstimatorConfig:
     uncertainty_hold_mm_per_s: float = field(metadata={"ge": 0.0, "le": 1000.0})
     state_save_interval_s: float = field(metadata=_positive(ge=0.1, le=3600.0))
     # `dynamic`: a torque change within one sample larger than this share of the motor's
-    # torque limit is read as a step of unknown shape, not a ramp (README: temperature sweep)
+    # torque limit is read as a step of unknown shape, not a ramp
     dynamic_torque_step: float = field(default=0.45, metadata={"gt": 0.0, "le": 2.0})
     # `dynamic`: below that step, the share of the torque's second difference over the last
-    # three samples by which the step's mean may lie off the samples' trapezoid (README)
+    # three samples by which the step's mean may lie off the samples' trapezoid
     dynamic_torque_curvature: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
     # `dynamic`: where the speed's second difference (the change of the steps' mean torque)
     # and the samples' trapezoids disagree by more than the floor (a share of the motor's
-    # torque limit), this share of the excess is how far the step's mean may lie off (README)
+    # torque limit), this share of the excess is how far the step's mean may lie off
     dynamic_speed_disagreement: float = field(default=0.75, metadata={"ge": 0.0, "le": 1.0})
     dynamic_speed_disagreement_floor: float = field(default=0.055,
                                                     metadata={"ge": 0.0, "le": 1.0})
     # `dynamic`: the torque balance is taken over the last samples spanning this time, so
-    # that the speed's whole-rpm steps do not read as inertia torque at fast sampling (README)
+    # that the speed's whole-rpm steps do not read as inertia torque at fast sampling
     dynamic_window_s: float = field(default=0.01, metadata={"ge": 0.0, "le": 0.1})
     # `dynamic`: a rod at rest takes up speed no faster than the change of the chambers' force
     # (beyond its static friction) gives the empty machine's mass, plus this acceleration
-    # (m/s²) for the pressures' own error; a torque that says more is misread (README)
+    # (m/s²) for the pressures' own error; a torque that says more is misread
     dynamic_start_tolerance_m_s2: float = field(default=0.0, metadata={"ge": 0.0, "le": 1000.0})
 
 
@@ -387,7 +387,7 @@ PresetMode = Literal["disabled", "pre-operational only", "enabled"]
 
 @dataclass(frozen=True)
 class FaultsConfig:
-    """How the service behaves under faults and hostile input (README: "Fault behaviour").
+    """How the service behaves under faults and hostile input (docs: operations, Faults).
     Every key has a default, so a config without this section behaves as documented."""
 
     # unit -> node ID of the motor controller whose heartbeat is consumed (absent: none)

@@ -36,7 +36,7 @@ UNEXPLAINED_RMS_MM = 2.5
 # causes named right (120 analyses, seeds 5000-5509) left at most 0.22 mm RMS held out, and
 # at most 0.11 mm where that was more than LEFT_SHARE of the error; effects the catalogue
 # does not have, named as a look-alike, 0.38-3.7 mm and 32-56 %. Beyond both the answer is
-# unexplained, not the look-alike (README).
+# unexplained, not the look-alike.
 LEFT_RMS_MM = 0.2
 LEFT_SHARE = 0.25
 INTERVAL = 0.90

@@ -34,7 +34,7 @@ from ddh_vsensor.diagnosis.runs import AnalysisRun
 # settles, and the speed comes in whole rpm (1 rpm is 5-30 % of a holding speed). On trials
 # without any effect the bucket's true rod moved 0.1-0.46 mm within 6-9 s holds; at 10 s a
 # hold erred 0.14-0.85 mm RMS against 0.03-0.10 mm for the increments and carried the fits (a
-# bucket displacement of 1.035 fitted 1.043). At 1 s the two err alike (README).
+# bucket displacement of 1.035 fitted 1.043). At 1 s the two err alike.
 HOLD_WEIGHT_S = 1.0
 MIN_EDGES = 3                # two increments at least: one edge starts, the others observe
 

@@ -291,7 +291,7 @@ double chambers_step(const double *P, double *S, double h, double n, double tau,
      * drive easing its torque off a standing pump under load let the model's chamber fall
      * (B 1.2 bar low on the mean of the bucket's holds, A up to 13 bar on a loaded boom's)
      * and its rod sink by leakage it does not have, or move it off an end stop and back,
-     * where the stop keeps the travel as a one-way valve keeps volume (README). */
+     * where the stop keeps the travel as a one-way valve keeps volume. */
     int ra = (int)S[S_RA], rb = (int)S[S_RB];
     if (n * S[S_N] <= 0.0) {
         double t_neg = P[P_K_A + ra] * pa + P[P_K_B + rb] * pb;

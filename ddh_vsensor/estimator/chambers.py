@@ -244,7 +244,7 @@ class ChamberModel:
 def window_pump_torque(time_s: np.ndarray, speed_rpm: np.ndarray, torque_nm: np.ndarray,
                        inertia_nm_s_per_rpm: float, window_s: float) -> np.ndarray:
     """Per sample, the mean motor torque less J*d(omega)/dt over the last samples spanning
-    ``window_s`` (the dynamic mode's window, README: fast sampling): the speed comes in
+    ``window_s`` (the dynamic mode's window): the speed comes in
     whole rpm, which over one fast sample reads as newton-metres of inertia torque."""
     t = np.asarray(time_s, dtype=float)
     n = np.asarray(speed_rpm, dtype=float)

@@ -19,8 +19,7 @@ constant C/g. ``blend_s`` > 0 adds a pull towards the steady state with that tim
 (a virtual leakage C/blend_s); ``estimator.dynamic_blend_s`` in the configuration says which
 value was chosen and why.
 
-Where the torque cannot tell the rod's speed, the step does not ask it (README: temperature
-sweep): a rod on its end stop (the model's own position at the stroke end) stays there
+Where the torque cannot tell the rod's speed, the step does not ask it: a rod on its end stop (the model's own position at the stroke end) stays there
 unless the motor drives it away and the chambers' force has overcome the load the rod held
 arriving there (the chamber force of its last moving step less the rod's moving friction
 then) and the rod's static friction (or both chambers sit on the valves that push it off,
@@ -48,11 +47,9 @@ loaded with ctypes): the online face calls it per sample, the offline face runs 
 function over a whole log, so both share one arithmetic. The step is counted in the drive's
 periods (its learnt cadence; a frame lost is two), not taken from each stamp difference: the
 drive samples evenly, its frames' stamps jitter, and a jittered h read as inertia torque turns
-into pressure a one-way valve does not give back (README: jittered receive stamps, lost and
-late frames). For the same
+into pressure a one-way valve does not give back. For the same
 reason the torque balance spans the last samples within ``window_s`` (the speed comes in whole
-rpm: over 1 ms one rpm reads as newton-metres); at the drive's 100 Hz that is the one sample
-(README: fast sampling). Where the install had no C compiler
+rpm: over 1 ms one rpm reads as newton-metres); at the drive's 100 Hz that is the one sample. Where the install had no C compiler
 the same step runs in Python (:func:`_py_step`), slower but equal.
 """
 

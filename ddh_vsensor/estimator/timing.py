@@ -3,7 +3,7 @@
 The rotor's inertia torque is J times the speed's change, and the pump torque is the reported
 torque less it, so the two signals must describe the same instants: where the torque swings 30
 N·m per sample a millisecond between them is several N·m of pump torque, which the chamber
-model reads as pressure (README: the torque's timing). A drive that reports its torque
+model reads as pressure. A drive that reports its torque
 ``lag_s`` behind its speed (a filter, the order it samples in, a simulator's step) has each
 sample carried forward along its last change; the first sample after a gap has none and stays.
 """

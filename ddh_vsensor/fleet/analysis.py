@@ -51,10 +51,10 @@ TABLE_RANGE_C = (10.0, 80.0)
 # A log's fit is the squared error up to ROBUST_MM and linear beyond (Huber): 30 s of work
 # give 3-10 observations, and one that no cause makes (a "hold" that was the slow end of a
 # move: 23 mm of creep against increments below 0.7 mm) had carried the log's fit to a grid
-# end and raised alarms (README: Fleet diagnosis).
+# end and raised alarms.
 ROBUST_MM = 1.0
 # Every log replayed on the tables: the chamber model (which `analyze` uses) gave no better
-# warnings or fewer false alarms on two fleets (README: Fleet diagnosis), at the same cost.
+# warnings or fewer false alarms on two fleets, at the same cost.
 FLEET_MODE = "full"
 _TABLE_CACHE: dict[tuple, UnitTables] = {}
 

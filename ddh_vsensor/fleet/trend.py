@@ -41,7 +41,7 @@ from ddh_vsensor.diagnosis.causes import ALL_CAUSES
 from ddh_vsensor.diagnosis.selection import MIN_SCORE
 
 WINDOW = 10                     # logs the naming and the trend look back over
-MIN_LOGS = 7                    # a week of daily logs before anything is named (README)
+MIN_LOGS = 7                    # a week of daily logs before anything is named
 SLOPE_T = 4.0                   # |slope| / its standard error for a trend to count
 EXTRAPOLATION_SE = 2.0          # beyond its days, a trend goes on at |slope| - this x its se
 TREND_SCORE = 0.05              # held-out score a trending cause needs for an alarm

@@ -8,7 +8,7 @@ unit (``boom.csv``, ``bucket.csv`` for the reference loader) and ``run.blf``.
 
 Each sample holds the plant's state at its instant and the motor torque applied over the
 step that ended there: the torque is half a step (``step_s``) behind the speed, as a drive's
-may be (``motor.torque_lag_s``, README: the torque's timing).
+may be (``motor.torque_lag_s``).
 """
 
 from __future__ import annotations

@@ -80,7 +80,7 @@ def test_a_rows_track_does_not_depend_on_its_batch(cfg, run, boom, numpy_step):
 
 
 def test_sampled_at_1_khz_the_torque_balance_is_taken_over_the_window(cfg, run, bucket):
-    """The diagnosis' chamber model as the dynamic mode (README: fast sampling): on the paper
+    """The diagnosis' chamber model as the dynamic mode: on the paper
     cycle at 1 kHz (speed 1, 1040 kg, 27 degC) the nominal model ends 2.04 mm off per sample,
     0.22 mm over the configured 10 ms window; at 100 Hz the window is not used (same tracks
     to the bit)."""

@@ -250,7 +250,7 @@ def test_a_torque_bending_between_its_samples_is_not_read_as_pressure(cfg, unit_
     pump torque put A 38 bar high, 0.58 mm worst over the run. Within a tenth of the second
     difference of the last three samples the mean is taken nearest the last: 0.25 mm.
     Measured with the torque's timing at 0: at the default 0.5 ms the lag alone takes this
-    run to 0.25 mm without the band (README: the torque's timing)."""
+    run to 0.25 mm without the band."""
     cfg = _lagging(cfg, 0.0)
     worst, straight = _with_and_without(cfg, unit_tables, "boom", RunSpec(
         cycle=random_cycle(cfg, 35501, end_stop_share=0.6079986148430917), payload_kg=900.0,

@@ -50,17 +50,17 @@ def test_other_cycles_within_3_mm_without_references(cfg, unit_tables, other_run
         assert acc.max_abs_error_mm <= 3.0, (spec.cycle.name, spec.oil_temp_c, acc)
 
 
-# README: on random work cycles the worst error was 26.6 mm without the compensation, <= 3 mm
+# On random work cycles the worst error was 26.6 mm without the compensation, <= 3 mm
 # with it from 27 degC up. Measured here (boom, these four cycles): 32.6 mm without, 0.32 mm
-# with. Margins: without it must still be >= 20 mm (the README's 26.6 less 25 %), with it
-# within the README's 3 mm.
+# with. Margins: without it must still be >= 20 mm (26.6 mm measured less 25 %), with it
+# within 3 mm.
 WITHOUT_COMPENSATION_MIN_MM = 20.0
 WITH_COMPENSATION_MAX_MM = 3.0
 
 
 def test_inertia_compensation_matters_on_sharp_moves(cfg, unit_tables, other_runs):
     """Without subtracting J dw/dt the PID's torque spikes read as load (`full`, the mode the
-    README's figures are for)."""
+    figures are for)."""
     import dataclasses
     off = dataclasses.replace(cfg, estimator=dataclasses.replace(cfg.estimator,
                                                                  inertia_compensation=False))

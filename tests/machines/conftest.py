@@ -30,7 +30,7 @@ def machine(request: pytest.FixtureRequest) -> Config:
 def machine_specs(cfg: Config) -> list[RunSpec]:
     """One work cycle at speed 4 (empty, 27 degC) and 30 s of random partial strokes (500 kg,
     40 degC). No end stops in the random cycle: pressing a rod into its stop is a separate
-    estimator effect (README), measured on its own."""
+    estimator effect, measured on its own."""
     return [RunSpec(cycle=WORK, speed=4, payload_kg=0.0, oil_temp_c=27.0, step_s=STEP_S,
                     seed=1),
             RunSpec(cycle=random_cycle(cfg, RANDOM_SEED, RANDOM_S, end_stop_share=0.0),

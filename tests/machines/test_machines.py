@@ -29,7 +29,7 @@ MARGIN = 1.2
 # its motors creep at tens of rpm and the tables follow. Dynamic mode has no such drift;
 # its one unit over the bound is the excavator's boom on the random cycle, 0.541 mm (stick /
 # bucket 0.382 / 0.481, ram 0.25): the loader's own figure fell to 0.427 with the pumps'
-# friction band at every standstill, the boom's only to 0.541 (README, the torque's timing).
+# friction band at every standstill, the boom's only to 0.541.
 # Strict: a unit that comes within the loader's figure must drop its entry here; one that
 # gets worse than measured fails.
 NOT_REACHED = {

@@ -96,7 +96,7 @@ def test_demo(machine: Config, workdir: Path):
 
 # Worst full-mode error of each machine on its work cycle and random strokes, measured in
 # test_machines.py (the loader's figure; the others' shortfalls). From a preset the daemon
-# takes its first reference whole (a preset is provisional, README "Fault behaviour"), even
+# takes its first reference whole (a preset is provisional: docs, operations, Presets), even
 # in motion, where an edge is known to one sample's travel: the bound adds the run's largest
 # travel between two samples (about 2 mm at this 100 Hz log's top speeds; 0.2 mm at 1 kHz).
 MAX_ERROR_MM = {"loader": 0.75, "bench": 1.25, "excavator": 1.95}

@@ -35,7 +35,7 @@ from .test_cross_process import RemoteRecorder, _free_port, _stop, _wait_for_por
 
 pytestmark = pytest.mark.slow
 
-# The bar: the referenced accuracy (README: 0.63 mm boom / 1.09 mm bucket over 50
+# The bar: the referenced accuracy (0.63 mm boom / 1.09 mm bucket over 50
 # referenced cycles) with margin for a real-time replay between processes.
 COLD_START_MAX_ERROR_MM = 2.0
 # After the first edge's own samples, what remains is the learnt model: a gain corrupted by

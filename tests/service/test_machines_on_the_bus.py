@@ -33,7 +33,7 @@ MACHINES = sorted((REPO / "config").glob("*.yaml"))
 
 SECONDS = 10.0          # of the machine's work cycle: every unit moves in it
 # Estimated from a preset at the true position: within each machine's worst full-mode figure
-# on its work cycle and random strokes (README "Describe your own machine", measured in
+# on its work cycle and random strokes (measured in
 # tests/machines/test_machines.py: the loader 0.75 mm, the others' shortfalls), plus one step,
 # plus one sample's travel: a preset is provisional, so the first reference is taken whole even
 # in motion, where its edge is known to a sample (100 Hz here; in which sample depends on how
