@@ -11,9 +11,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def test_no_upward_import(capsys, monkeypatch) -> None:
-    """import-linter's layers contract: cli > fleet > master > service > device > diagnosis >
-    sim > io > canbus > estimator > tables > physics > config > measured > atomic > errors >
-    version; a module importing one of a higher layer breaks it."""
+    """import-linter's layers contract (pyproject.toml, top to bottom: cli, fleet, master,
+    service, device, ..., estimator, model, tables, physics, config, ...): a module importing one
+    of a higher layer breaks it."""
     monkeypatch.chdir(REPO)
     code = lint_imports(config_filename=os.fspath(REPO / "pyproject.toml"), no_cache=True,
                         no_logo=True)
