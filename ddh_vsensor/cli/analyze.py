@@ -62,12 +62,15 @@ def _run(args: argparse.Namespace) -> int:
     diag = diagnose(cfg, args.actuator, runs, mode,
                     progress=lambda stage, f: bar.update(f, stage))
     data = write_report(diag, args.report, cfg.physics_hash())
-    bar.close(f"cause: {diag.cause}")
+    # a none with causes the runs could not show is not "the machine is fine"
+    said = ("none observable" if diag.cause == "none" and diag.not_observable
+            else diag.cause)
+    bar.close(f"cause: {said}")
     if args.json:
         print(json.dumps(data, indent=2))
         return 0
     b, e = data["baseline"], data["extended"]
-    print(f"{args.actuator} ({mode} mode), {len(runs)} runs: cause {diag.cause}")
+    print(f"{args.actuator} ({mode} mode), {len(runs)} runs: cause {said}")
     print(f"  {diag.decision.reason}")
     for c in data["causes"]:
         params = ", ".join(f"{k}={v:.4g} (90 %: {lo:.4g}..{hi:.4g})"

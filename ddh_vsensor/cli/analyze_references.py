@@ -36,13 +36,16 @@ def run_references(args: argparse.Namespace, cfg: Config, mode: str,
     diag = diagnose_references(cfg, args.actuator, rruns, mode,
                                progress=lambda stage, f: bar.update(f, stage))
     data = write_reference_report(diag, args.report, cfg.physics_hash())
-    bar.close(f"cause: {diag.cause}")
+    # a none with causes the runs could not show is not "the machine is fine"
+    said = ("none observable" if diag.cause == "none" and diag.not_observable
+            else diag.cause)
+    bar.close(f"cause: {said}")
     if args.json:
         print(json.dumps(data, indent=2))
         return 0
     b, e = data["baseline"], data["extended"]
     print(f"{args.actuator} ({mode} mode), {len(runs)} runs, {data['references']} reference "
-          f"increments, {data['holds']} holds: cause {diag.cause}")
+          f"increments, {data['holds']} holds: cause {said}")
     print(f"  {diag.decision.reason}")
     for item in data["causes"]:
         params = ", ".join(f"{k}={v:.4g}" for k, v in item["parameters"].items())

@@ -1,6 +1,7 @@
 """The diagnosis of one actuator over a set of runs: what is wrong, why (one or several
 causes, or none the catalogue has), how sure, and the gain of the extended model on runs it
-was not fitted to. The rules are in :mod:`.selection`."""
+was not fitted to. The rules are in :mod:`.selection`; which causes the runs could show at all,
+in :mod:`.observability`."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ from ddh_vsensor.errors import UserError
 from ddh_vsensor.diagnosis.causes import ALL_CAUSES, Cause
 from ddh_vsensor.diagnosis.fit import CauseFit, fit_cause, rescore
 from ddh_vsensor.diagnosis.joint import SetFit, fit_set, screen
+from ddh_vsensor.diagnosis.observability import (Observability, observe_positions,
+                                                 with_observability)
 from ddh_vsensor.diagnosis.pressures import TorqueEvidence, torque_evidence
 from ddh_vsensor.diagnosis.residual import ResidualFit, fit_residual
 from ddh_vsensor.diagnosis.runs import AnalysisRun
@@ -48,10 +51,16 @@ class Diagnosis:
     evidence: TorqueEvidence | None = None
     heldout: list[np.ndarray] = field(default_factory=list)   # the extension's, per run
     extension_inertia: bool | None = None   # the extension's motor_inertia (None: the set's)
+    observability: list[Observability] = field(default_factory=list)   # per checked cause
 
     @property
     def cause(self) -> str:
         return self.decision.cause
+
+    @property
+    def not_observable(self) -> list[tuple[str, str, str]]:
+        """(cause, why, what would show it) of each cause these runs could not show."""
+        return self.decision.not_observable
 
     @property
     def ambiguous(self) -> list[tuple[str, str]]:
@@ -132,6 +141,9 @@ def diagnose(cfg: Config, actuator: str, runs: Sequence[AnalysisRun], mode: str 
     if diag.extension_inertia is None:
         diag.extension_inertia = (bench.default_inertia if diag.chosen_set is None
                                   or diag.cause == "none" else diag.chosen_set.motor_inertia)
+    report("observability", 0.95)
+    diag.observability = observe_positions(bench, causes, weights, diag.decision.rms_after_mm)
+    diag.decision = with_observability(diag.decision, diag.observability)
     bench.use(diag.extension_inertia)
     report("decision", 1.0)
     return diag

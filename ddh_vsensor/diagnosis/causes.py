@@ -62,6 +62,14 @@ class Cause:
     signature: str                      # how it shows in the error
     resolution: float = 0.0             # smallest deviation from neutral it is named for
                                         # (relative for factors; see ``selection``)
+    # The parameter value of a deviation that matters in service (well beyond ``resolution``,
+    # about the low end of what the trials hide): a diagnosis that cannot see a cause this
+    # large says so instead of answering none (:mod:`.observability`).
+    reference_size: float | None = None
+    # What the cause's error grows with, in the evidence: "travel" (distance moved between
+    # references), "holds" (creep of a held load), or "motion" (speed and its changes).
+    grows_with: str = "motion"
+    shown_by: str = ""                  # runs that would show it, where these did not
 
     @property
     def parameters(self) -> int:
@@ -120,60 +128,72 @@ CAUSES: dict[str, Cause] = {c.name: c for c in (
     _LowSpeedLeakage(
         "low_speed_leakage", None, "", None, None, (), False,
         "three speed ranges cannot represent the leakage at low speed",
-        "creep while a load is held (motor turning at the leakage speed)"),
+        "creep while a load is held (motor turning at the leakage speed)",
+        grows_with="holds", shown_by="a hold of the load away from the stroke ends"),
     _Parametric(
         "pump_leakage", "leakage_factor", "x nominal", 1.0, (0.05, 50.0),
         (0.05, 0.1, 0.2, 0.35, 0.5, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0),
         True, "pump leakage differs from the nominal efficiencies (wear, oil)",
         "error rate ~ pressure / viscosity; creep while holding; larger when warm",
-        resolution=0.10),
+        resolution=0.10, reference_size=1.5, grows_with="holds",
+        shown_by="a hold of the load for a few seconds away from the stroke ends"),
     _Parametric(
         "compressibility", "air_fraction", "volume fraction at 1 atm", 0.0, (0.0, 0.19),
         (0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.19), False,
         "entrained air: the oil compresses more than modelled at low pressure",
         "offsets at pressure changes from low pressure; does not grow with travel",
-        resolution=0.005),
+        resolution=0.005, reference_size=0.02,
+        shown_by="starts from rest at low pressure between two references"),
     _Parametric(
         "belt_slip", "slip_percent_per_100nm", "% per 100 N*m", 0.0, (0.0, 30.0),
         (0.0, 0.5, 1.0, 2.0, 3.5, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0), False,
         "the belt's speed ratio drops with transmitted torque",
-        "error rate ~ speed x |torque|: lifting loaded, not lowering", resolution=1.0),
+        "error rate ~ speed x |torque|: lifting loaded, not lowering", resolution=1.0,
+        reference_size=5.0, grows_with="travel",
+        shown_by="a loaded lift from one switch to another"),
     _Parametric(
         "displacement", "displacement_factor", "x nominal", 1.0, (0.7, 1.4),
         (0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 1.0, 1.01, 1.02, 1.05, 1.1, 1.2, 1.4), True,
         "the pumps' effective displacement differs from nominal",
-        "error ~ travel, both directions, any load or temperature", resolution=0.005),
+        "error ~ travel, both directions, any load or temperature", resolution=0.005,
+        reference_size=1.03, grows_with="travel",
+        shown_by="a run crossing two switches in one stroke"),
     _Parametric(
         "time_offset", "time_offset_s", "s (motor signals lag the position)", 0.0, (-1.0, 1.0),
         (-1.0, -0.5, -0.25, -0.12, -0.06, -0.03, -0.01, 0.0, 0.01, 0.03, 0.06, 0.12, 0.25, 0.5,
          1.0), False,
         "the motor signals and the position are not aligned in time",
         "error ~ -velocity x offset; vanishes at rest, does not accumulate",
-        resolution=0.010),
+        resolution=0.010, reference_size=0.05,
+        shown_by="switches passed at different speeds (fast one way, slow the other)"),
     _Parametric(
         "oil_temp_offset", "oil_temp_offset_c", "degC (the tank sensor reads true + offset)",
         0.0, (-30.0, 30.0), (-30.0, -20.0, -12.0, -6.0, -3.0, 0.0, 3.0, 6.0, 12.0, 20.0, 30.0),
         False, "the oil temperature sensor reads off (or the pumps run warmer than the tank)",
         "as a leakage factor that changes with temperature (viscosity ~ exp(-b T))",
-        resolution=3.0),
+        resolution=3.0, reference_size=10.0, grows_with="holds",
+        shown_by="holds of the load at two oil temperatures"),
     _Parametric(
         "torque_gain", "torque_gain", "x true (the drive's torque estimate)", 1.0, (0.5, 2.0),
         (0.5, 0.7, 0.8, 0.9, 0.95, 1.0, 1.05, 1.1, 1.25, 1.4, 2.0), True,
         "the drive's torque (an estimate from current) is off by a factor",
         "as leakage (pressure inferred wrong); chamber pressures give it away at once",
-        resolution=0.03),
+        resolution=0.03, reference_size=1.1, grows_with="holds",
+        shown_by="holds at two loads, or the chamber pressure columns p_a_bar, p_b_bar"),
     _Parametric(
         "torque_offset", "torque_offset_nm", "N*m (added to the true torque)", 0.0,
         (-20.0, 20.0), (-20.0, -10.0, -5.0, -2.0, -1.0, 0.0, 1.0, 2.0, 5.0, 10.0, 20.0), False,
         "the drive's torque reads an offset",
         "creep while holding unloaded, in the offset's direction; no change with load",
-        resolution=1.0),
+        resolution=1.0, reference_size=5.0, grows_with="holds",
+        shown_by="a hold unloaded away from the stroke ends"),
     _Parametric(
         "position_scale", "position_scale", "x true (the reference sensor)", 1.0, (0.8, 1.25),
         (0.8, 0.9, 0.95, 0.98, 0.99, 1.0, 1.01, 1.02, 1.05, 1.1, 1.25), True,
         "the reference position sensor's scale is off (the estimate may be right)",
         "error ~ distance from the sensor's zero; as displacement without pressure data",
-        resolution=0.005),
+        resolution=0.005, reference_size=1.03, grows_with="travel",
+        shown_by="the draw-wire position logged over a long stroke"),
 )}
 ALL_CAUSES: dict[str, Cause] = {NONE.name: NONE, **CAUSES}
 CAUSE_NAMES = tuple(ALL_CAUSES)

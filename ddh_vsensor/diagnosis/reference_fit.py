@@ -8,7 +8,8 @@ so the same search, the same quadratic stencil and the same held-out score apply
 a 90 % interval per parameter (jackknife over the leave-one-run-out fits) and the answer
 ``unexplained`` when no cause is named although the references err far beyond what the
 nominal model does on its own (:data:`UNEXPLAINED_RMS_MM`), or when the named cause leaves
-them erring far beyond that (:data:`LEFT_RMS_MM`, :data:`LEFT_SHARE`).
+them erring far beyond that (:data:`LEFT_RMS_MM`, :data:`LEFT_SHARE`). Each cause is also
+checked for whether these references and holds could show it at all (:mod:`.observability`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from ddh_vsensor.config import Config
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.diagnosis.causes import ALL_CAUSES, Cause
 from ddh_vsensor.diagnosis.fit import CauseFit, fit_cause, rescore
+from ddh_vsensor.diagnosis.observability import (Observability, observe_references,
+                                                 with_observability)
 from ddh_vsensor.diagnosis.references import ReferenceRun
 from ddh_vsensor.diagnosis.selection import Decision, decide_single
 from ddh_vsensor.diagnosis.workbench import Workbench, resolve_mode
@@ -78,10 +81,16 @@ class ReferenceDiagnosis:
     fits: list[CauseFit]                 # best first
     decision: Decision
     intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
+    observability: list[Observability] = field(default_factory=list)   # per checked cause
 
     @property
     def cause(self) -> str:
         return self.decision.cause
+
+    @property
+    def not_observable(self) -> list[tuple[str, str, str]]:
+        """(cause, why, what would show it) of each cause these runs could not show."""
+        return self.decision.not_observable
 
     @property
     def chosen(self) -> CauseFit:
@@ -170,6 +179,8 @@ def diagnose_references(cfg: Config, actuator: str, rruns: Sequence[ReferenceRun
                             f"({UNEXPLAINED_RMS_MM:g} mm), and no catalogued cause explains "
                             f"it: {decision.reason}", decision.rms_before_mm,
                             decision.rms_after_mm)
+    checks = observe_references(cfg, bench, rruns, catalogue, decision.rms_after_mm)
+    decision = with_observability(decision, checks)
     intervals = {f.cause.name: iv for f in fits if (iv := interval(f)) is not None}
     return ReferenceDiagnosis(actuator, mode, list(rruns), bench, baseline, model, fits,
-                              decision, intervals)
+                              decision, intervals, checks)

@@ -1,6 +1,7 @@
 """The report of a diagnosis from references and holds: ``report.json`` (the position-truth
-report's nine keys, the errors taken at the references, plus ``truth``, ``causes`` and
-``unexplained``), ``extension.json`` and a self-contained ``report.html``."""
+report's nine keys, the errors taken at the references, plus ``truth``, ``causes``,
+``unexplained``, ``not_observable`` and ``observability``), ``extension.json`` and a
+self-contained ``report.html``."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from ddh_vsensor.diagnosis.causes import ALL_CAUSES
 from ddh_vsensor.estimator.extension import Extension
 from ddh_vsensor.diagnosis.figures import ranking_figure
 from ddh_vsensor.diagnosis.reference_fit import ReferenceDiagnosis
-from ddh_vsensor.diagnosis.report import render_page
+from ddh_vsensor.diagnosis.report import not_observable_of, render_page
 from ddh_vsensor.diagnosis.selection import MIN_SCORE
 
 
@@ -67,6 +68,8 @@ def report_data(diag: ReferenceDiagnosis, extension_file: Path) -> dict[str, Any
         "unexplained": diag.cause == "unexplained",
         "references": sum(r.n_increments for r in diag.rruns),
         "holds": sum(len(r.holds) for r in diag.rruns),
+        "not_observable": not_observable_of(diag.not_observable),
+        "observability": [o.as_dict() for o in diag.observability],
     }
 
 
@@ -88,6 +91,7 @@ def _html(diag: ReferenceDiagnosis, data: dict[str, Any]) -> str:
         title=f"ddh-vsensor diagnosis from references: {diag.actuator}",
         actuator=diag.actuator, cause=diag.cause, reason=diag.decision.reason,
         summary=ALL_CAUSES[diag.cause].summary if named else None,
+        not_observable=diag.not_observable,
         extension_file=data["extension_file"],
         errors=[["model as it is", b["max_abs_error_mm"], b["rms_error_mm"]],
                 [f"extended ({diag.cause})", e["max_abs_error_mm"], e["rms_error_mm"]]],

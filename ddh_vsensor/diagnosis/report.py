@@ -78,8 +78,15 @@ def causes_of(diag: Diagnosis) -> list[dict[str, Any]]:
     return out
 
 
+def not_observable_of(items: Sequence[tuple[str, str, str]]) -> list[dict[str, str]]:
+    """``report.json``'s ``not_observable``: the causes these runs could not show, why, and
+    what would (a ``none`` holds for the others only)."""
+    return [{"cause": c, "why": why, "shown_by": shown} for c, why, shown in items]
+
+
 def report_data(diag: Diagnosis, extension_file: Path) -> dict[str, Any]:
-    """The content of report.json: the issue's nine keys, ``causes`` and ``ambiguous``."""
+    """The content of report.json: the issue's nine keys, ``causes``, ``ambiguous``,
+    ``not_observable`` and ``observability`` (every checked cause's numbers)."""
     return {
         "actuator": diag.actuator,
         "mode": diag.mode,
@@ -94,6 +101,8 @@ def report_data(diag: Diagnosis, extension_file: Path) -> dict[str, Any]:
         "extension_file": str(extension_file),
         "causes": causes_of(diag),
         "ambiguous": [list(p) for p in diag.ambiguous],
+        "not_observable": not_observable_of(diag.not_observable),
+        "observability": [o.as_dict() for o in diag.observability],
     }
 
 
@@ -194,6 +203,7 @@ def _html(diag: Diagnosis, data: dict[str, Any], stats) -> str:
         actuator=diag.actuator, mode=diag.mode, cause=diag.cause,
         reason=diag.decision.reason, causes=causes, extension_file=data["extension_file"],
         ambiguous=[(a, b, separation(a, b)) for a, b in diag.ambiguous],
+        not_observable=diag.not_observable,
         evidence=None if diag.evidence is None else diag.evidence.describe(),
         unexplained=unexplained, gain=gain, default_inertia=bench.default_inertia,
         candidates=[[f.cause.name, f.score, f.cause.parameter or "",

@@ -41,6 +41,9 @@ single catalogued effects (numbers in diagnosis/README.md), never from the open-
    leaves (that fit is the model's own error, mimicked: without any effect the chamber
    model at nominal oil explains ~90 % of it; the residual model, being flexible, ~75 %);
    the extension is then that model. Else ``none``.
+6. A ``none`` holds only for the causes the runs could show: each cause at its catalogue's
+   reference size is checked against the evidence (:mod:`.observability`), and those it
+   could not show are listed with the answer (``Decision.not_observable``).
 """
 
 from __future__ import annotations
@@ -105,6 +108,9 @@ class Decision:
     rms_before_mm: float
     rms_after_mm: float
     ambiguous: list[tuple[str, str]] = field(default_factory=list)
+    # (cause, why, what would show it) of each cause the runs could not show at its
+    # catalogue's reference size (:mod:`.observability`); a ``none`` is only as good as it
+    not_observable: list[tuple[str, str, str]] = field(default_factory=list)
 
 
 def rms(residuals: Sequence[np.ndarray], weights: Sequence[float]) -> float:

@@ -19,7 +19,7 @@ from ddh_vsensor.diagnosis.trials import draw_trial, simulate_trial
 from .conftest import BASE_SEED, hidden
 
 KEYS = {"actuator", "mode", "runs", "cause", "ranking", "baseline", "extended", "holdout_runs",
-        "extension_file", "causes", "ambiguous"}
+        "extension_file", "causes", "ambiguous", "not_observable", "observability"}
 
 
 def _where(trial) -> str:
