@@ -118,7 +118,7 @@ from ddh_vsensor.errors import UserError
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.physics.conversions import BAR_PA, CST_M2S, LPM_M3S
 from ddh_vsensor.physics.valves import ReliefValve
-from ddh_vsensor.sim.plant import RowSpec
+from ddh_vsensor.model.unit import RowSpec
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.sim.control import PIDSettings, PositionPID
 from ddh_vsensor.sim.cycles import WORK, Profile, load_profile_csv, work_cycle
 from ddh_vsensor.sim.effects import UnitEffects, build_effects, describe
-from ddh_vsensor.sim.plant import Plant, RowSpec
+from ddh_vsensor.model.plant import Plant, RowSpec
 from ddh_vsensor.sim.sensors import SensorSettings, Truth, measure
 
 DEFAULT_STEP_S = 1.0e-3

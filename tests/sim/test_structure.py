@@ -21,7 +21,7 @@ from ddh_vsensor.sim.effects import (
     seal_rings_m2,
     structure_effects,
 )
-from ddh_vsensor.sim.plant import Plant
+from ddh_vsensor.model.plant import Plant
 from ddh_vsensor.sim.sensors import SensorSettings, first_order_lag
 
 T = 27.0

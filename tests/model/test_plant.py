@@ -9,7 +9,7 @@ from ddh_vsensor.physics.steady import steady_state
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.sim import RunSpec, simulate_with_truth
 from ddh_vsensor.physics.air import compliance, log_density
-from ddh_vsensor.sim.plant import Plant, RowSpec
+from ddh_vsensor.model.plant import Plant, RowSpec
 from ddh_vsensor.sim.sensors import SensorSettings
 
 T = 27.0
