@@ -1,0 +1,631 @@
+"""Research prototype (issue 36): an extended Kalman filter on the unit's own dynamics.
+
+The `dynamic` mode integrates a chamber model and bounds its error by hand (1 % of the travel
+since the last reference plus a hold rate). Where the plant has structure the model lacks,
+that bound does not follow the error. This filter asks instead how well the samples pin the
+rod down under the model *and* what the model is known not to know, and checks its own
+innovations to see when the model does not fit.
+
+State z = [x (m), v (m/s), dp_a (Pa), dp_b (Pa), F_load (N), dT (K), eps, tau_off (N*m),
+o_1..o_m (m)]:
+
+- ``F_load`` the external load (random walk; the moving mass follows from the payload it
+  implies), ``tau_off`` an offset of the drive's torque estimate (random walk);
+- ``dT`` the pumps' oil above the tank sensor's reading (Gauss-Markov, sigma
+  :attr:`KalmanSettings.temp_sd_c`, time :attr:`KalmanSettings.temp_tau_s`): the sensor lags
+  warm-up; it enters the viscosity, so the laminar leakage, per row;
+- ``eps`` the unmodelled flow, normalised: a first-order Gauss-Markov process of unit
+  variance and correlation time :attr:`KalmanSettings.flow_tau_s` (about a stroke), the flow
+  error being dq = sigma_q eps with sigma_q = a |q_leak(p, mu)| + a' q_rated sqrt(|p|/p_rated)
+  + b |q_displacement(n)| + c (:meth:`_Bank._flow_sigma`). It is not a parameter: what a hold
+  teaches about it is forgotten within a stroke, because a leakage of another shape (orifice
+  share, speed dependence) learnt at the hold pressure does not hold at other pressures and
+  speeds. It moves the rod only (x += T dq / A_a), not the chambers' balance: the load sets
+  the pressures, the flows the speed, so a flow error's lasting trace is a rod-velocity error;
+  entered as a chamber flow it would shift the pressures and give the torque a hold on it
+  that it does not have on the real plant. Against a stroke end it moves nothing;
+- ``o_i`` one offset per Hall switch (constant, prior uniform over
+  +-``reference_tolerance_mm``): a switch mounted 2 mm off is off by 2 mm on every pass.
+
+The log leakage factor of the first design is gone: as a random walk it became "known" at
+holds and carried a wrong value into motion (the nominal dig-dump run at 27 degC: pulled to
+0.56 in the standstill after a hold, it predicted 0.16 mm/s of creep through a 20 s hold and
+published 4.1 mm off with 1.4 mm of uncertainty). The temperature offset does its legitimate
+part (a bounded, slowly varying error of the viscosity) and the flow error the rest.
+
+Prediction is the simulator's own plant (:class:`ddh_vsensor.model.plant.Plant`) in speed mode:
+the motor follows the measured speed (linear between samples, over ``substeps`` backward-Euler
+steps per sample) and the plant reports the torque the drive needs, inertia included. One
+plant batch holds, per filter, the nominal row and one row per perturbed plant state (x, v,
+dp_a, dp_b, F_load, dT): the Jacobian comes from one batched step by finite differences.
+
+Measurement: the logged motor torque is the plant's torque over the *last* substep plus
+``tau_off`` plus noise whose variance is physics (the drive's estimate error, the reading's
+timing within its sample, the speed's resolution read as inertia torque, the limiter at the
+speed limit); a motor standing still is held in its pumps' friction band (taken at the band's
+middle with the band's uniform variance). An innovation beyond :attr:`KalmanSettings.huber`
+sigma is down-weighted (Huber): it is a linearisation the sample does not fit. The torque
+does not update the position and the flow error (a Schmidt "consider" update, Joseph's
+covariance; :attr:`KalmanSettings.torque_position`): mid-stroke its dependence on x (the
+chambers' volumes) is too weak to trust, and near a stroke end any force the model lacks
+reads as the stop (a rod held 1.5 mm short was published as pressed, +-0.3 mm).
+
+Hall switch edges (debounced as the estimator does, taken when accepted) measure x - o_i at
+the edge's instant (its time from the I/O module where logged, else anywhere within the
+sample). A Hall edge whose innovation fails the chi-square gate means the estimate or the
+switch is wrong, and the edge cannot say which: the update is taken, the position variance
+widened by the disagreement, and the samples flagged until another switch agrees.
+
+End stops: the plant stops its rows at them and the mean is clipped to [0, stroke]; the
+variance is not truncated (:attr:`KalmanSettings.truncate_at_stops`): truncating the
+re-Gaussianised estimate every sample re-counts one constraint as new information.
+
+Published: position = x, uncertainty = :attr:`KalmanSettings.coverage` x sqrt(P_xx). Self-check:
+the normalised innovations squared of the torque over a sliding window against the chi-square
+bound at :attr:`KalmanSettings.false_alarm`; beyond it the sample carries
+:data:`MODEL_INCONSISTENT` (bit 7, reserved in :class:`.Flags`: the proposed new bit) and the
+covariance grows by the excess (fading memory), so that a value published once the check
+passes again is not a confident wrong one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import ndtr
+from scipy.stats import chi2
+
+from ddh_vsensor.config import Config, HydraulicsConfig
+from ddh_vsensor.estimator.estimator import ReferenceEvent, RunEstimate
+from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.estimator.references import Switch, accepted_edges, switches_from_config
+from ddh_vsensor.measured import Run
+from ddh_vsensor.physics.conversions import BAR_PA, CST_M2S, RPM_RAD_S
+from ddh_vsensor.physics.steady import steady_state_at_torque
+from ddh_vsensor.physics.unit import DDHUnit
+from ddh_vsensor.model.plant import Plant, RowSpec
+
+MODEL_INCONSISTENT = 1 << 7     # proposed Flags bit: the torque innovations fail the chi-square
+X, V, PA, PB, LOAD, DT, EPS, TOFF = range(8)
+N_BASE = 8                      # states before the per-switch offsets
+N_PLANT = 6                     # states the plant sees (the rest enter linearly: no row)
+N_ROWS = N_PLANT + 1            # nominal + one per perturbed plant state
+# finite-difference steps of the perturbed states (SI, K): well inside each state's
+# uncertainty, well above the step's rounding
+DELTAS = np.array([1e-4, 1e-4, 2e4, 2e4, 50.0, 0.1])
+SQRT_PI_2 = math.sqrt(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class KalmanSettings:
+    """The filter's noises and choices, each with what it stands for."""
+
+    substeps: int = 5                   # plant steps per sample (2 ms at 100 Hz)
+    torque_at: str = "last"             # "last" substep's torque or the sample's "mean"
+    coverage: float = 3.0               # published uncertainty = coverage x sigma
+    floor_mm: float = 0.1               # sigma never below: a stroke end's mechanical tolerance
+    # at a stroke end: False clips the mean only. Truncating the Gaussian again every sample
+    # re-counts one constraint as new information (the variance collapses, the mean is
+    # pushed inwards, away from a rod stopped just short of the end)
+    truncate_at_stops: bool = False
+    # sigmas of x within which a stroke end enters the Jacobian: a stop within reach shows in
+    # the torque, but so does any force the model lacks (a stop takes any force), and a rod
+    # held short of the end then reads as pressed against it
+    stop_reach: float = 2.0
+    torque_position: str = "never"      # torque updates x: "always", "near_stop", "never"
+    # measurement
+    drive_torque_nm: float = 1.0        # drive's torque estimate error per sample (~1 % rated)
+    torque_timing_s: float = 1.0e-3     # when the torque was read within its sample vs speed
+    speed_step_rpm: float = 1.0         # the logged speed's resolution
+    limiter_torque_nm: float = 5.0      # at the speed limit the limiter sets the torque
+    # priors
+    position_mm: float = 0.5            # a known start (the bench's: the truth's first sample)
+    velocity_mm_s: float = 1.0
+    pressure_bar: float = 5.0
+    load_share: float = 0.3             # of |F_load| at the start (payload unknown), at least
+    torque_offset_nm: float = 2.0       # drive's torque offset (its calibration)
+    # unmodelled flow: a Gauss-Markov error of the rod's flow balance, stationary sigma
+    # a |q_leak(p, mu)| + b |q_displacement(n)| + c (see :meth:`_Bank._flow_sigma`)
+    leak_tolerance: float = 0.3         # a: the datasheet's leakage (volumetric-eff.) tolerance
+    orifice_share: float = 0.3          # a': the rating point's leakage share that may be turbulent
+    displacement_share: float = 0.01    # b: the volumetric efficiency's speed dependence
+    flow_floor_m3_s: float = 2e-8       # c: seals' bypass a new cylinder may have (~1 ml/min)
+    flow_tau_s: float = 2.0             # its correlation time: about a stroke
+    # the pumps' oil against the tank sensor: a Gauss-Markov offset (K) on the viscosity
+    temp_sd_c: float = 3.0              # the sensor's lag behind warm-up, its placement
+    temp_tau_s: float = 600.0           # the tank's thermal time constant
+    temp_state: bool = True             # False: no state; its leakage share folds into a
+    # process noise, per sqrt(s)
+    load_walk_share: float = 0.02       # of the start's |F_load| per sqrt(s): geometry, friction
+    force_noise_n: float = 200.0        # white force (friction not modelled) per sqrt(s)
+    flow_noise_share: float = 0.02      # white flow, share of a pump's rated leakage, per sqrt(s)
+    torque_offset_walk_nm: float = 0.05
+    huber: float = 3.0                  # torque innovations beyond this many sigma: down-weighted
+    # self-check
+    nis_window_s: float = 1.0
+    false_alarm: float = 1e-3
+    max_inflation: float = 10.0         # per window: the fading factor's cap
+
+
+@dataclass
+class KalmanResult:
+    """One filter's output over its run, with its internals for study."""
+
+    estimate: RunEstimate
+    load_n: np.ndarray
+    temp_offset_c: np.ndarray           # the pumps' oil above the tank sensor's reading
+    flow_error_m3_s: np.ndarray         # the unmodelled flow's estimate (into chamber A)
+    flow_sigma_m3_s: np.ndarray         # its stationary standard deviation there
+    torque_offset_nm: np.ndarray
+    nis: np.ndarray                     # per-sample normalised torque innovation squared
+    nis_window: np.ndarray              # its sum over the window / the chi-square bound
+    pressures_bar: np.ndarray           # (samples, 2): the chambers' gauge pressures
+    switch_offsets_mm: dict[str, float] = field(default_factory=dict)   # at the run's end
+    seconds: float = 0.0                # wall time of the batch this filter ran in
+    samples: int = 0
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _Job:
+    actuator: str
+    run: Run
+    unit: DDHUnit
+    switches: tuple[Switch, ...]
+    x0_mm: float | None
+
+
+def _set_mass(plant: Plant, mass_kg: np.ndarray) -> None:
+    """Per-row moving mass (the C step reads it each step)."""
+    plant.mass = mass_kg
+
+
+def _truncate(mean: np.ndarray, sd: np.ndarray, lo: np.ndarray,
+              hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and variance of N(mean, sd^2) truncated to [lo, hi]."""
+    a, b = (lo - mean) / sd, (hi - mean) / sd
+    z = ndtr(b) - ndtr(a)
+    pa, pb = np.exp(-0.5 * a * a) / SQRT_PI_2, np.exp(-0.5 * b * b) / SQRT_PI_2
+    ok = z > 1e-9
+    zs = np.where(ok, z, 1.0)
+    shift = (pa - pb) / zs
+    a_f = np.where(np.isfinite(a), a * pa, 0.0)
+    b_f = np.where(np.isfinite(b), b * pb, 0.0)
+    var = sd * sd * np.maximum(1.0 + (a_f - b_f) / zs - shift * shift, 1e-6)
+    m = mean + sd * shift
+    # all the mass far beyond one end: at that end, a thousandth of the variance left
+    nearest = np.where(mean < lo, lo, hi)
+    return np.where(ok, m, nearest), np.where(ok, var, 1e-3 * sd * sd)
+
+
+def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool = True,
+             initial_positions_mm: Sequence[float | None] | None = None,
+             settings: KalmanSettings = KalmanSettings()) -> list[KalmanResult]:
+    """Filter many runs (of any units) in lockstep: one plant batch, N_ROWS rows each.
+
+    Every run must be sampled at the same, even rate (the prototype has no input gaps)."""
+    if not jobs:
+        return []
+    positions = list(initial_positions_mm) if initial_positions_mm is not None \
+        else [None] * len(jobs)
+    units: dict[str, DDHUnit] = {}
+    prepared = []
+    for (actuator, r), x0 in zip(jobs, positions):
+        if actuator not in units:
+            units[actuator] = DDHUnit.from_config(cfg, actuator)
+        prepared.append(_Job(actuator, r, units[actuator],
+                             switches_from_config(cfg.unit(actuator)) if references else (),
+                             x0))
+    periods = [float(np.median(np.diff(j.run.time_s))) for j in prepared]
+    period = periods[0]
+    for j, p in zip(prepared, periods):
+        dt = np.diff(j.run.time_s)
+        if abs(p - period) > 1e-6 * period or np.max(np.abs(dt - period)) > 0.05 * period:
+            raise ValueError(f"{j.run.source}: the prototype needs evenly sampled runs at one "
+                             "rate")
+    return _Bank(prepared, period, settings, cfg.estimator.debounce_s, cfg.hydraulics).run()
+
+
+def run(cfg: Config, actuator: str, measured: Run, *, references: bool = True,
+        initial_position_mm: float | None = None,
+        settings: KalmanSettings = KalmanSettings()) -> RunEstimate:
+    """One run, as :meth:`.Estimator.run` returns it (``initial_position_mm`` None: a cold
+    start, mid-stroke, not referenced until the first edge)."""
+    return run_many(cfg, [(actuator, measured)], references=references,
+                    initial_positions_mm=[initial_position_mm], settings=settings)[0].estimate
+
+
+class _Bank:
+    """B filters stepped together; arrays are (B, ...) and plant rows b * N_ROWS + j."""
+
+    def __init__(self, jobs: list[_Job], period_s: float, s: KalmanSettings,
+                 debounce_s: float, hydraulics: HydraulicsConfig) -> None:
+        self.jobs, self.T, self.s, self.debounce_s = jobs, period_s, s, debounce_s
+        self.B = B = len(jobs)
+        self.lengths = np.array([len(j.run.time_s) for j in jobs])
+        self.N = int(self.lengths.max())
+        h = period_s / s.substeps
+        self.plant = Plant([RowSpec(unit=j.unit) for j in jobs for _ in range(N_ROWS)], h)
+        self.nom = np.arange(B) * N_ROWS
+        # padded inputs: past its end a run holds its last sample
+        def pad(get) -> np.ndarray:
+            out = np.empty((self.N, B))
+            for b, j in enumerate(jobs):
+                col = np.asarray(get(j.run), dtype=float)
+                out[:len(col), b] = col
+                out[len(col):, b] = col[-1]
+            return out
+        self.speed = pad(lambda r: r.speed_rpm)
+        self.torque = pad(lambda r: r.torque_nm)
+        self.temp = pad(lambda r: r.oil_temp_c)
+        self.time = pad(lambda r: r.time_s)
+        col = lambda f: np.array([float(f(j)) for j in jobs])  # noqa: E731
+        self.stroke = col(lambda j: j.unit.cylinder.stroke_m)
+        self.inertia = col(lambda j: j.unit.motor.inertia_kg_m2)
+        self.speed_limit = col(lambda j: j.unit.motor.speed_limit_rpm)
+        self.mass0 = col(lambda j: j.unit.load.mass_kg)
+        self.mass_per_n = col(lambda j: j.unit.load.mass_per_payload_kg
+                              / j.unit.load.force_per_payload_kg_n
+                              if j.unit.load.force_per_payload_kg_n else 0.0)
+        self.holding = col(lambda j: j.unit.load.holding_force_n)
+        self.oil = jobs[0].unit.oil
+        # rated leakage flow of the larger pump: the scale of the flow noise
+        self.rated_leak = col(lambda j: max(s_.pump.leak_coeff_m3 for s_ in j.unit.sides)
+                              * 250e5 / float(j.unit.oil.dynamic_viscosity_pa_s(40.0)))
+        self.area_a = col(lambda j: j.unit.a.area_m2)
+        # per switch an offset state: slot of (filter, switch name)
+        self.slot = [{sw.name: N_BASE + i for i, sw in enumerate(j.switches)} for j in jobs]
+        self.n_states = N_BASE + max((len(j.switches) for j in jobs), default=0)
+        self.leak_a = col(lambda j: j.unit.a.pump.leak_coeff_m3)
+        self.leak_b = col(lambda j: j.unit.b.pump.leak_coeff_m3)
+        self.q_per_rpm = col(lambda j: abs(j.unit.a.pump.geometric_flow_m3_s(1.0)))
+        # half the pumps' friction band at standstill per Pa: ideal (1/eta - eta) / 2 per side
+        self.band_half = np.array([[sd.pump.sign * sd.pump.speed_ratio * sd.pump.displacement_m3_rev
+                                    / (2.0 * math.pi) * (1.0 / sd.pump.eta_hm - sd.pump.eta_hm)
+                                    / 2.0 for sd in j.unit.sides] for j in jobs])
+        self.dead = col(lambda j: j.unit.dead_volume_m3)
+        # a side's leakage at the rating point, through an orifice: k_lam dp_r / mu_r sqrt(dp/dp_r)
+        dp_r = hydraulics.nominal_pressure_bar * BAR_PA
+        t_r = self.oil.temperature_at_viscosity_c(hydraulics.nominal_viscosity_cst)
+        mu_r = hydraulics.nominal_viscosity_cst * CST_M2S * float(self.oil.density_kg_m3(t_r))
+        self.orifice_a = self.leak_a * math.sqrt(dp_r) / mu_r
+        self.orifice_b = self.leak_b * math.sqrt(dp_r) / mu_r
+        self.beta = col(lambda j: j.unit.bulk_modulus_pa)
+        self.phi_q = math.exp(-period_s / s.flow_tau_s)
+        self.phi_t = math.exp(-period_s / s.temp_tau_s)
+        self.flow_sigma = np.zeros(B)
+
+    # --- pieces ---------------------------------------------------------------------------
+
+    def _initial(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        s, B = self.s, self.B
+        n = self.n_states
+        z = np.zeros((B, n))
+        p0 = np.zeros((B, n))
+        referenced = np.ones(B, dtype=bool)
+        for b, j in enumerate(self.jobs):
+            st = steady_state_at_torque(j.unit, self.speed[0, b], self.torque[0, b],
+                                        self.temp[0, b])
+            x0 = j.x0_mm
+            if x0 is None:
+                x0, sx = 0.5 * self.stroke[b] * 1e3, self.stroke[b] * 1e3 / math.sqrt(12.0)
+                referenced[b] = False
+            else:
+                sx = s.position_mm
+            force = float(st.load_force_n)
+            z[b, :N_BASE] = [x0 * 1e-3, float(st.velocity_m_s), float(st.p_a_pa - j.unit.reservoir_pa),
+                    float(st.p_b_pa - j.unit.reservoir_pa), force, 0.0, 0.0, 0.0]
+            sf = max(s.load_share * abs(force), j.unit.cylinder.static_friction_n)
+            p0[b, :N_BASE] = [(sx * 1e-3) ** 2, (s.velocity_mm_s * 1e-3) ** 2,
+                              (s.pressure_bar * 1e5) ** 2, (s.pressure_bar * 1e5) ** 2, sf ** 2,
+                              s.temp_sd_c ** 2 if s.temp_state else 0.0, 1.0,
+                              s.torque_offset_nm ** 2]
+            # a switch mounted off is off by the same on every pass: uniform over its tolerance
+            for sw in j.switches:
+                p0[b, self.slot[b][sw.name]] = (sw.tolerance_mm * 1e-3) ** 2 / 3.0
+        P = np.zeros((B, n, n))
+        P[:, np.arange(n), np.arange(n)] = p0
+        self.load_scale = np.maximum(np.abs(z[:, LOAD]), 1.0)
+        return z, P, referenced
+
+    def _flow_sigma(self, z: np.ndarray, temp_c: np.ndarray, speed_rpm: np.ndarray
+                    ) -> np.ndarray:
+        """The unmodelled flow's stationary standard deviation (m^3/s, into chamber A).
+
+        a |q_leak(p, mu)|: the pumps' leakage as the model has it (laminar, 1/mu), off by the
+        datasheet's tolerance and its speed dependence; a' q_rated sqrt(|p| / p_rated): the
+        share of the rating point's leakage that may pass orifice-like gaps, which does not
+        thin with cold oil nor fall linearly with pressure (at -10 degC it is most of the
+        leakage, which the laminar law puts near zero); b |q_displacement(n)|: the delivered
+        flow's own speed dependence (filling, the trapped volume's compression); c: a floor
+        for what bypasses the seals. Without a temperature state the viscosity's error folds into a:
+        the leakage goes as 1/mu(T), so a sensor off by sigma_T misreads it by
+        |d ln mu / dT| sigma_T."""
+        s = self.s
+        mu = self.oil.dynamic_viscosity_pa_s(temp_c + z[:, DT])
+        leak = (np.abs(self.leak_a * z[:, PA]) + np.abs(self.leak_b * z[:, PB])) / mu
+        a = s.leak_tolerance
+        if not s.temp_state:
+            dlog = np.abs(np.log(self.oil.dynamic_viscosity_pa_s(temp_c + 0.5))
+                          - np.log(self.oil.dynamic_viscosity_pa_s(temp_c - 0.5)))
+            a = np.sqrt(a * a + (dlog * s.temp_sd_c) ** 2)
+        orifice = (self.orifice_a * np.sqrt(np.abs(z[:, PA]))
+                   + self.orifice_b * np.sqrt(np.abs(z[:, PB])))
+        return (a * leak + s.orifice_share * orifice
+                + s.displacement_share * self.q_per_rpm * np.abs(speed_rpm) + s.flow_floor_m3_s)
+
+    def _process_noise(self, x: np.ndarray) -> np.ndarray:
+        s, T = self.s, self.T
+        n = self.n_states
+        q = np.zeros((self.B, n))
+        mass = self.mass0
+        q[:, V] = (s.force_noise_n / mass) ** 2 * T
+        cap = (self.dead + self.area_a * 0.5 * self.stroke) / self.beta
+        q[:, PA] = q[:, PB] = (s.flow_noise_share * self.rated_leak / cap) ** 2 * T
+        q[:, LOAD] = (s.load_walk_share * self.load_scale) ** 2 * T
+        q[:, DT] = (s.temp_sd_c ** 2 if s.temp_state else 0.0) * (1.0 - self.phi_t ** 2)
+        q[:, EPS] = 1.0 - self.phi_q ** 2
+        q[:, TOFF] = s.torque_offset_walk_nm ** 2 * T
+        Q = np.zeros((self.B, n, n))
+        Q[:, np.arange(n), np.arange(n)] = q
+        return Q
+
+    def _torque_variance(self, k: int) -> np.ndarray:
+        """What the samples cannot tell about the torque at sample k (N*m^2)."""
+        s, T = self.s, self.T
+        tq, n = self.torque, self.speed
+        var = np.full(self.B, s.drive_torque_nm ** 2)
+        if k >= 1:
+            var += (s.torque_timing_s * (tq[k] - tq[k - 1]) / T) ** 2
+        j_per_rpm = self.inertia * RPM_RAD_S / T
+        var += j_per_rpm ** 2 * s.speed_step_rpm ** 2 / 6.0
+        if k >= 2:
+            var += (0.5 * j_per_rpm * (n[k] - 2.0 * n[k - 1] + n[k - 2])) ** 2
+        at_limit = np.abs(n[k]) >= self.speed_limit - s.speed_step_rpm
+        if k >= 1:
+            at_limit |= np.abs(n[k - 1]) >= self.speed_limit - s.speed_step_rpm
+        return var + np.where(at_limit, s.limiter_torque_nm ** 2, 0.0)
+
+    def _predict(self, z: np.ndarray, sd_x: np.ndarray, k: int,
+                 discrete: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+        """Step every row from sample k-1 to k: the predicted states, the Jacobian and the
+        torque's value and gradient."""
+        plant, B, sub = self.plant, self.B, self.s.substeps
+        rows = np.repeat(z[:, :N_PLANT], N_ROWS, axis=0).reshape(B, N_ROWS, N_PLANT)
+        # x is perturbed towards the nearer stroke end by up to X_REACH sigma (a stop within
+        # reach shows in the torque and in the travel: the linearisation sees it coming), away
+        # from it when already there
+        deltas = np.broadcast_to(DELTAS, (B, N_PLANT)).copy()
+        toward = np.where(z[:, X] > 0.5 * self.stroke, 1.0, -1.0)
+        room = np.where(toward > 0.0, self.stroke - z[:, X], z[:, X])
+        reach = np.minimum(np.maximum(DELTAS[X], self.s.stop_reach * sd_x), room)
+        self.room_sd = room / np.maximum(sd_x, 1e-9)
+        deltas[:, X] = np.where(room < DELTAS[X], -toward * DELTAS[X], toward * reach)
+        rows[:, 1:, :] += deltas[:, :, None] * np.eye(N_PLANT)[None, :, :]
+        rows = rows.reshape(B * N_ROWS, N_PLANT)
+        plant.x = np.clip(rows[:, X], 0.0, np.repeat(self.stroke, N_ROWS))
+        plant.v = rows[:, V].copy()
+        plant.dp_a, plant.dp_b = rows[:, PA].copy(), rows[:, PB].copy()
+        plant.load = rows[:, LOAD].copy()
+        payload_force = rows[:, LOAD] - np.repeat(self.holding, N_ROWS)
+        extra = np.maximum(payload_force * np.repeat(self.mass_per_n, N_ROWS), 0.0)
+        _set_mass(plant, np.repeat(self.mass0, N_ROWS) + extra)
+        fs, ra, rb = discrete
+        plant.friction_state = np.repeat(fs, N_ROWS)
+        plant.regime_a, plant.regime_b = np.repeat(ra, N_ROWS), np.repeat(rb, N_ROWS)
+        n0, n1 = self.speed[k - 1], self.speed[k]
+        plant.n = np.repeat(n0, N_ROWS)
+        # the viscosity at the pumps' oil: the tank sensor's reading plus the offset state
+        t_mid = 0.5 * (self.temp[k - 1] + self.temp[k])
+        mu = self.oil.dynamic_viscosity_pa_s(np.repeat(t_mid, N_ROWS) + rows[:, DT])
+        mask = np.ones(B * N_ROWS, dtype=bool)
+        tsum = np.zeros(B * N_ROWS)
+        zero = np.zeros(B * N_ROWS)       # torque command: unused in speed mode
+        for i in range(sub):
+            plant.set_speed_control(mask, np.repeat(n0 + (n1 - n0) * (i + 1) / sub, N_ROWS))
+            plant.step(zero, mu)
+            tsum += plant.torque
+        tq = plant.torque if self.s.torque_at == "last" else tsum / sub
+        out = np.stack([plant.x, plant.v, plant.dp_a, plant.dp_b], axis=1).reshape(B, N_ROWS, 4)
+        tq = tq.reshape(B, N_ROWS)
+        nom = out[:, 0, :]
+        n = self.n_states
+        F = np.zeros((B, n, n))
+        F[:, :4, :N_PLANT] = np.transpose((out[:, 1:, :] - nom[:, None, :]) / deltas[:, :, None],
+                                          (0, 2, 1))
+        F[:, np.arange(LOAD, n), np.arange(LOAD, n)] = 1.0     # load, offsets: random walks
+        F[:, DT, DT], F[:, EPS, EPS] = self.phi_t, self.phi_q
+        # the unmodelled flow moves the rod only: the load sets the pressures, the flows the
+        # speed, so a flow error's lasting trace is a rod-velocity error sigma_q eps / A_a
+        self.flow_sigma = self._flow_sigma(z, t_mid, 0.5 * (n0 + n1))
+        # against a stroke end the flow goes into pressure, not travel
+        at_end = (nom[:, X] <= 0.0) | (nom[:, X] >= self.stroke)
+        gain_x = np.where(at_end, 0.0, self.T * self.flow_sigma / self.area_a)
+        F[:, X, EPS] = gain_x
+        H = np.zeros((B, n))
+        H[:, :N_PLANT] = (tq[:, 1:] - tq[:, :1]) / deltas
+        H[:, TOFF] = 1.0
+        z_new = z.copy()
+        z_new[:, :4] = nom
+        z_new[:, X] += gain_x * z[:, EPS]
+        z_new[:, DT] *= self.phi_t
+        z_new[:, EPS] *= self.phi_q
+        new_discrete = (plant.friction_state[self.nom].copy(), plant.regime_a[self.nom].copy(),
+                        plant.regime_b[self.nom].copy())
+        return z_new, F, (tq[:, 0], H), new_discrete
+
+    # --- the loop -------------------------------------------------------------------------
+
+    def run(self) -> list[KalmanResult]:
+        s, B, N, T = self.s, self.B, self.N, self.T
+        t_start = time.perf_counter()
+        z, P, referenced = self._initial()
+        self.suspect: list[str | None] = [None] * B
+        self.edge_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
+        win = max(1, int(round(s.nis_window_s / T)))
+        bound = float(chi2.ppf(1.0 - s.false_alarm, win))
+        out_x, out_v, out_sd = np.empty((N, B)), np.empty((N, B)), np.empty((N, B))
+        out_load, out_dt, out_toff = np.empty((N, B)), np.empty((N, B)), np.empty((N, B))
+        out_dq, out_sq = np.zeros((N, B)), np.zeros((N, B))
+        out_p = np.empty((N, B, 2))
+        nis = np.zeros((N, B))
+        nis_win = np.zeros((N, B))
+        flagged = np.zeros((N, B), dtype=bool)
+        not_ref = np.zeros((N, B), dtype=bool)
+        # reference edges: accept index -> [(filter, edge index, rising, switch, edge time)]
+        edges: dict[int, list[tuple[int, int, bool, Switch, float]]] = {}
+        for b, j in enumerate(self.jobs):
+            for sw in j.switches:
+                if sw.name not in j.run.refs:
+                    continue
+                timed = j.run.ref_edge_s.get(sw.name)
+                for acc, c, rising in accepted_edges(j.run.time_s, j.run.refs[sw.name],
+                                                         self.debounce_s):
+                    te = float(timed[c]) if timed is not None and np.isfinite(timed[c]) \
+                        else math.nan
+                    edges.setdefault(acc, []).append((b, c, rising, sw, te))
+        events: list[list[ReferenceEvent]] = [[] for _ in range(B)]
+        # derive the start's discrete states from its state
+        self.plant.set_state(np.repeat(z[:, X], N_ROWS), np.repeat(self.speed[0], N_ROWS),
+                             np.repeat(z[:, PA], N_ROWS), np.repeat(z[:, PB], N_ROWS))
+        discrete = (self.plant.friction_state[self.nom].copy(),
+                    self.plant.regime_a[self.nom].copy(), self.plant.regime_b[self.nom].copy())
+        inflate_per_sample = T / s.nis_window_s
+        for k in range(N):
+            if k > 0:
+                z, F, (tq_model, H), discrete = self._predict(
+                    z, np.sqrt(np.maximum(P[:, X, X], 0.0)), k, discrete)
+                Q = self._process_noise(z[:, X])
+                P = F @ P @ np.transpose(F, (0, 2, 1)) + Q
+                if k > 1:
+                    ratio = nis_win[k - 1]
+                    grow = np.where(ratio > 1.0,
+                                    np.minimum(ratio, s.max_inflation) ** inflate_per_sample, 1.0)
+                    P = P * grow[:, None, None]
+                # torque update
+                R = self._torque_variance(k)
+                # a motor standing still is held by the pumps' friction: any torque between
+                # the motoring and the pumping one holds the pressures (uniform over the band,
+                # about its middle)
+                stopped = np.abs(self.speed[k]) < 0.5 * s.speed_step_rpm
+                if stopped.any():
+                    half = np.where(stopped[:, None], self.band_half, 0.0)   # (B, 2) per Pa
+                    tq_model = tq_model - half[:, 0] * z[:, PA] - half[:, 1] * z[:, PB]
+                    H = H.copy()
+                    H[:, PA] -= half[:, 0]
+                    H[:, PB] -= half[:, 1]
+                    R = R + (np.abs(half[:, 0] * z[:, PA]) + np.abs(half[:, 1] * z[:, PB])) ** 2 \
+                        * 4.0 / 12.0
+                y = self.torque[k] - (tq_model + z[:, TOFF])
+                PH = np.einsum("bij,bj->bi", P, H)
+                S = np.einsum("bi,bi->b", H, PH) + R
+                nis[k] = y * y / S
+                # an innovation far beyond its spread is a linearisation the sample does not
+                # fit (a stop met sooner or later than modelled): Huber's weight, the
+                # innovation's variance widened so it moves the states by at most huber sigma
+                S = S * np.maximum(1.0, np.sqrt(nis[k]) / s.huber)
+                K = PH / S[:, None]
+                # mid-stroke the torque's dependence on the position (the chambers' volumes)
+                # is too weak to trust under structure the model lacks: the position and the
+                # flow error are "considered" (Schmidt), not updated, unless a stroke end is
+                # within reach; the covariance update then is Joseph's for that gain
+                if s.torque_position != "always":
+                    far = self.room_sd > s.stop_reach if s.torque_position == "near_stop" \
+                        else np.ones(B, dtype=bool)
+                    K[far, X] = 0.0
+                    K[far, EPS] = 0.0
+                z = z + K * y[:, None]
+                KPH = K[:, :, None] * PH[:, None, :]
+                P = (P - KPH - np.transpose(KPH, (0, 2, 1))
+                     + K[:, :, None] * (S[:, None, None] * K[:, None, :]))
+            # reference edges accepted at this sample
+            for b, c, rising, sw, te in edges.get(k, ()):
+                z, P = self._reference(z, P, b, k, c, rising, sw, te, out_x, out_v,
+                                       referenced, events)
+            # end stops
+            sd = np.sqrt(np.maximum(P[:, X, X], 1e-18))
+            m_t, v_t = _truncate(z[:, X], sd, np.zeros(B), self.stroke)
+            moved = (np.abs(m_t - z[:, X]) > 1e-12) | (v_t < 0.999999 * sd * sd)
+            if s.truncate_at_stops and moved.any():
+                px = P[:, :, X] / (sd * sd)[:, None]
+                shrink = 1.0 - v_t / (sd * sd)
+                z = z + px * (m_t - z[:, X])[:, None]
+                P = P - shrink[:, None, None] * px[:, :, None] * P[:, X, :][:, None, :]
+            z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
+            P[:, X, X] = np.maximum(P[:, X, X], (s.floor_mm * 1e-3) ** 2)
+            P = 0.5 * (P + np.transpose(P, (0, 2, 1)))
+            nis_win[k] = (nis[max(0, k - win + 1):k + 1].sum(axis=0)) / bound
+            flagged[k] = (nis_win[k] > 1.0) | np.array([n is not None for n in self.suspect])
+            not_ref[k] = ~referenced
+            out_x[k], out_v[k] = z[:, X], z[:, V]
+            out_sd[k] = np.sqrt(np.maximum(P[:, X, X], 0.0))
+            out_load[k], out_dt[k], out_toff[k] = z[:, LOAD], z[:, DT], z[:, TOFF]
+            out_dq[k], out_sq[k] = self.flow_sigma * z[:, EPS], self.flow_sigma
+            out_p[k] = z[:, PA:PB + 1] * 1e-5
+        seconds = time.perf_counter() - t_start
+        results = []
+        for b, j in enumerate(self.jobs):
+            n = int(self.lengths[b])
+            x_mm = out_x[:n, b] * 1e3
+            flags = (np.where(flagged[:n, b], MODEL_INCONSISTENT, 0)
+                     | np.where(not_ref[:n, b], int(Flags.NOT_REFERENCED), 0)
+                     | np.where((x_mm <= 0.0) | (x_mm >= self.stroke[b] * 1e3),
+                                int(Flags.AT_SOFT_LIMIT), 0)).astype(np.uint8)
+            est = RunEstimate(x_mm, out_v[:n, b] * 1e3, s.coverage * out_sd[:n, b] * 1e3, flags,
+                              events[b])
+            offsets = {name: float(z[b, i]) * 1e3 for name, i in self.slot[b].items()}
+            results.append(KalmanResult(est, out_load[:n, b], out_dt[:n, b], out_dq[:n, b],
+                                        out_sq[:n, b], out_toff[:n, b], nis[:n, b],
+                                        nis_win[:n, b], out_p[:n, b], offsets, seconds,
+                                        int(self.lengths.sum())))
+        return results
+
+    def _reference(self, z: np.ndarray, P: np.ndarray, b: int, k: int, c: int, rising: bool,
+                   sw: Switch, edge_s: float, out_x: np.ndarray, out_v: np.ndarray,
+                   referenced: np.ndarray, events: list[list[ReferenceEvent]]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """A debounced edge accepted at k, seen at c: the position at its instant, taken
+        through the travel since (the filter's own, its error over a debounce time small)."""
+        t = self.time[:, b]
+        x_c, v_c = out_x[c, b], out_v[c, b]
+        x_now = z[b, X]
+        span = t[k] - t[c]
+        v_cross = (x_now - x_c) / span if span > 0.0 else v_c
+        p_mm = sw.edge_position_mm(rising, v_cross * 1e3, x_c * 1e3)
+        if math.isfinite(edge_s):
+            back, timing_var = t[c] - edge_s, 0.0
+        else:
+            back, timing_var = 0.5 * (t[c] - t[c - 1]), (v_c * (t[c] - t[c - 1])) ** 2 / 12.0
+        # the rod at the edge sat where the switch really switches: configured + its offset
+        o = self.slot[b][sw.name]
+        at_edge = x_c - v_c * back
+        y = p_mm * 1e-3 + z[b, o] - at_edge
+        r = timing_var + (0.01 * (x_now - x_c)) ** 2
+        cold = not referenced[b]
+        if cold:                            # a cold start: the edge sets the position
+            P[b, X, :] = P[b, :, X] = 0.0
+            P[b, X, X] = self.stroke[b] ** 2
+            referenced[b] = True
+        h = np.zeros(self.n_states)
+        h[X], h[o] = 1.0, -1.0
+        ph = P[b] @ h
+        s_ = float(h @ ph) + r
+        K = ph / s_
+        z[b] = z[b] + K * y
+        P[b] = P[b] - np.outer(K, ph)
+        gain = float(K[X])
+        # beyond the gate the estimate or the switch is wrong and this edge cannot say
+        # which: the position carries the disagreement (widened by it) and is flagged
+        # until another switch agrees
+        if not cold and y * y / s_ > self.edge_gate:
+            self.suspect[b] = sw.name
+            P[b, X, X] += y * y
+        elif sw.name != self.suspect[b]:
+            self.suspect[b] = None
+        events[b].append(ReferenceEvent(k, c, sw.name, rising, p_mm, -y * 1e3, False, gain))
+        return z, P
+
