@@ -7,37 +7,51 @@ rod down under the model *and* what the model is known not to know, and checks i
 innovations to see when the model does not fit.
 
 State z = [x (m), v (m/s), dp_a (Pa), dp_b (Pa), F_load (N), dT (K), eps, tau_off (N*m),
-o_1..o_m (m)]:
+comp, o_1..o_m (m), c_1..c_m (m)]:
 
 - ``F_load`` the external load (random walk; the moving mass follows from the payload it
   implies), ``tau_off`` an offset of the drive's torque estimate (random walk);
 - ``dT`` the pumps' oil above the tank sensor's reading (Gauss-Markov, sigma
-  :attr:`KalmanSettings.temp_sd_c`, time :attr:`KalmanSettings.temp_tau_s`): the sensor lags
-  warm-up; it enters the viscosity, so the laminar leakage, per row;
+  :attr:`KalmanSettings.temp_sd_c`: the sensor's thermal lag times the oil's warm-up rate;
+  time :attr:`KalmanSettings.temp_tau_s`, bounded at :attr:`KalmanSettings.temp_bound_sd`
+  sigma: beyond, it would be another error taken for temperature); it enters the viscosity,
+  so the laminar leakage, per row;
 - ``eps`` the unmodelled flow, normalised: a first-order Gauss-Markov process of unit
   variance and correlation time :attr:`KalmanSettings.flow_tau_s` (about a stroke), the flow
-  error being dq = sigma_q eps with sigma_q = a |q_leak(p, mu)| + a' q_rated sqrt(|p|/p_rated)
-  + b |q_displacement(n)| + c (:meth:`_Bank._flow_sigma`). It is not a parameter: what a hold
-  teaches about it is forgotten within a stroke, because a leakage of another shape (orifice
-  share, speed dependence) learnt at the hold pressure does not hold at other pressures and
-  speeds. It moves the rod only (x += T dq / A_a), not the chambers' balance: the load sets
-  the pressures, the flows the speed, so a flow error's lasting trace is a rod-velocity error;
-  entered as a chamber flow it would shift the pressures and give the torque a hold on it
-  that it does not have on the real plant. Against a stroke end it moves nothing;
+  error being dq = sigma_q eps with sigma_q the RMS of what the model's flows are known to
+  lack (:meth:`_Bank._flow_sigma`): the datasheet's leakage band, the share of the leakage
+  that may pass orifice-like gaps (the orifice law against the laminar one at the same
+  rating-point leakage), the pumps' trapped volumes compressed and lost every revolution,
+  each a bound whose RMS is bound / sqrt(3). It is not a parameter: what a hold teaches
+  about it is forgotten within a stroke, because a leakage of another shape learnt at the
+  hold pressure does not hold at other pressures and speeds. It moves the rod only
+  (x += T dq / A_a), not the chambers' balance: the load sets the pressures, the flows the
+  speed, so a flow error's lasting trace is a rod-velocity error; entered as a chamber flow
+  it would shift the pressures and give the torque a hold on it that it does not have on the
+  real plant. Against a stroke end it moves nothing;
+- ``comp`` the chambers' compliance off the model's (entrained air, hose walls; relative,
+  constant, uniform prior over +-:attr:`KalmanSettings.compliance_tolerance`): a full chamber
+  holds millimetres of travel in compression, so the signed oil volume the model's pressures
+  take moves the rod by comp times that volume over the area (the mean of the two chambers'
+  accounts); against a stroke end it moves nothing;
 - ``o_i`` one offset per Hall switch (constant, prior uniform over
-  +-``reference_tolerance_mm``): a switch mounted 2 mm off is off by 2 mm on every pass.
-
-The log leakage factor of the first design is gone: as a random walk it became "known" at
-holds and carried a wrong value into motion (the nominal dig-dump run at 27 degC: pulled to
-0.56 in the standstill after a hold, it predicted 0.16 mm/s of creep through a 20 s hold and
-published 4.1 mm off with 1.4 mm of uncertainty). The temperature offset does its legitimate
-part (a bounded, slowly varying error of the viscosity) and the flow error the rest.
+  +-``reference_tolerance_mm``): a switch mounted 2 mm off is off by 2 mm on every pass;
+  ``c_i`` the rod's position at switch i's last edge, kept from the edge's sample until the
+  debounce accepts it (a stochastic clone: the travel since is the filter's own, with its
+  covariance, so a stop met within the debounce time is not mistaken for the switch's
+  offset).
 
 Prediction is the simulator's own plant (:class:`ddh_vsensor.model.plant.Plant`) in speed mode:
 the motor follows the measured speed (linear between samples, over ``substeps`` backward-Euler
-steps per sample) and the plant reports the torque the drive needs, inertia included. One
+steps per sample) and the plant reports the torque the drive needs, inertia included; the
+drive at its torque limit, the rod on a stop and the relief valves open are the plant's own
+states, so a rod pressed on a stop by the drive at its limit needs no mode of its own. One
 plant batch holds, per filter, the nominal row and one row per perturbed plant state (x, v,
-dp_a, dp_b, F_load, dT): the Jacobian comes from one batched step by finite differences.
+dp_a, dp_b, F_load, dT): the Jacobian comes from one batched step by finite differences. x is
+perturbed away from the nearer stroke end by :attr:`KalmanSettings.stop_reach` sigma: the
+slope of a stop's clip over the position's spread is the share of rods not yet there, so the
+spread closes as the pumps push the rods behind the mean onto the stop, not when the mean
+arrives.
 
 Measurement: the logged motor torque is the plant's torque over the *last* substep plus
 ``tau_off`` plus noise whose variance is physics (the drive's estimate error, the reading's
@@ -45,20 +59,25 @@ timing within its sample, the speed's resolution read as inertia torque, the lim
 speed limit); a motor standing still is held in its pumps' friction band (taken at the band's
 middle with the band's uniform variance). An innovation beyond :attr:`KalmanSettings.huber`
 sigma is down-weighted (Huber): it is a linearisation the sample does not fit. The torque
-does not update the position and the flow error (a Schmidt "consider" update, Joseph's
-covariance; :attr:`KalmanSettings.torque_position`): mid-stroke its dependence on x (the
-chambers' volumes) is too weak to trust, and near a stroke end any force the model lacks
-reads as the stop (a rod held 1.5 mm short was published as pressed, +-0.3 mm).
+does not update what is position (x, the flow error, the switches' offsets and the clones: a
+Schmidt "consider" update, Joseph's covariance; :attr:`KalmanSettings.torque_position`):
+mid-stroke its dependence on x (the chambers' volumes) is too weak to trust, and near a
+stroke end any force the model lacks reads as the stop.
 
-Hall switch edges (debounced as the estimator does, taken when accepted) measure x - o_i at
-the edge's instant (its time from the I/O module where logged, else anywhere within the
-sample). A Hall edge whose innovation fails the chi-square gate means the estimate or the
-switch is wrong, and the edge cannot say which: the update is taken, the position variance
-widened by the disagreement, and the samples flagged until another switch agrees.
+Hall switch edges (debounced as the estimator does, taken when accepted) measure c_i - o_i:
+the rod at the edge's instant (its time from the I/O module where logged, else anywhere
+within the sample) where the switch really switches, the direction of travel from the rod's
+velocity then or, where the filter has it standing, from the pumps'. A Hall edge whose
+innovation fails the chi-square gate means the estimate or the switch is wrong, and the edge
+cannot say which: the update is taken, the position variance widened by the disagreement,
+and the samples flagged until another switch agrees. The normalised edge innovations are
+returned (:attr:`KalmanResult.edge_innovations`): their mean square checks the flow-error
+bounds against the data (about 1 where the plant has the structure the bounds stand for).
 
 End stops: the plant stops its rows at them and the mean is clipped to [0, stroke]; the
 variance is not truncated (:attr:`KalmanSettings.truncate_at_stops`): truncating the
-re-Gaussianised estimate every sample re-counts one constraint as new information.
+re-Gaussianised estimate every sample re-counts one constraint as new information. Every
+variance is kept non-negative and a non-finite state raises.
 
 Published: position = x, uncertainty = :attr:`KalmanSettings.coverage` x sqrt(P_xx). Self-check:
 the normalised innovations squared of the torque over a sliding window against the chi-square
@@ -72,7 +91,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -82,7 +101,8 @@ from scipy.stats import chi2
 from ddh_vsensor.config import Config, HydraulicsConfig
 from ddh_vsensor.estimator.estimator import ReferenceEvent, RunEstimate
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.estimator.references import Switch, accepted_edges, switches_from_config
+from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, Switch, accepted_edges,
+                                              switches_from_config)
 from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.conversions import BAR_PA, CST_M2S, RPM_RAD_S
 from ddh_vsensor.physics.steady import steady_state_at_torque
@@ -90,14 +110,15 @@ from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.model.plant import Plant, RowSpec
 
 MODEL_INCONSISTENT = 1 << 7     # proposed Flags bit: the torque innovations fail the chi-square
-X, V, PA, PB, LOAD, DT, EPS, TOFF = range(8)
-N_BASE = 8                      # states before the per-switch offsets
+X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP = range(9)
+N_BASE = 9                      # states before the per-switch offsets
 N_PLANT = 6                     # states the plant sees (the rest enter linearly: no row)
 N_ROWS = N_PLANT + 1            # nominal + one per perturbed plant state
 # finite-difference steps of the perturbed states (SI, K): well inside each state's
 # uncertainty, well above the step's rounding
 DELTAS = np.array([1e-4, 1e-4, 2e4, 2e4, 50.0, 0.1])
 SQRT_PI_2 = math.sqrt(2.0 * math.pi)
+SQRT_3 = math.sqrt(3.0)
 
 
 @dataclass(frozen=True)
@@ -112,9 +133,8 @@ class KalmanSettings:
     # re-counts one constraint as new information (the variance collapses, the mean is
     # pushed inwards, away from a rod stopped just short of the end)
     truncate_at_stops: bool = False
-    # sigmas of x within which a stroke end enters the Jacobian: a stop within reach shows in
-    # the torque, but so does any force the model lacks (a stop takes any force), and a rod
-    # held short of the end then reads as pressed against it
+    # x's finite-difference step, in its sigmas, away from the nearer stroke end: the slope of
+    # the stop's clip over the spread (the position's spread closes as the rods behind arrive)
     stop_reach: float = 2.0
     torque_position: str = "never"      # torque updates x: "always", "near_stop", "never"
     # measurement
@@ -128,22 +148,32 @@ class KalmanSettings:
     pressure_bar: float = 5.0
     load_share: float = 0.3             # of |F_load| at the start (payload unknown), at least
     torque_offset_nm: float = 2.0       # drive's torque offset (its calibration)
-    # unmodelled flow: a Gauss-Markov error of the rod's flow balance, stationary sigma
-    # a |q_leak(p, mu)| + b |q_displacement(n)| + c (see :meth:`_Bank._flow_sigma`)
-    leak_tolerance: float = 0.3         # a: the datasheet's leakage (volumetric-eff.) tolerance
+    # unmodelled flow: a Gauss-Markov error of the rod's flow balance whose stationary sigma
+    # is the RMS of physical bounds (see :meth:`_Bank._flow_sigma`); each bound is a share
+    # anywhere within its band, so its RMS is the bound / sqrt(3)
+    leak_tolerance: float = 0.3         # a: the datasheet's leakage (volumetric eff.) band, +-
     orifice_share: float = 0.3          # a': the rating point's leakage share that may be turbulent
-    displacement_share: float = 0.01    # b: the volumetric efficiency's speed dependence
+    # b: the pumps' trapped volumes (up to this share of the displacement) compressed to the
+    # port's pressure every revolution and lost: dq = b |p| / beta |q_displacement|
+    trapped_share: float = 0.3
     flow_floor_m3_s: float = 2e-8       # c: seals' bypass a new cylinder may have (~1 ml/min)
     flow_tau_s: float = 2.0             # its correlation time: about a stroke
-    # the pumps' oil against the tank sensor: a Gauss-Markov offset (K) on the viscosity
-    temp_sd_c: float = 3.0              # the sensor's lag behind warm-up, its placement
+    # the chambers' effective compliance (entrained air, hose walls) off the oil's by up to
+    # this share: a state (comp), uniform prior
+    compliance_tolerance: float = 0.3
+    # the pumps' oil against the tank sensor: a Gauss-Markov offset (K) on the viscosity. The
+    # sensor lags the pumps' oil by its thermal lag (~3 min) while the oil warms at up to
+    # ~1 K/min in work: sigma ~3 K; it wanders as fast as the tank's temperature does
+    temp_sd_c: float = 3.0
     temp_tau_s: float = 600.0           # the tank's thermal time constant
+    temp_bound_sd: float = 4.0          # the offset's bound, in its sigmas
     temp_state: bool = True             # False: no state; its leakage share folds into a
     # process noise, per sqrt(s)
     load_walk_share: float = 0.02       # of the start's |F_load| per sqrt(s): geometry, friction
     force_noise_n: float = 200.0        # white force (friction not modelled) per sqrt(s)
     flow_noise_share: float = 0.02      # white flow, share of a pump's rated leakage, per sqrt(s)
     torque_offset_walk_nm: float = 0.05
+    switch_repeat_mm: float = 0.05      # a Hall switch's switching point from pass to pass
     huber: float = 3.0                  # torque innovations beyond this many sigma: down-weighted
     # self-check
     nis_window_s: float = 1.0
@@ -165,6 +195,8 @@ class KalmanResult:
     nis_window: np.ndarray              # its sum over the window / the chi-square bound
     pressures_bar: np.ndarray           # (samples, 2): the chambers' gauge pressures
     switch_offsets_mm: dict[str, float] = field(default_factory=dict)   # at the run's end
+    # per accepted edge (not the cold start's first): innovation / its predicted sigma
+    edge_innovations: list[float] = field(default_factory=list)
     seconds: float = 0.0                # wall time of the batch this filter ran in
     samples: int = 0
     extra: dict[str, float] = field(default_factory=dict)
@@ -277,12 +309,18 @@ class _Bank:
         self.rated_leak = col(lambda j: max(s_.pump.leak_coeff_m3 for s_ in j.unit.sides)
                               * 250e5 / float(j.unit.oil.dynamic_viscosity_pa_s(40.0)))
         self.area_a = col(lambda j: j.unit.a.area_m2)
-        # per switch an offset state: slot of (filter, switch name)
+        self.area_b = col(lambda j: j.unit.b.area_m2)
+        # per switch an offset state and a clone of the rod's position at its last edge
+        m = max((len(j.switches) for j in jobs), default=0)
         self.slot = [{sw.name: N_BASE + i for i, sw in enumerate(j.switches)} for j in jobs]
-        self.n_states = N_BASE + max((len(j.switches) for j in jobs), default=0)
+        self.clone = [{sw.name: N_BASE + m + i for i, sw in enumerate(j.switches)}
+                      for j in jobs]
+        self.n_states = N_BASE + 2 * m
         self.leak_a = col(lambda j: j.unit.a.pump.leak_coeff_m3)
         self.leak_b = col(lambda j: j.unit.b.pump.leak_coeff_m3)
-        self.q_per_rpm = col(lambda j: abs(j.unit.a.pump.geometric_flow_m3_s(1.0)))
+        self.q_per_rpm_a = col(lambda j: abs(j.unit.a.pump.geometric_flow_m3_s(1.0)))
+        self.q_per_rpm_b = col(lambda j: abs(j.unit.b.pump.geometric_flow_m3_s(1.0)))
+        self.q_signed_a = col(lambda j: j.unit.a.pump.geometric_flow_m3_s(1.0))
         # half the pumps' friction band at standstill per Pa: ideal (1/eta - eta) / 2 per side
         self.band_half = np.array([[sd.pump.sign * sd.pump.speed_ratio * sd.pump.displacement_m3_rev
                                     / (2.0 * math.pi) * (1.0 / sd.pump.eta_hm - sd.pump.eta_hm)
@@ -317,13 +355,14 @@ class _Bank:
             else:
                 sx = s.position_mm
             force = float(st.load_force_n)
-            z[b, :N_BASE] = [x0 * 1e-3, float(st.velocity_m_s), float(st.p_a_pa - j.unit.reservoir_pa),
-                    float(st.p_b_pa - j.unit.reservoir_pa), force, 0.0, 0.0, 0.0]
+            z[b, :N_BASE] = [x0 * 1e-3, float(st.velocity_m_s),
+                             float(st.p_a_pa - j.unit.reservoir_pa),
+                             float(st.p_b_pa - j.unit.reservoir_pa), force, 0.0, 0.0, 0.0, 0.0]
             sf = max(s.load_share * abs(force), j.unit.cylinder.static_friction_n)
             p0[b, :N_BASE] = [(sx * 1e-3) ** 2, (s.velocity_mm_s * 1e-3) ** 2,
                               (s.pressure_bar * 1e5) ** 2, (s.pressure_bar * 1e5) ** 2, sf ** 2,
                               s.temp_sd_c ** 2 if s.temp_state else 0.0, 1.0,
-                              s.torque_offset_nm ** 2]
+                              s.torque_offset_nm ** 2, s.compliance_tolerance ** 2 / 3.0]
             # a switch mounted off is off by the same on every pass: uniform over its tolerance
             for sw in j.switches:
                 p0[b, self.slot[b][sw.name]] = (sw.tolerance_mm * 1e-3) ** 2 / 3.0
@@ -353,10 +392,25 @@ class _Bank:
             dlog = np.abs(np.log(self.oil.dynamic_viscosity_pa_s(temp_c + 0.5))
                           - np.log(self.oil.dynamic_viscosity_pa_s(temp_c - 0.5)))
             a = np.sqrt(a * a + (dlog * s.temp_sd_c) ** 2)
-        orifice = (self.orifice_a * np.sqrt(np.abs(z[:, PA]))
-                   + self.orifice_b * np.sqrt(np.abs(z[:, PB])))
-        return (a * leak + s.orifice_share * orifice
-                + s.displacement_share * self.q_per_rpm * np.abs(speed_rpm) + s.flow_floor_m3_s)
+        # the orifice law against the laminar one, per side, at the same rating-point leakage
+        pa, pb = np.abs(z[:, PA]), np.abs(z[:, PB])
+        orifice = (np.abs(self.orifice_a * np.sqrt(pa) - self.leak_a * pa / mu)
+                   + np.abs(self.orifice_b * np.sqrt(pb) - self.leak_b * pb / mu))
+        trapped = s.trapped_share * np.abs(speed_rpm) * (
+            self.q_per_rpm_a * pa + self.q_per_rpm_b * pb) / self.beta
+        # each a bound of a share anywhere within [0, bound] (or +-bound): its RMS is bound/sqrt(3)
+        return (a * leak + s.orifice_share * orifice + trapped) / SQRT_3 + s.flow_floor_m3_s
+
+    def _compression_travel(self, z: np.ndarray, nom: np.ndarray) -> np.ndarray:
+        """The rod's travel per unit relative error of the chambers' compliance over this step
+        (m): chamber A taking dV = V_a dp_a / beta more oil in compression moves the rod by
+        -dV / A_a, chamber B by +dV / A_b; the rod takes the mean of the two."""
+        x = np.clip(z[:, X], 0.0, self.stroke)
+        va = self.dead + self.area_a * x
+        vb = self.dead + self.area_b * (self.stroke - x)
+        dva = va * (nom[:, PA] - z[:, PA]) / self.beta
+        dvb = vb * (nom[:, PB] - z[:, PB]) / self.beta
+        return -0.5 * (dva / self.area_a - dvb / self.area_b)
 
     def _process_noise(self, x: np.ndarray) -> np.ndarray:
         s, T = self.s, self.T
@@ -391,20 +445,23 @@ class _Bank:
         return var + np.where(at_limit, s.limiter_torque_nm ** 2, 0.0)
 
     def _predict(self, z: np.ndarray, sd_x: np.ndarray, k: int,
-                 discrete: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+                 discrete: tuple[np.ndarray, ...]
+                 ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray],
+                            tuple[np.ndarray, ...]]:
         """Step every row from sample k-1 to k: the predicted states, the Jacobian and the
         torque's value and gradient."""
         plant, B, sub = self.plant, self.B, self.s.substeps
         rows = np.repeat(z[:, :N_PLANT], N_ROWS, axis=0).reshape(B, N_ROWS, N_PLANT)
-        # x is perturbed towards the nearer stroke end by up to X_REACH sigma (a stop within
-        # reach shows in the torque and in the travel: the linearisation sees it coming), away
-        # from it when already there
+        # x is perturbed away from the nearer stroke end by stop_reach sigma: the slope of a
+        # stop's clip over the spread is the share of rods not yet there, so the position's
+        # spread closes only once the pumps have pushed the rod stop_reach sigma behind the
+        # mean there too, not when the mean arrives
         deltas = np.broadcast_to(DELTAS, (B, N_PLANT)).copy()
-        toward = np.where(z[:, X] > 0.5 * self.stroke, 1.0, -1.0)
-        room = np.where(toward > 0.0, self.stroke - z[:, X], z[:, X])
-        reach = np.minimum(np.maximum(DELTAS[X], self.s.stop_reach * sd_x), room)
+        away = np.where(z[:, X] > 0.5 * self.stroke, -1.0, 1.0)
+        room = np.where(away < 0.0, self.stroke - z[:, X], z[:, X])
         self.room_sd = room / np.maximum(sd_x, 1e-9)
-        deltas[:, X] = np.where(room < DELTAS[X], -toward * DELTAS[X], toward * reach)
+        deltas[:, X] = away * np.minimum(np.maximum(DELTAS[X], self.s.stop_reach * sd_x),
+                                         0.5 * self.stroke)
         rows[:, 1:, :] += deltas[:, :, None] * np.eye(N_PLANT)[None, :, :]
         rows = rows.reshape(B * N_ROWS, N_PLANT)
         plant.x = np.clip(rows[:, X], 0.0, np.repeat(self.stroke, N_ROWS))
@@ -446,12 +503,16 @@ class _Bank:
         at_end = (nom[:, X] <= 0.0) | (nom[:, X] >= self.stroke)
         gain_x = np.where(at_end, 0.0, self.T * self.flow_sigma / self.area_a)
         F[:, X, EPS] = gain_x
+        # the chambers' compliance off by comp (relative): the compression's travel with it
+        # (against a stroke end it moves nothing)
+        comp_x = np.where(at_end, 0.0, self._compression_travel(z, nom))
+        F[:, X, COMP] = comp_x
         H = np.zeros((B, n))
         H[:, :N_PLANT] = (tq[:, 1:] - tq[:, :1]) / deltas
         H[:, TOFF] = 1.0
         z_new = z.copy()
         z_new[:, :4] = nom
-        z_new[:, X] += gain_x * z[:, EPS]
+        z_new[:, X] += gain_x * z[:, EPS] + comp_x * z[:, COMP]
         z_new[:, DT] *= self.phi_t
         z_new[:, EPS] *= self.phi_q
         new_discrete = (plant.friction_state[self.nom].copy(), plant.regime_a[self.nom].copy(),
@@ -476,8 +537,10 @@ class _Bank:
         nis_win = np.zeros((N, B))
         flagged = np.zeros((N, B), dtype=bool)
         not_ref = np.zeros((N, B), dtype=bool)
-        # reference edges: accept index -> [(filter, edge index, rising, switch, edge time)]
-        edges: dict[int, list[tuple[int, int, bool, Switch, float]]] = {}
+        # reference edges: edge index -> [(filter, switch, edge time)] (the rod's position
+        # then is cloned) and accept index -> [(filter, edge index, rising, switch)]
+        seen: dict[int, list[tuple[int, Switch, float]]] = {}
+        edges: dict[int, list[tuple[int, int, bool, Switch]]] = {}
         for b, j in enumerate(self.jobs):
             for sw in j.switches:
                 if sw.name not in j.run.refs:
@@ -487,8 +550,12 @@ class _Bank:
                                                          self.debounce_s):
                     te = float(timed[c]) if timed is not None and np.isfinite(timed[c]) \
                         else math.nan
-                    edges.setdefault(acc, []).append((b, c, rising, sw, te))
+                    seen.setdefault(c, []).append((b, sw, te))
+                    edges.setdefault(acc, []).append((b, c, rising, sw))
         events: list[list[ReferenceEvent]] = [[] for _ in range(B)]
+        self.edge_innovations: list[list[float]] = [[] for _ in range(B)]
+        self.pending: dict[tuple[int, str], tuple[float, float, float]] = {}
+        temp_bound = s.temp_bound_sd * s.temp_sd_c
         # derive the start's discrete states from its state
         self.plant.set_state(np.repeat(z[:, X], N_ROWS), np.repeat(self.speed[0], N_ROWS),
                              np.repeat(z[:, PA], N_ROWS), np.repeat(z[:, PB], N_ROWS))
@@ -522,7 +589,9 @@ class _Bank:
                         * 4.0 / 12.0
                 y = self.torque[k] - (tq_model + z[:, TOFF])
                 PH = np.einsum("bij,bj->bi", P, H)
-                S = np.einsum("bi,bi->b", H, PH) + R
+                # never below the measurement's own variance (R > 0): a covariance rounded
+                # off positive definiteness must not give a gain beyond the sample's weight
+                S = np.maximum(np.einsum("bi,bi->b", H, PH), 0.0) + R
                 nis[k] = y * y / S
                 # an innovation far beyond its spread is a linearisation the sample does not
                 # fit (a stop met sooner or later than modelled): Huber's weight, the
@@ -530,22 +599,31 @@ class _Bank:
                 S = S * np.maximum(1.0, np.sqrt(nis[k]) / s.huber)
                 K = PH / S[:, None]
                 # mid-stroke the torque's dependence on the position (the chambers' volumes)
-                # is too weak to trust under structure the model lacks: the position and the
-                # flow error are "considered" (Schmidt), not updated, unless a stroke end is
-                # within reach; the covariance update then is Joseph's for that gain
+                # is too weak to trust under structure the model lacks: the position, the flow
+                # error and what is position too (the switches' offsets, the positions at
+                # pending edges) are "considered" (Schmidt), not updated, unless a stroke end
+                # is within reach; the covariance update then is Joseph's for that gain
                 if s.torque_position != "always":
                     far = self.room_sd > s.stop_reach if s.torque_position == "near_stop" \
                         else np.ones(B, dtype=bool)
                     K[far, X] = 0.0
                     K[far, EPS] = 0.0
+                    K[:, N_BASE:] = 0.0
                 z = z + K * y[:, None]
                 KPH = K[:, :, None] * PH[:, None, :]
                 P = (P - KPH - np.transpose(KPH, (0, 2, 1))
                      + K[:, :, None] * (S[:, None, None] * K[:, None, :]))
-            # reference edges accepted at this sample
-            for b, c, rising, sw, te in edges.get(k, ()):
-                z, P = self._reference(z, P, b, k, c, rising, sw, te, out_x, out_v,
-                                       referenced, events)
+            z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
+            # a switch changed: the rod's position at that instant, as known now, is kept
+            # (cloned) until the debounce accepts the edge; the stop or anything else met
+            # before then cannot be mistaken for the switch's offset
+            for b, sw, te in seen.get(k, ()):
+                self._clone(z, P, b, k, sw, te)
+            for b, c, rising, sw in edges.get(k, ()):
+                self._reference(z, P, b, k, c, rising, sw, referenced, events)
+            # the oil's offset stays within temp_bound_sd of its spread: a value beyond is
+            # another error taken for temperature (and the viscosity law has no meaning there)
+            z[:, DT] = np.clip(z[:, DT], -temp_bound, temp_bound)
             # end stops
             sd = np.sqrt(np.maximum(P[:, X, X], 1e-18))
             m_t, v_t = _truncate(z[:, X], sd, np.zeros(B), self.stroke)
@@ -558,6 +636,13 @@ class _Bank:
             z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
             P[:, X, X] = np.maximum(P[:, X, X], (s.floor_mm * 1e-3) ** 2)
             P = 0.5 * (P + np.transpose(P, (0, 2, 1)))
+            # rounding must not leave a variance negative: the next gain would flip its sign
+            diag = P[:, np.arange(self.n_states), np.arange(self.n_states)]
+            P[:, np.arange(self.n_states), np.arange(self.n_states)] = np.maximum(diag, 0.0)
+            if not (np.isfinite(z).all() and np.isfinite(P).all()):
+                bad = [self.jobs[b].run.source for b in range(B)
+                       if not (np.isfinite(z[b]).all() and np.isfinite(P[b]).all())]
+                raise FloatingPointError(f"kalman: non-finite state at sample {k}: {bad}")
             nis_win[k] = (nis[max(0, k - win + 1):k + 1].sum(axis=0)) / bound
             flagged[k] = (nis_win[k] > 1.0) | np.array([n is not None for n in self.suspect])
             not_ref[k] = ~referenced
@@ -580,52 +665,72 @@ class _Bank:
             offsets = {name: float(z[b, i]) * 1e3 for name, i in self.slot[b].items()}
             results.append(KalmanResult(est, out_load[:n, b], out_dt[:n, b], out_dq[:n, b],
                                         out_sq[:n, b], out_toff[:n, b], nis[:n, b],
-                                        nis_win[:n, b], out_p[:n, b], offsets, seconds,
+                                        nis_win[:n, b], out_p[:n, b], offsets,
+                                        self.edge_innovations[b], seconds,
                                         int(self.lengths.sum())))
         return results
 
-    def _reference(self, z: np.ndarray, P: np.ndarray, b: int, k: int, c: int, rising: bool,
-                   sw: Switch, edge_s: float, out_x: np.ndarray, out_v: np.ndarray,
-                   referenced: np.ndarray, events: list[list[ReferenceEvent]]
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """A debounced edge accepted at k, seen at c: the position at its instant, taken
-        through the travel since (the filter's own, its error over a debounce time small)."""
+    def _clone(self, z: np.ndarray, P: np.ndarray, b: int, c: int, sw: Switch,
+               edge_s: float) -> None:
+        """Keep the rod's position at the edge's instant (sample c back to the edge's time,
+        or anywhere within the sample where the log has no time) as a state of its own."""
         t = self.time[:, b]
-        x_c, v_c = out_x[c, b], out_v[c, b]
-        x_now = z[b, X]
-        span = t[k] - t[c]
-        v_cross = (x_now - x_c) / span if span > 0.0 else v_c
-        p_mm = sw.edge_position_mm(rising, v_cross * 1e3, x_c * 1e3)
+        v_c = float(z[b, V])
         if math.isfinite(edge_s):
             back, timing_var = t[c] - edge_s, 0.0
         else:
-            back, timing_var = 0.5 * (t[c] - t[c - 1]), (v_c * (t[c] - t[c - 1])) ** 2 / 12.0
-        # the rod at the edge sat where the switch really switches: configured + its offset
-        o = self.slot[b][sw.name]
-        at_edge = x_c - v_c * back
-        y = p_mm * 1e-3 + z[b, o] - at_edge
-        r = timing_var + (0.01 * (x_now - x_c)) ** 2
-        cold = not referenced[b]
-        if cold:                            # a cold start: the edge sets the position
-            P[b, X, :] = P[b, :, X] = 0.0
-            P[b, X, X] = self.stroke[b] ** 2
-            referenced[b] = True
+            back = 0.5 * (t[c] - t[c - 1]) if c > 0 else 0.0
+            timing_var = (v_c * 2.0 * back) ** 2 / 12.0
+        i = self.clone[b][sw.name]
         h = np.zeros(self.n_states)
-        h[X], h[o] = 1.0, -1.0
-        ph = P[b] @ h
-        s_ = float(h @ ph) + r
-        K = ph / s_
-        z[b] = z[b] + K * y
-        P[b] = P[b] - np.outer(K, ph)
-        gain = float(K[X])
-        # beyond the gate the estimate or the switch is wrong and this edge cannot say
-        # which: the position carries the disagreement (widened by it) and is flagged
-        # until another switch agrees
-        if not cold and y * y / s_ > self.edge_gate:
-            self.suspect[b] = sw.name
-            P[b, X, X] += y * y
-        elif sw.name != self.suspect[b]:
-            self.suspect[b] = None
-        events[b].append(ReferenceEvent(k, c, sw.name, rising, p_mm, -y * 1e3, False, gain))
-        return z, P
+        h[X], h[V] = 1.0, -back
+        row = h @ P[b]
+        var = float(row @ h)
+        z[b, i] = h @ z[b]
+        P[b, i, :] = P[b, :, i] = row
+        P[b, i, i] = var
+        self.pending[(b, sw.name)] = (float(z[b, X]), v_c, timing_var)
 
+    def _reference(self, z: np.ndarray, P: np.ndarray, b: int, k: int, c: int, rising: bool,
+                   sw: Switch, referenced: np.ndarray, events: list[list[ReferenceEvent]]
+                   ) -> None:
+        """A debounced edge accepted at k, seen at c: the rod's position at the edge's
+        instant (the clone) minus the switch's offset is the switching position."""
+        x_c, v_c, timing_var = self.pending.pop((b, sw.name))
+        # the direction of travel at the edge: the rod's velocity then, or where the filter
+        # has it still (at a stop it reached early) the way the pumps drive it
+        if abs(v_c) * 1e3 < DIRECTION_SPEED_MM_S:
+            v_c = self.speed[c, b] * self.q_signed_a[b] / self.area_a[b]
+        p_mm = sw.edge_position_mm(rising, v_c * 1e3, x_c * 1e3)
+        o, i = self.slot[b][sw.name], self.clone[b][sw.name]
+        y = p_mm * 1e-3 + z[b, o] - z[b, i]
+        r = timing_var + (self.s.switch_repeat_mm * 1e-3) ** 2
+        h = np.zeros(self.n_states)
+        h[i], h[o] = 1.0, -1.0
+        # the position as a common mode: the rod now and at the edge (the travel since known)
+        e = np.zeros(self.n_states)
+        e[X] = e[i] = 1.0
+        cold = not referenced[b]
+        if cold:
+            # a cold start: the position unknown by the stroke
+            P[b] += self.stroke[b] ** 2 * np.outer(e, e)
+            referenced[b] = True
+        else:
+            s_ = max(float(h @ P[b] @ h), 0.0) + r
+            self.edge_innovations[b].append(y / math.sqrt(s_))
+            if y * y / s_ > self.edge_gate:
+                # beyond the gate the estimate or the switch is wrong and this edge cannot
+                # say which: both are widened by the disagreement before the update (the
+                # position carries it until another switch agrees; its samples are flagged)
+                self.suspect[b] = sw.name
+                P[b] += y * y * np.outer(e, e)
+                P[b, o, o] += y * y
+            elif sw.name != self.suspect[b]:
+                self.suspect[b] = None
+        ph = P[b] @ h
+        s_ = max(float(h @ ph), 0.0) + r
+        K = ph / s_
+        z[b] += K * y
+        P[b] -= np.outer(K, ph)
+        events[b].append(ReferenceEvent(k, c, sw.name, rising, p_mm, -y * 1e3, False,
+                                        float(K[X])))

@@ -1,7 +1,9 @@
 """Issue 36's Kalman prototype: covered on the nominal plant and with the structure the model
-lacks (its unmodelled flow is a Gauss-Markov error, not a parameter it can learn), a switch
-mounted off within its tolerance is an offset, not an alarm; it flags what its model cannot
-explain (a switch mounted far from its configured place)."""
+lacks (its unmodelled flow is a Gauss-Markov error whose spread is the RMS of physical bounds,
+checked by the edge innovations), a rod pressed on a stop by the drive at its torque limit is
+no reason to misplace a switch, a switch mounted off within its tolerance is an offset, not an
+alarm; it flags what its model cannot explain (a switch mounted far from its configured place)
+and stays finite where the plant's structure is twice the bounds'."""
 
 import dataclasses
 
@@ -9,8 +11,11 @@ import numpy as np
 import pytest
 
 from ddh_vsensor.estimator import kalman
+from ddh_vsensor.sim.cycles import dig_dump_cycle, random_cycle
 from ddh_vsensor.sim.effects import build_effects, structure_effects
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign
+
+RANDOM_SEED_27C = 207           # bench/accuracy.py's first random cycle at 27 degC
 
 
 @pytest.fixture(scope="module")
@@ -20,9 +25,23 @@ def nominal(cfg):
     return simulate_campaign(cfg, specs)
 
 
+@pytest.fixture(scope="module")
+def typical(cfg):
+    """The same runs with every structure effect the model lacks at its typical value."""
+    effects = structure_effects(1.0)
+    specs = [RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=t,
+                     effects={a: effects for a in cfg.unit_names}) for t in (-10.0, 27.0)]
+    return simulate_campaign(cfg, specs)
+
+
 def _jobs(cfg, runs):
     jobs = [(a, r[a]) for r in runs for a in cfg.unit_names]
     return jobs, [float(r.position_mm[0]) for _, r in jobs]
+
+
+def _unflagged_beyond(e, r) -> float:
+    err = np.abs(e.position_mm - r.position_mm)
+    return float(np.mean((err > e.uncertainty_mm) & (e.flags == 0)))
 
 
 def test_nominal_error_is_within_the_published_uncertainty(cfg, nominal):
@@ -32,27 +51,72 @@ def test_nominal_error_is_within_the_published_uncertainty(cfg, nominal):
         for (a, r), res in zip(jobs, results):
             e = res.estimate
             err = np.abs(e.position_mm - r.position_mm)
-            assert np.mean((err > e.uncertainty_mm) & (e.flags == 0)) <= 0.001, (a, refs)
-            assert err.max() < 2.5, (a, refs)    # bench: up to 1.9 mm (refs: 2.5 boom)
-            # the price of honesty: the flow error's spread over strokes (bench: 5..32 mm)
-            assert np.median(e.uncertainty_mm) < 35.0, (a, refs)
+            assert _unflagged_beyond(e, r) == 0.0, (a, refs)
+            assert err.max() < 1.5, (a, refs)          # measured: up to 0.99 mm (bucket)
+            # the flow error's spread over strokes (measured medians 6.4..8.3 mm, refs 3.7..3.8)
+            assert np.median(e.uncertainty_mm) < (5.0 if refs else 10.0), (a, refs)
             assert not (e.flags & kalman.MODEL_INCONSISTENT).any(), (a, refs)
 
 
-def test_typical_structure_stays_covered_without_references(cfg):
+def test_typical_structure_stays_covered_without_references(cfg, typical):
     """Leakage through orifices and growing with speed, pressure-dependent seal friction, hose
-    compliance, a lagging torque and tank sensor: the filter neither runs to a far stop nor
-    publishes a trusted reading wrong by more than it says."""
-    effects = structure_effects(1.0)
-    specs = [RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=t,
-                     effects={a: effects for a in cfg.unit_names}) for t in (-10.0, 27.0)]
-    jobs, x0 = _jobs(cfg, simulate_campaign(cfg, specs))
+    compliance and air, a lagging torque and tank sensor: the filter neither runs to a far
+    stop nor publishes a trusted reading wrong by more than it says."""
+    jobs, x0 = _jobs(cfg, typical)
     results = kalman.run_many(cfg, jobs, references=False, initial_positions_mm=x0)
     for (a, r), res in zip(jobs, results):
         e = res.estimate
-        err = np.abs(e.position_mm - r.position_mm)
-        assert err.max() < 15.0, a
-        assert np.mean((err > e.uncertainty_mm) & (e.flags == 0)) <= 0.03, a
+        assert np.abs(e.position_mm - r.position_mm).max() < 12.0, a     # measured: 9.1 mm
+        assert _unflagged_beyond(e, r) <= 0.005, a                         # measured: 0
+
+
+def test_edge_innovations_say_the_flow_bounds_fit_the_typical_structure(cfg, typical):
+    """The flow error's spread is the RMS of physical bounds, not fitted: where the plant has
+    the structure the bounds stand for, the edges' normalised innovations have a mean square
+    near 1 (measured 0.56 over 28 edges; a chi-square mean of 28 has a spread of ~0.27)."""
+    jobs, x0 = _jobs(cfg, typical)
+    results = kalman.run_many(cfg, jobs, references=True, initial_positions_mm=x0)
+    nu = np.concatenate([res.edge_innovations for res in results])
+    assert len(nu) >= 20
+    assert 0.25 < float(np.mean(nu ** 2)) < 2.0
+    for (a, r), res in zip(jobs, results):
+        assert _unflagged_beyond(res.estimate, r) <= 0.005, a               # measured: 0
+
+
+def test_a_rod_pressed_on_a_stop_at_the_torque_limit_keeps_its_switches(cfg):
+    """Dig-dump presses the bucket on both stops with the drive at its -90 N*m limit, and the
+    bottom switch's edge is accepted after the rod has reached the stop: the edge speaks of
+    the rod at its instant (kept from then), so the stop is not taken for the switch's
+    offset (a switch offset taken from it once carried the estimate 38 mm off)."""
+    runs = simulate_campaign(cfg, [RunSpec(cycle=dig_dump_cycle(cfg, 4), payload_kg=0.0,
+                                           oil_temp_c=t) for t in (27.0, 80.0)])
+    for run in runs:
+        r = run["bucket"]
+        res = kalman.run_many(cfg, [("bucket", r)], references=True,
+                              initial_positions_mm=[float(r.position_mm[0])])[0]
+        err = np.abs(res.estimate.position_mm - r.position_mm)
+        assert err.max() < 1.0                       # measured: 0.25 and 0.26 mm
+        # the switches sit where configured: their offsets stay near 0 (measured <= 0.16 mm)
+        assert all(abs(o) < 0.5 for o in res.switch_offsets_mm.values())
+        assert max(abs(v) for v in res.edge_innovations) < 2.0      # measured: 0.26
+
+
+def test_twice_the_typical_structure_stays_finite_and_bounded(cfg):
+    """The random cycle at 27 degC with the structure at twice its typical value (beyond the
+    bounds): the oil's offset is held within its bound, so the viscosity stays finite and so
+    does every published value (its offset once ran away until the viscosity overflowed)."""
+    spec = RunSpec(cycle=random_cycle(cfg, RANDOM_SEED_27C), payload_kg=0.0, oil_temp_c=27.0,
+                   effects={a: structure_effects(2.0) for a in cfg.unit_names})
+    run = simulate_campaign(cfg, [spec])[0]
+    jobs, x0 = _jobs(cfg, [run])
+    settings = kalman.KalmanSettings()
+    for refs in (False, True):
+        for (a, r), res in zip(jobs, kalman.run_many(cfg, jobs, references=refs,
+                                                     initial_positions_mm=x0)):
+            e = res.estimate
+            assert np.isfinite(e.position_mm).all() and np.isfinite(e.uncertainty_mm).all()
+            assert np.abs(res.temp_offset_c).max() <= settings.temp_bound_sd * settings.temp_sd_c
+            assert np.abs(e.position_mm - r.position_mm).max() < 40.0, (a, refs)  # up to 26
 
 
 def test_a_switch_mounted_off_within_its_tolerance_is_an_offset(cfg, nominal):
@@ -93,7 +157,7 @@ def test_a_switch_mounted_elsewhere_is_flagged_model_inconsistent(cfg, nominal):
 
 
 @pytest.mark.xfail(strict=True, reason="issue 36 finding: the load and torque-offset states "
-                   "absorb a torque gain error (boom: no flag, 14 % of samples beyond)")
+                   "absorb a torque gain error (boom: no flag, samples beyond)")
 def test_a_drive_whose_torque_reads_high_fails_the_self_check(cfg):
     """A torque 40 % high (a drive calibrated for another motor) is no offset the filter may
     take up: its torque innovations should fail the chi-square test while the boom moves."""
@@ -104,5 +168,4 @@ def test_a_drive_whose_torque_reads_high_fails_the_self_check(cfg):
                           initial_positions_mm=[float(r.position_mm[0])])[0]
     e = res.estimate
     assert (e.flags & kalman.MODEL_INCONSISTENT).any()
-    err = np.abs(e.position_mm - r.position_mm)
-    assert np.mean((err > e.uncertainty_mm) & (e.flags == 0)) < 0.01
+    assert _unflagged_beyond(e, r) < 0.01
