@@ -12,10 +12,10 @@ the nominal plant and with the structure the model lacks at its typical value an
 level, references, estimator and unit: the worst error (mm), the median published uncertainty
 (mm), the share of samples beyond their uncertainty, the share of those with no flag set (a
 plain, trusted reading wrong by more than it says), the share flagged model-inconsistent and
-the mean square of the normalised edge innovations (about 1 where the flow-error bounds fit
-the plant); per run (``..._runs``) to find the one that sets a total. A published NaN fails
-the bench. Cost: the filter's wall time per sample, batched as the bench runs it and alone on
-one run, and `dynamic`'s.
+the mean square of the normalised edge innovations (at most about 1 where the flow-error
+bounds fit the plant); per run (``..._runs``) to find the one that sets a total. A published
+NaN fails the bench. Cost: the filter's wall time per sample, batched as the bench runs it and
+alone on one run, and `dynamic`'s.
 Run: python bench/kalman.py [--temps DEGC ...] [--levels none typical double] [--quick]
      [--held-out]
 """

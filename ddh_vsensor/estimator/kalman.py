@@ -17,14 +17,23 @@ comp, o_1..o_m (m), c_1..c_m (m)]:
   sigma: beyond, it would be another error taken for temperature); it enters the viscosity,
   so the laminar leakage, per row;
 - ``eps`` the unmodelled flow, normalised: a first-order Gauss-Markov process of unit
-  variance and correlation time :attr:`KalmanSettings.flow_tau_s` (about a stroke), the flow
-  error being dq = sigma_q eps with sigma_q the RMS of what the model's flows are known to
-  lack (:meth:`_Bank._flow_sigma`): the datasheet's leakage band, the share of the leakage
-  that may pass orifice-like gaps (the orifice law against the laminar one at the same
-  rating-point leakage), the pumps' trapped volumes compressed and lost every revolution,
-  each a bound whose RMS is bound / sqrt(3). It is not a parameter: what a hold teaches
-  about it is forgotten within a stroke, because a leakage of another shape learnt at the
-  hold pressure does not hold at other pressures and speeds. It moves the rod only
+  variance, the flow error being dq = sigma_q eps with sigma_q the RMS of what the model's
+  flows are known to lack (:meth:`_Bank._flow_sigma`): the datasheet's leakage band, the share
+  of the leakage that may pass orifice-like gaps (the orifice law against the laminar one at
+  the same rating-point leakage), the pumps' trapped volumes compressed and lost every
+  revolution, each a bound whose RMS is bound / sqrt(3). The error is a function of the
+  operating point, so it decorrelates as that moves, over
+  :attr:`KalmanSettings.flow_travel_strokes` of travel (a stroke sweeps a cycle's speeds,
+  pressures and chamber volumes), and at a hold, where nothing moves, only over
+  :attr:`KalmanSettings.flow_tau_s`: a leakage the model lacks at the hold's pressure creeps
+  the estimate at one rate for the hold's length, so its travel grows with the hold's time,
+  not its square root. It is not a parameter: what a hold teaches about it is forgotten
+  within a stroke, because a leakage of another shape learnt at the hold pressure does not
+  hold at other pressures and speeds. Where the tolerance bands are wrong for the machine,
+  the edges say by how much: sigma_q^2 is scaled by the posterior mean of the edges'
+  normalised innovations squared (the bands as its prior, :attr:`KalmanSettings.
+  edge_prior_edges` edges' weight; never below them, the bands bound what a healthy unit
+  has). It moves the rod only
   (x += T dq / A_a), not the chambers' balance: the load sets the pressures, the flows the
   speed, so a flow error's lasting trace is a rod-velocity error; entered as a chamber flow
   it would shift the pressures and give the torque a hold on it that it does not have on the
@@ -58,7 +67,13 @@ Measurement: the logged motor torque is the plant's torque over the *last* subst
 timing within its sample, the speed's resolution read as inertia torque, the limiter at the
 speed limit); a motor standing still is held in its pumps' friction band (taken at the band's
 middle with the band's uniform variance). An innovation beyond :attr:`KalmanSettings.huber`
-sigma is down-weighted (Huber): it is a linearisation the sample does not fit. The torque
+sigma is down-weighted (Huber): it is a linearisation the sample does not fit. One beyond the
+chi-square gate at :attr:`KalmanSettings.false_alarm` is a torque the model cannot explain (a
+chamber the model pressurises at a reversal while the plant's still cavitates, a force it
+lacks): it leaves the slow states (load, oil offset, torque offset: a payload or a digging
+force does not move by the kilonewtons such a torque would ask within a sample) and the
+position's variance takes the travel the model predicted over that sample, which the sample
+does not confirm. The torque
 does not update what is position (x, the flow error, the switches' offsets and the clones: a
 Schmidt "consider" update, Joseph's covariance; :attr:`KalmanSettings.torque_position`):
 mid-stroke its dependence on x (the chambers' volumes) is too weak to trust, and near a
@@ -72,7 +87,12 @@ innovation fails the chi-square gate means the estimate or the switch is wrong, 
 cannot say which: the update is taken, the position variance widened by the disagreement,
 and the samples flagged until another switch agrees. The normalised edge innovations are
 returned (:attr:`KalmanResult.edge_innovations`): their mean square checks the flow-error
-bounds against the data (about 1 where the plant has the structure the bounds stand for).
+bounds against the data (at most about 1 where the plant has the structure the bounds stand
+for). Each scales the flow error's spread (above) and feeds a CUSUM of the normalised
+innovations squared against :attr:`KalmanSettings.edge_cusum_ratio` times their predicted
+variance, its threshold (:func:`cusum_threshold`) set for a mean of 1 /
+:attr:`KalmanSettings.edge_false_alarm` edges between false alarms; while it is beyond, the
+bands are wrong for this machine and the samples carry :data:`MODEL_INCONSISTENT`.
 
 End stops: the plant stops its rows at them and the mean is clipped to [0, stroke]; the
 variance is not truncated (:attr:`KalmanSettings.truncate_at_stops`): truncating the
@@ -89,6 +109,7 @@ passes again is not a confident wrong one.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Sequence
@@ -111,6 +132,7 @@ from ddh_vsensor.model.plant import Plant, RowSpec
 
 MODEL_INCONSISTENT = 1 << 7     # proposed Flags bit: the torque innovations fail the chi-square
 X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP = range(9)
+SLOW = [LOAD, DT, TOFF]          # the slow states: a torque the model cannot explain leaves them
 N_BASE = 9                      # states before the per-switch offsets
 N_PLANT = 6                     # states the plant sees (the rest enter linearly: no row)
 N_ROWS = N_PLANT + 1            # nominal + one per perturbed plant state
@@ -157,7 +179,11 @@ class KalmanSettings:
     # port's pressure every revolution and lost: dq = b |p| / beta |q_displacement|
     trapped_share: float = 0.3
     flow_floor_m3_s: float = 2e-8       # c: seals' bypass a new cylinder may have (~1 ml/min)
-    flow_tau_s: float = 2.0             # its correlation time: about a stroke
+    # its correlation: it changes as the operating point does, over this much travel in
+    # strokes (a stroke sweeps the speeds, pressures and chamber volumes a cycle has); at a
+    # hold, where nothing moves, it keeps over about a work cycle's longest hold
+    flow_travel_strokes: float = 1.0
+    flow_tau_s: float = 30.0
     # the chambers' effective compliance (entrained air, hose walls) off the oil's by up to
     # this share: a state (comp), uniform prior
     compliance_tolerance: float = 0.3
@@ -175,10 +201,20 @@ class KalmanSettings:
     torque_offset_walk_nm: float = 0.05
     switch_repeat_mm: float = 0.05      # a Hall switch's switching point from pass to pass
     huber: float = 3.0                  # torque innovations beyond this many sigma: down-weighted
+    # a torque innovation beyond the chi-square gate at false_alarm: the slow states keep
+    # their values, the position's variance takes the sample's predicted travel
+    unexplained_gate: bool = True
     # self-check
     nis_window_s: float = 1.0
     false_alarm: float = 1e-3
     max_inflation: float = 10.0         # per window: the fading factor's cap
+    # the edges' check of the flow-error bounds: the tolerance bands' weight in the flow
+    # error's variance scale, in edges (an inverse-gamma prior at 1); a CUSUM of the edges'
+    # normalised innovations squared against a variance this many times the predicted one,
+    # its threshold set for this false-alarm rate per edge (mean run length 1 / rate)
+    edge_prior_edges: float = 2.0
+    edge_cusum_ratio: float = 4.0
+    edge_false_alarm: float = 1e-2
 
 
 @dataclass
@@ -199,7 +235,8 @@ class KalmanResult:
     edge_innovations: list[float] = field(default_factory=list)
     seconds: float = 0.0                # wall time of the batch this filter ran in
     samples: int = 0
-    extra: dict[str, float] = field(default_factory=dict)
+    # the flow error's variance over the tolerance bands' the edges implied by the run's end
+    flow_variance_scale: float = 1.0
 
 
 @dataclass
@@ -232,6 +269,31 @@ def _truncate(mean: np.ndarray, sd: np.ndarray, lo: np.ndarray,
     # all the mass far beyond one end: at that end, a thousandth of the variance left
     nearest = np.where(mean < lo, lo, hi)
     return np.where(ok, m, nearest), np.where(ok, var, 1e-3 * sd * sd)
+
+
+@functools.lru_cache
+def cusum_threshold(ratio: float, false_alarm: float, cells: int = 200) -> float:
+    """The threshold h of the CUSUM g = max(0, g + (1 - 1/ratio) nu^2 / 2 - ln(ratio) / 2)
+    (the log-likelihood ratio of a variance ratio times the predicted one) over nu ~ N(0, 1)
+    whose mean run length to a false alarm is 1 / false_alarm: Brook and Evans' Markov chain
+    on [0, h) in cells, the threshold bisected."""
+    a, c = 0.5 * (1.0 - 1.0 / ratio), 0.5 * math.log(ratio)
+
+    def run_length(h: float) -> float:
+        bounds = np.linspace(0.0, h, cells + 1)[1:]                  # cells' upper bounds
+        def law(g: np.ndarray) -> np.ndarray:
+            """P(next statistic in each cell | g), the reset to 0 in the first."""
+            cdf = chi2.cdf(np.maximum(bounds[None, :] - g[:, None] + c, 0.0) / a, 1)
+            return np.diff(cdf, axis=1, prepend=0.0)
+        m = law((np.arange(cells) + 0.5) * h / cells)
+        lengths = np.linalg.solve(np.eye(cells) - m, np.ones(cells))
+        return 1.0 + float(law(np.zeros(1))[0] @ lengths)
+
+    lo, hi = 0.0, 50.0
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if run_length(mid) < 1.0 / false_alarm else (lo, mid)
+    return hi
 
 
 def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool = True,
@@ -333,9 +395,16 @@ class _Bank:
         self.orifice_a = self.leak_a * math.sqrt(dp_r) / mu_r
         self.orifice_b = self.leak_b * math.sqrt(dp_r) / mu_r
         self.beta = col(lambda j: j.unit.bulk_modulus_pa)
-        self.phi_q = math.exp(-period_s / s.flow_tau_s)
         self.phi_t = math.exp(-period_s / s.temp_tau_s)
         self.flow_sigma = np.zeros(B)
+        # the flow error's variance over the tolerance bands' (>= 1), what the edges imply:
+        # an inverse-gamma posterior's mean from the edges' innovations squared, each
+        # normalised to the bands' spread; and the CUSUM that flags the bands wrong
+        self.flow_scale = np.ones(B)
+        self.edge_sum = np.zeros(B)
+        self.edge_n = np.zeros(B)
+        self.cusum = np.zeros(B)
+        self.cusum_h = cusum_threshold(s.edge_cusum_ratio, s.edge_false_alarm)
 
     # --- pieces ---------------------------------------------------------------------------
 
@@ -450,7 +519,7 @@ class _Bank:
                             tuple[np.ndarray, ...]]:
         """Step every row from sample k-1 to k: the predicted states, the Jacobian and the
         torque's value and gradient."""
-        plant, B, sub = self.plant, self.B, self.s.substeps
+        plant, B, s, sub = self.plant, self.B, self.s, self.s.substeps
         rows = np.repeat(z[:, :N_PLANT], N_ROWS, axis=0).reshape(B, N_ROWS, N_PLANT)
         # x is perturbed away from the nearer stroke end by stop_reach sigma: the slope of a
         # stop's clip over the spread is the share of rods not yet there, so the position's
@@ -495,10 +564,13 @@ class _Bank:
         F[:, :4, :N_PLANT] = np.transpose((out[:, 1:, :] - nom[:, None, :]) / deltas[:, :, None],
                                           (0, 2, 1))
         F[:, np.arange(LOAD, n), np.arange(LOAD, n)] = 1.0     # load, offsets: random walks
+        # the flow error forgets as the operating point moves (see flow_travel_strokes)
+        moved = np.abs(nom[:, X] - z[:, X]) / (s.flow_travel_strokes * self.stroke)
+        self.phi_q = np.exp(-(self.T / s.flow_tau_s + moved))
         F[:, DT, DT], F[:, EPS, EPS] = self.phi_t, self.phi_q
         # the unmodelled flow moves the rod only: the load sets the pressures, the flows the
         # speed, so a flow error's lasting trace is a rod-velocity error sigma_q eps / A_a
-        self.flow_sigma = self._flow_sigma(z, t_mid, 0.5 * (n0 + n1))
+        self.flow_sigma = self._flow_sigma(z, t_mid, 0.5 * (n0 + n1)) * np.sqrt(self.flow_scale)
         # against a stroke end the flow goes into pressure, not travel
         at_end = (nom[:, X] <= 0.0) | (nom[:, X] >= self.stroke)
         gain_x = np.where(at_end, 0.0, self.T * self.flow_sigma / self.area_a)
@@ -527,6 +599,7 @@ class _Bank:
         z, P, referenced = self._initial()
         self.suspect: list[str | None] = [None] * B
         self.edge_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
+        self.torque_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
         win = max(1, int(round(s.nis_window_s / T)))
         bound = float(chi2.ppf(1.0 - s.false_alarm, win))
         out_x, out_v, out_sd = np.empty((N, B)), np.empty((N, B)), np.empty((N, B))
@@ -564,6 +637,7 @@ class _Bank:
         inflate_per_sample = T / s.nis_window_s
         for k in range(N):
             if k > 0:
+                x_before = z[:, X].copy()
                 z, F, (tq_model, H), discrete = self._predict(
                     z, np.sqrt(np.maximum(P[:, X, X], 0.0)), k, discrete)
                 Q = self._process_noise(z[:, X])
@@ -598,6 +672,14 @@ class _Bank:
                 # innovation's variance widened so it moves the states by at most huber sigma
                 S = S * np.maximum(1.0, np.sqrt(nis[k]) / s.huber)
                 K = PH / S[:, None]
+                if s.unexplained_gate:
+                    # beyond the gate the model does not explain the torque (a chamber it has
+                    # pressurised holds a void on the plant, a force it lacks): the sample says
+                    # nothing it can use, and the travel the model predicted over it is not
+                    # known to have happened
+                    unexplained = nis[k] > self.torque_gate
+                    K[np.ix_(unexplained, SLOW)] = 0.0
+                    P[unexplained, X, X] += (z[unexplained, X] - x_before[unexplained]) ** 2
                 # mid-stroke the torque's dependence on the position (the chambers' volumes)
                 # is too weak to trust under structure the model lacks: the position, the flow
                 # error and what is position too (the switches' offsets, the positions at
@@ -644,7 +726,8 @@ class _Bank:
                        if not (np.isfinite(z[b]).all() and np.isfinite(P[b]).all())]
                 raise FloatingPointError(f"kalman: non-finite state at sample {k}: {bad}")
             nis_win[k] = (nis[max(0, k - win + 1):k + 1].sum(axis=0)) / bound
-            flagged[k] = (nis_win[k] > 1.0) | np.array([n is not None for n in self.suspect])
+            flagged[k] = ((nis_win[k] > 1.0) | np.array([n is not None for n in self.suspect])
+                          | (self.cusum > self.cusum_h))
             not_ref[k] = ~referenced
             out_x[k], out_v[k] = z[:, X], z[:, V]
             out_sd[k] = np.sqrt(np.maximum(P[:, X, X], 0.0))
@@ -667,8 +750,25 @@ class _Bank:
                                         out_sq[:n, b], out_toff[:n, b], nis[:n, b],
                                         nis_win[:n, b], out_p[:n, b], offsets,
                                         self.edge_innovations[b], seconds,
-                                        int(self.lengths.sum())))
+                                        int(self.lengths.sum()),
+                                        float(self.flow_scale[b])))
         return results
+
+    def _check_flow_bounds(self, b: int, nu2: float) -> None:
+        """An edge's normalised innovation squared against the flow error's spread: where the
+        tolerance bands are wrong for this machine, the edges measure how wrong. The spread
+        is scaled to the posterior mean of its variance over the bands' (the prior: the bands,
+        weighted as :attr:`KalmanSettings.edge_prior_edges` edges; never below them: the
+        bands bound what a healthy unit may have), and the CUSUM flags the excess."""
+        s = self.s
+        # the edge's spread was mostly the flow error's at the scale then: back to the bands'
+        self.edge_sum[b] += nu2 * self.flow_scale[b]
+        self.edge_n[b] += 1.0
+        self.flow_scale[b] = max(1.0, (s.edge_prior_edges + self.edge_sum[b])
+                                 / (s.edge_prior_edges + self.edge_n[b]))
+        ratio = s.edge_cusum_ratio
+        self.cusum[b] = max(0.0, self.cusum[b] + 0.5 * (1.0 - 1.0 / ratio) * nu2
+                            - 0.5 * math.log(ratio))
 
     def _clone(self, z: np.ndarray, P: np.ndarray, b: int, c: int, sw: Switch,
                edge_s: float) -> None:
@@ -718,6 +818,7 @@ class _Bank:
         else:
             s_ = max(float(h @ P[b] @ h), 0.0) + r
             self.edge_innovations[b].append(y / math.sqrt(s_))
+            self._check_flow_bounds(b, y * y / s_)
             if y * y / s_ > self.edge_gate:
                 # beyond the gate the estimate or the switch is wrong and this edge cannot
                 # say which: both are widened by the disagreement before the update (the

@@ -1,9 +1,10 @@
 """Issue 36's Kalman prototype: covered on the nominal plant and with the structure the model
-lacks (its unmodelled flow is a Gauss-Markov error whose spread is the RMS of physical bounds,
-checked by the edge innovations), a rod pressed on a stop by the drive at its torque limit is
-no reason to misplace a switch, a switch mounted off within its tolerance is an offset, not an
-alarm; it flags what its model cannot explain (a switch mounted far from its configured place)
-and stays finite where the plant's structure is twice the bounds'."""
+lacks (its unmodelled flow is an error whose spread is the RMS of physical bounds, checked by
+the edge innovations, which widen it where the bounds are wrong for the machine), a torque the
+model cannot explain does not move the load, a rod pressed on a stop by the drive at its
+torque limit is no reason to misplace a switch, a switch mounted off within its tolerance is an
+offset, not an alarm; it flags what its model cannot explain (a switch mounted far from its
+configured place) and stays finite where the plant's structure is twice the bounds'."""
 
 import dataclasses
 
@@ -52,9 +53,10 @@ def test_nominal_error_is_within_the_published_uncertainty(cfg, nominal):
             e = res.estimate
             err = np.abs(e.position_mm - r.position_mm)
             assert _unflagged_beyond(e, r) == 0.0, (a, refs)
-            assert err.max() < 1.5, (a, refs)          # measured: up to 0.99 mm (bucket)
-            # the flow error's spread over strokes (measured medians 6.4..8.3 mm, refs 3.7..3.8)
-            assert np.median(e.uncertainty_mm) < (5.0 if refs else 10.0), (a, refs)
+            assert err.max() < 1.5, (a, refs)          # measured: up to 1.09 mm (bucket)
+            # the flow error's spread, kept over the paper cycle's holds (measured medians
+            # 8.9..11.4 mm, with references 3.8..4.0)
+            assert np.median(e.uncertainty_mm) < (5.0 if refs else 14.0), (a, refs)
             assert not (e.flags & kalman.MODEL_INCONSISTENT).any(), (a, refs)
 
 
@@ -73,14 +75,66 @@ def test_typical_structure_stays_covered_without_references(cfg, typical):
 def test_edge_innovations_say_the_flow_bounds_fit_the_typical_structure(cfg, typical):
     """The flow error's spread is the RMS of physical bounds, not fitted: where the plant has
     the structure the bounds stand for, the edges' normalised innovations have a mean square
-    near 1 (measured 0.56 over 28 edges; a chi-square mean of 28 has a spread of ~0.27)."""
+    below 1 (measured 0.42 over 28 edges: bounds, not estimates; a chi-square mean of 28 has a
+    spread of ~0.27, so 1.5 is 4 spreads above) and not far below (the bounds are not loose
+    by an order), and no edge asks for a wider spread."""
     jobs, x0 = _jobs(cfg, typical)
     results = kalman.run_many(cfg, jobs, references=True, initial_positions_mm=x0)
     nu = np.concatenate([res.edge_innovations for res in results])
     assert len(nu) >= 20
-    assert 0.25 < float(np.mean(nu ** 2)) < 2.0
+    assert 0.15 < float(np.mean(nu ** 2)) < 1.5
     for (a, r), res in zip(jobs, results):
         assert _unflagged_beyond(res.estimate, r) <= 0.005, a               # measured: 0
+        assert res.flow_variance_scale == 1.0, a
+
+
+def test_edges_widen_the_flow_error_where_the_bounds_are_wrong(cfg):
+    """Twice the typical structure (beyond the bounds): the boom's edges on the cold paper
+    cycle see the excess (measured: the flow error's variance scaled 2.05 times the bands')
+    and its readings stay covered where they are not flagged (measured 0; 44 % before the
+    edges widened and the flow error was kept over holds)."""
+    effects = structure_effects(2.0)
+    run = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=-10.0,
+                                          effects={a: effects for a in cfg.unit_names})])[0]
+    r = run["boom"]
+    res = kalman.run_many(cfg, [("boom", r)], references=True,
+                          initial_positions_mm=[float(r.position_mm[0])])[0]
+    assert res.flow_variance_scale > 1.5
+    assert _unflagged_beyond(res.estimate, r) <= 0.005
+
+
+def test_the_edge_cusum_threshold_gives_its_false_alarm_rate():
+    """The CUSUM's threshold for a mean run length of 1 / false_alarm edges under the bands:
+    2000 simulated runs of N(0, 1) innovations (the mean's standard error ~2 %) land within
+    10 % of it."""
+    ratio, rate = 4.0, 1e-2
+    h = kalman.cusum_threshold(ratio, rate)
+    rng = np.random.default_rng(36)
+    g, length, alive = np.zeros(2000), np.zeros(2000), np.ones(2000, dtype=bool)
+    while alive.any():
+        nu2 = rng.standard_normal(2000) ** 2
+        g = np.where(alive, np.maximum(0.0, g + 0.5 * (1.0 - 1.0 / ratio) * nu2
+                                       - 0.5 * np.log(ratio)), g)
+        length += alive
+        alive &= g <= h
+    assert abs(length.mean() * rate - 1.0) < 0.1
+
+
+def test_a_torque_the_model_cannot_explain_does_not_move_the_load(cfg):
+    """The typical structure's random cycle at 27 degC: the bucket reverses off its top stop
+    after a 4 s push while the real chamber B still cavitates and the model's pressurises
+    (the torque's innovation far beyond its gate). The load stays within 4 kN over that
+    reversal (measured 2.2 kN; it moved 7 kN before the gate) and no reading is wrong by more
+    than it says unflagged (measured 0; 4.9 % before)."""
+    effects = structure_effects(1.0)
+    spec = RunSpec(cycle=random_cycle(cfg, RANDOM_SEED_27C), payload_kg=0.0, oil_temp_c=27.0,
+                   effects={a: effects for a in cfg.unit_names})
+    r = simulate_campaign(cfg, [spec])[0]["bucket"]
+    res = kalman.run_many(cfg, [("bucket", r)], references=True,
+                          initial_positions_mm=[float(r.position_mm[0])])[0]
+    reversal = (r.time_s > 46.8) & (r.time_s < 47.3)
+    assert np.ptp(res.load_n[reversal]) < 4000.0
+    assert _unflagged_beyond(res.estimate, r) <= 0.001
 
 
 def test_a_rod_pressed_on_a_stop_at_the_torque_limit_keeps_its_switches(cfg):
