@@ -11,7 +11,8 @@ import types
 import typing
 from pathlib import Path
 
-from ddh_vsensor.config import DEFAULT_BUS, DEFAULT_CONFIG, Config, load_config
+from ddh_vsensor.config import (DATASHEET_TOLERANCES, DEFAULT_BUS, DEFAULT_CONFIG, Config,
+                                load_config)
 from ddh_vsensor.config.jsonschema import json_schema
 from ddh_vsensor.errors import UserError
 
@@ -37,11 +38,39 @@ def register(sub: argparse._SubParsersAction) -> None:
     what.add_argument("--write", metavar="PATH",
                       help="write the default configuration to PATH (an existing different "
                            "file is never overwritten)")
+    p.add_argument("--datasheet", action="store_true",
+                   help="with --write: the parameters' tolerances a datasheet gives (pump "
+                        "leakage, its shape, compliance to +-30 percent), for a machine not "
+                        "yet commissioned, instead of the reference loader's measured ones")
     p.set_defaults(func=_run)
 
 
 def default_text() -> str:
     return DEFAULT_CONFIG.read_text(encoding="utf-8")
+
+
+# Why a datasheet leaves each tolerance as wide as DATASHEET_TOLERANCES has it
+_DATASHEET_WHY = {
+    "pump_leakage": "volumetric efficiency to about +-2 points",
+    "leakage_orifice_share": "the leakage law's shape is not given",
+    "trapped_volume_share": "of the displacement, compressed and lost per revolution",
+    "compliance": "air and hose walls unknown until measured",
+}
+
+
+def datasheet_text() -> str:
+    """The default configuration with a datasheet's tolerances in its ``tolerances:``
+    section (each value and its comment), the rest as shipped."""
+    lines = default_text().splitlines(keepends=True)
+    start = lines.index("tolerances:\n")
+    for i in range(start + 1, len(lines)):
+        key = lines[i].strip().split(":", 1)[0]
+        if not lines[i].startswith("  "):
+            break
+        if key in _DATASHEET_WHY:
+            value = getattr(DATASHEET_TOLERANCES, key)
+            lines[i] = f"{f'  {key}: {value}':<40}# chosen (a datasheet: {_DATASHEET_WHY[key]})\n"
+    return "".join(lines)
 
 
 def describe(cfg: Config) -> str:
@@ -130,9 +159,10 @@ def schema_lines(cls: type = Config, prefix: str = "") -> list[str]:
     return lines
 
 
-def write_default(path: Path) -> str:
-    """Write the default to ``path`` unless a file is there; returns what happened."""
-    text = default_text()
+def write_default(path: Path, text: str | None = None) -> str:
+    """Write the default (or ``text``) to ``path`` unless a file is there; returns what
+    happened."""
+    text = default_text() if text is None else text
     if path.exists():
         if path.is_file() and path.read_text(encoding="utf-8", errors="replace") == text:
             return "unchanged"
@@ -160,6 +190,8 @@ def _write_json_schema(target: str) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.datasheet and not args.write:
+        raise UserError("--datasheet goes with --write PATH")
     if args.print_default:
         sys.stdout.write(default_text())
         return 0
@@ -176,10 +208,11 @@ def _run(args: argparse.Namespace) -> int:
         return 0
     path = Path(args.write)
     try:
-        done = write_default(path)
+        done = write_default(path, datasheet_text() if args.datasheet else None)
     except OSError as exc:
         raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
     if done == "kept":
-        raise UserError(f"{path} exists and differs from the default: not overwritten")
+        what = "the datasheet default" if args.datasheet else "the default"
+        raise UserError(f"{path} exists and differs from {what}: not overwritten")
     print(f"{path}: {done}")
     return 0

@@ -386,6 +386,40 @@ PresetMode = Literal["disabled", "pre-operational only", "enabled"]
 
 
 @dataclass(frozen=True)
+class TolerancesConfig:
+    """What is known about the parameters the model takes as given: each key the half-width
+    of the band the machine's true value may lie in (relative where a share). A datasheet
+    gives a pump's efficiencies to tens of percent; a machine measured on a test stand (the
+    reference loader's pumps, from the paper) to a few. The Kalman filter's uncertainty
+    follows from these bands until references and holds narrow them; nothing else reads
+    them (not a physics change: the tables and the hash do not depend on them)."""
+
+    # the pumps' leakage (1 - volumetric efficiency) against the configured efficiency
+    pump_leakage: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
+    # of the rating point's leakage, the share that may flow through orifices (~ sqrt dp)
+    # instead of the laminar gaps the model assumes
+    leakage_orifice_share: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
+    # of the pumps' displacement, the trapped volume compressed to the port's pressure and
+    # lost each revolution
+    trapped_volume_share: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
+    # the chambers' effective compliance (entrained air, hose walls) against the oil's
+    compliance: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
+    # the pumps' oil against the tank sensor's reading (degC, one sigma): the sensor trails
+    # the oil the pumps work by its thermal lag
+    oil_temp_c: float = field(default=3.0, metadata={"ge": 0.0, "le": 50.0})
+    # the drive's torque estimate: its offset (calibration) and its error per sample (N*m)
+    torque_offset_nm: float = field(default=2.0, metadata={"ge": 0.0, "le": 100.0})
+    torque_noise_nm: float = field(default=1.0, metadata={"gt": 0.0, "le": 100.0})
+
+
+# A datasheet's tolerances: what `config --write --datasheet` puts in a new machine's file.
+DATASHEET_TOLERANCES = TolerancesConfig(pump_leakage=0.3, leakage_orifice_share=0.3,
+                                        trapped_volume_share=0.3, compliance=0.3,
+                                        oil_temp_c=3.0, torque_offset_nm=2.0,
+                                        torque_noise_nm=1.0)
+
+
+@dataclass(frozen=True)
 class FaultsConfig:
     """How the service behaves under faults and hostile input (docs: operations, Faults).
     Every key has a default, so a config without this section behaves as documented."""
@@ -431,6 +465,7 @@ class Config:
     # further buses by name (can.units.*.bus picks one; `bus:` is the one named "default")
     buses: dict[str, dict[str, Any]] = field(default_factory=dict)
     faults: FaultsConfig = field(default_factory=FaultsConfig)
+    tolerances: TolerancesConfig = field(default_factory=TolerancesConfig)
     # the simulator's work cycles (absent: random work only, speeds from the motor limits)
     work_cycle: WorkCycleConfig | None = None
     source: str = field(default="<memory>", compare=False, metadata={"internal": True})
@@ -516,7 +551,8 @@ class Config:
 
     def _hash_physics(self) -> str:
         data = dataclasses.asdict(self)
-        for key in ("bus", "buses", "can", "estimator", "faults", "work_cycle", "source"):
+        for key in ("bus", "buses", "can", "estimator", "faults", "tolerances", "work_cycle",
+                    "source"):
             data.pop(key)
         for unit in data["units"].values():
             for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm",

@@ -109,6 +109,7 @@ passes again is not a confident wrong one.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -119,7 +120,7 @@ import numpy as np
 from scipy.special import ndtr
 from scipy.stats import chi2
 
-from ddh_vsensor.config import Config, HydraulicsConfig
+from ddh_vsensor.config import DATASHEET_TOLERANCES, Config, HydraulicsConfig
 from ddh_vsensor.estimator.estimator import ReferenceEvent, RunEstimate
 from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, Switch, accepted_edges,
@@ -160,7 +161,8 @@ class KalmanSettings:
     stop_reach: float = 2.0
     torque_position: str = "never"      # torque updates x: "always", "near_stop", "never"
     # measurement
-    drive_torque_nm: float = 1.0        # drive's torque estimate error per sample (~1 % rated)
+    # the parameters' bands (the configuration's ``tolerances``; these defaults a datasheet's)
+    drive_torque_nm: float = DATASHEET_TOLERANCES.torque_noise_nm     # the drive's torque error per sample
     torque_timing_s: float = 1.0e-3     # when the torque was read within its sample vs speed
     speed_step_rpm: float = 1.0         # the logged speed's resolution
     limiter_torque_nm: float = 5.0      # at the speed limit the limiter sets the torque
@@ -169,15 +171,15 @@ class KalmanSettings:
     velocity_mm_s: float = 1.0
     pressure_bar: float = 5.0
     load_share: float = 0.3             # of |F_load| at the start (payload unknown), at least
-    torque_offset_nm: float = 2.0       # drive's torque offset (its calibration)
+    torque_offset_nm: float = DATASHEET_TOLERANCES.torque_offset_nm   # its calibration
     # unmodelled flow: a Gauss-Markov error of the rod's flow balance whose stationary sigma
     # is the RMS of physical bounds (see :meth:`_Bank._flow_sigma`); each bound is a share
     # anywhere within its band, so its RMS is the bound / sqrt(3)
-    leak_tolerance: float = 0.3         # a: the datasheet's leakage (volumetric eff.) band, +-
-    orifice_share: float = 0.3          # a': the rating point's leakage share that may be turbulent
+    leak_tolerance: float = DATASHEET_TOLERANCES.pump_leakage          # a: the leakage's band, +-
+    orifice_share: float = DATASHEET_TOLERANCES.leakage_orifice_share   # a': its turbulent share
     # b: the pumps' trapped volumes (up to this share of the displacement) compressed to the
     # port's pressure every revolution and lost: dq = b |p| / beta |q_displacement|
-    trapped_share: float = 0.3
+    trapped_share: float = DATASHEET_TOLERANCES.trapped_volume_share
     flow_floor_m3_s: float = 2e-8       # c: seals' bypass a new cylinder may have (~1 ml/min)
     # its correlation: it changes as the operating point does, over this much travel in
     # strokes (a stroke sweeps the speeds, pressures and chamber volumes a cycle has); at a
@@ -186,11 +188,11 @@ class KalmanSettings:
     flow_tau_s: float = 30.0
     # the chambers' effective compliance (entrained air, hose walls) off the oil's by up to
     # this share: a state (comp), uniform prior
-    compliance_tolerance: float = 0.3
+    compliance_tolerance: float = DATASHEET_TOLERANCES.compliance
     # the pumps' oil against the tank sensor: a Gauss-Markov offset (K) on the viscosity. The
     # sensor lags the pumps' oil by its thermal lag (~3 min) while the oil warms at up to
     # ~1 K/min in work: sigma ~3 K; it wanders as fast as the tank's temperature does
-    temp_sd_c: float = 3.0
+    temp_sd_c: float = DATASHEET_TOLERANCES.oil_temp_c
     temp_tau_s: float = 600.0           # the tank's thermal time constant
     temp_bound_sd: float = 4.0          # the offset's bound, in its sigmas
     temp_state: bool = True             # False: no state; its leakage share folds into a
@@ -215,6 +217,18 @@ class KalmanSettings:
     edge_prior_edges: float = 2.0
     edge_cusum_ratio: float = 4.0
     edge_false_alarm: float = 1e-2
+
+
+def settings_from_config(cfg: Config, base: KalmanSettings | None = None) -> KalmanSettings:
+    """``base`` (default: the defaults) with the parameters' bands the configuration states
+    (its ``tolerances``: the reference loader's measured, a new machine's a datasheet's)."""
+    t = cfg.tolerances
+    return dataclasses.replace(base or KalmanSettings(), leak_tolerance=t.pump_leakage,
+                               orifice_share=t.leakage_orifice_share,
+                               trapped_share=t.trapped_volume_share,
+                               compliance_tolerance=t.compliance, temp_sd_c=t.oil_temp_c,
+                               torque_offset_nm=t.torque_offset_nm,
+                               drive_torque_nm=t.torque_noise_nm)
 
 
 @dataclass

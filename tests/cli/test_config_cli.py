@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from ddh_vsensor.cli.main import main
-from ddh_vsensor.config import DEFAULT_CONFIG
+from ddh_vsensor.config import DATASHEET_TOLERANCES, DEFAULT_CONFIG, load_config
 from ddh_vsensor.config.jsonschema import json_schema
 
 
@@ -28,6 +28,27 @@ def test_write_then_validate_then_never_overwrite(tmp_path: Path, capsys) -> Non
     assert main(["config", "--write", str(path)]) == 2
     assert "not overwritten" in capsys.readouterr().err
     assert path.read_text() == edited
+
+
+def test_write_datasheet_changes_only_the_tolerances(tmp_path: Path, capsys) -> None:
+    """A machine not yet commissioned starts from a datasheet's bands; everything else (the
+    physics, hence the tables and the state files) is the default's."""
+    path = tmp_path / "new.yaml"
+    assert main(["config", "--write", str(path), "--datasheet"]) == 0
+    written, shipped = load_config(path), load_config(None)
+    assert written.tolerances == DATASHEET_TOLERANCES != shipped.tolerances
+    assert written.physics_hash() == shipped.physics_hash()
+    changed = [a for a, b in zip(path.read_text().splitlines(),
+                                 DEFAULT_CONFIG.read_text().splitlines()) if a != b]
+    assert len(changed) == 4 and all("# chosen (a datasheet: " in line for line in changed)
+    assert main(["config", "--write", str(path)]) == 2        # the plain default differs
+    assert "differs from the default" in capsys.readouterr().err
+
+
+def test_datasheet_needs_write(capsys) -> None:
+    assert main(["config", "--print-default", "--datasheet"]) == 2
+    assert capsys.readouterr().err.strip() == ("ddh-vsensor config: error: --datasheet goes "
+                                              "with --write PATH")
 
 
 def test_validate_names_the_key_and_exits_2(tmp_path: Path, capsys) -> None:
