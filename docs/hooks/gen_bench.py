@@ -258,7 +258,41 @@ def _diagnosis(figures: dict[str, Any], consumed: set[str]) -> str:
                       table(["class", *(label for _, label in _DIAGNOSIS_COLUMNS)], rows)])
 
 
-CURATED = {"accuracy": _accuracy_all, "daemon": _daemon, "diagnosis": _diagnosis}
+# --- kalman.json --------------------------------------------------------------------------
+_KALMAN_COLUMNS = (("max_abs_error_mm", "worst mm"), ("median_uncertainty_mm", "median u mm"),
+                   ("unflagged_beyond_uncertainty_share", "unflagged beyond u"))
+_LEVELS = {"none": "nominal", "typical": "structure typical", "double": "structure x2"}
+
+
+def _kalman(figures: dict[str, Any], consumed: set[str]) -> str:
+    """Per set, plant, references and unit: the filter against `dynamic` (the per-run lists
+    are the bench's detail, left to its JSON)."""
+    consumed.update(k for k in figures if k.endswith("_runs"))
+    rows = []
+    for key in figures:
+        parts = key.split("_")
+        if len(parts) != 5 or parts[3] != "kalman" or not isinstance(figures[key], dict):
+            continue
+        which, level, refs, _, unit = parts
+        other = "_".join([which, level, refs, "dynamic", unit])
+        cells = [which.replace("heldout", "held out"), _LEVELS.get(level, level),
+                 "yes" if refs == "refs" else "no", unit]
+        for name in (key, other):
+            consumed.add(name)
+            record = figures.get(name, {})
+            for field, _ in _KALMAN_COLUMNS:
+                value = record.get(field)
+                cells.append(f"{100 * value:.2f} %" if field.endswith("share") and value
+                             is not None else fmt(value))
+        rows.append(cells)
+    heads = ["set", "plant", "refs", "unit",
+             *(f"kalman {label}" for _, label in _KALMAN_COLUMNS),
+             *(f"dynamic {label}" for _, label in _KALMAN_COLUMNS)]
+    return table(heads, rows)
+
+
+CURATED = {"accuracy": _accuracy_all, "daemon": _daemon, "diagnosis": _diagnosis,
+           "kalman": _kalman}
 
 
 def bench_section(root: Path, name: str) -> str:
