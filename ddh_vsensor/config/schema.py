@@ -24,6 +24,13 @@ def _positive(**extra: Any) -> dict[str, Any]:
     return {"gt": 0.0, **extra}
 
 
+def _structure(**bounds: Any) -> dict[str, Any]:
+    """A plant-structure key: physics, but hashed only where it differs from its default 0
+    (the nominal model), so that a configuration without it keeps its physics hash and with
+    it the state files and table sets keyed by that hash."""
+    return {"ge": 0.0, **bounds, "hash_if_set": True}
+
+
 @dataclass(frozen=True)
 class OilConfig:
     """Hydraulic oil: two viscosity points for ASTM D341 and a linear thermal expansion."""
@@ -54,6 +61,12 @@ class HydraulicsConfig:
     anticavitation_gradient_lpm_per_bar: float = field(metadata=_positive(le=1e6))
     relief_rise_fraction: float = field(metadata=_positive(le=1.0))
     relief_rise_flow_lpm: float = field(metadata=_positive(le=1e6))
+    # the hoses' walls expand with pressure: the dead volume grows by this share per 100 bar
+    # (a chamber's capacitance gains dead volume x share / 100 bar beyond the oil's bulk
+    # modulus; 0.01 is a wire-braided hose's wall modulus of ~1 GPa). The unit model's, the
+    # Kalman filter's and the simulator's; the tables' steady state does not carry it, nor
+    # does the `dynamic` mode's chamber model
+    hose_expansion_per_100bar: float = field(default=0.0, metadata=_structure(le=0.2))
 
 
 @dataclass(frozen=True)
@@ -66,6 +79,17 @@ class PumpConfig:
     max_speed_rpm: float = field(metadata=_positive(le=100000.0))
     speed_ratio: float = field(metadata=_positive(le=100.0))
     relief_bar: float = field(metadata=_positive(le=2000.0))
+    # of the leakage at the rating point (nominal pressure and viscosity), the share through
+    # orifices (~ sqrt dp, viscosity-free) rather than the laminar gaps (~ dp / viscosity)
+    # the volumetric efficiency is rated for; the rating point's leakage is kept. The unit
+    # model's, the Kalman filter's and the simulator's; the tables' steady state does not
+    # carry it, nor does the `dynamic` mode's chamber model
+    leakage_orifice_share: float = field(default=0.0, metadata=_structure(le=0.9))
+    # leakage rising with the pump's shaft speed n: x (1 + g |n| / n_rated) / (1 + g), n_rated
+    # hydraulics.nominal_pump_speed_rpm (the rating point's leakage kept). The unit model's,
+    # the Kalman filter's and the simulator's; the tables' steady state does not carry it,
+    # nor does the `dynamic` mode's chamber model
+    leakage_speed_gain: float = field(default=0.0, metadata=_structure(le=2.0))
 
 
 @dataclass(frozen=True)
@@ -113,6 +137,13 @@ class UnitConfig:
     # How far each switch's real switching points may lie from the configured ones: a mounting
     # tolerance until commissioning measures them; a reference carries it in its uncertainty.
     reference_tolerance_mm: float = field(default=3.0, metadata={"ge": 0.0, "le": 100.0})
+    # seal friction rising with the chamber pressures: the Coulomb and the static friction
+    # each gain this share of the gauge pressure's force on the seals' contact rings (4 mm
+    # wide: the piston seal's on the bore for A and B, the rod seal's on the rod for B; 0.03
+    # is lubricated polyurethane or PTFE on steel). The unit model's, the Kalman filter's and
+    # the simulator's; the tables' steady state does not carry it, nor does the `dynamic`
+    # mode's chamber model
+    seal_friction_share: float = field(default=0.0, metadata=_structure(le=0.2))
 
     def check(self, path: str) -> list[tuple[str, str]]:
         problems = []
@@ -559,9 +590,22 @@ class Config:
                         "reference_tolerance_mm"):
                 unit.pop(key)
             unit["motor"].pop("torque_lag_s")          # how the drive reports, not physics
+            _drop_unset(unit, UnitConfig)
+            _drop_unset(unit["pump_a"], PumpConfig)
+            _drop_unset(unit["pump_b"], PumpConfig)
+        _drop_unset(data["hydraulics"], HydraulicsConfig)
         blob = json.dumps(data, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
+
+
+def _drop_unset(section: dict[str, Any], cls: type) -> None:
+    """Remove from ``section`` (``cls`` as a dict) the plant-structure keys at their default:
+    the hash of a configuration that does not set them is the one it had before they
+    existed."""
+    for f in dataclasses.fields(cls):
+        if f.metadata.get("hash_if_set") and section[f.name] == f.default:
+            del section[f.name]
 
 
 # The movement tables of all units together (float64 cells, both kinds), at most: 2.4 times

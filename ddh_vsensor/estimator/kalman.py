@@ -50,7 +50,8 @@ comp, o_1..o_m (m), c_1..c_m (m)]:
   covariance, so a stop met within the debounce time is not mistaken for the switch's
   offset).
 
-Prediction is the simulator's own plant (:class:`ddh_vsensor.model.plant.Plant`) in speed mode:
+Prediction is the simulator's own plant (:class:`ddh_vsensor.model.plant.Plant`, its rows
+built from the configuration with the structure terms it states) in speed mode:
 the motor follows the measured speed (linear between samples, over ``substeps`` backward-Euler
 steps per sample) and the plant reports the torque the drive needs, inertia included; the
 drive at its torque limit, the rod on a stop and the relief valves open are the plant's own
@@ -335,7 +336,8 @@ def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool =
         if abs(p - period) > 1e-6 * period or np.max(np.abs(dt - period)) > 0.05 * period:
             raise ValueError(f"{j.run.source}: the prototype needs evenly sampled runs at one "
                              "rate")
-    return _Bank(prepared, period, settings, cfg.estimator.debounce_s, cfg.hydraulics).run()
+    return _Bank(prepared, period, settings, cfg.estimator.debounce_s, cfg.hydraulics,
+                 {a: RowSpec.from_config(cfg, a) for a in units}).run()
 
 
 def run(cfg: Config, actuator: str, measured: Run, *, references: bool = True,
@@ -351,13 +353,14 @@ class _Bank:
     """B filters stepped together; arrays are (B, ...) and plant rows b * N_ROWS + j."""
 
     def __init__(self, jobs: list[_Job], period_s: float, s: KalmanSettings,
-                 debounce_s: float, hydraulics: HydraulicsConfig) -> None:
+                 debounce_s: float, hydraulics: HydraulicsConfig,
+                 rows: dict[str, RowSpec]) -> None:
         self.jobs, self.T, self.s, self.debounce_s = jobs, period_s, s, debounce_s
         self.B = B = len(jobs)
         self.lengths = np.array([len(j.run.time_s) for j in jobs])
         self.N = int(self.lengths.max())
         h = period_s / s.substeps
-        self.plant = Plant([RowSpec(unit=j.unit) for j in jobs for _ in range(N_ROWS)], h)
+        self.plant = Plant([rows[j.actuator] for j in jobs for _ in range(N_ROWS)], h)
         self.nom = np.arange(B) * N_ROWS
         # padded inputs: past its end a run holds its last sample
         def pad(get) -> np.ndarray:

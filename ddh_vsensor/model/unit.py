@@ -42,11 +42,13 @@ pressures, so the compression is exact), belt slip as a speed-ratio drop proport
 the pumps' fill loss at speed, a scored bore passing oil across the piston in the stroke's
 middle third.
 
-Plant structure the estimator's model does not share (``sim.effects``: ``leak_orifice``,
-``leak_speed``, ``seal_friction``, ``hose_expansion``) enters the same way, each with its
-coefficient zero in a row that does not have it, so that row's arithmetic is the nominal one
-to the bit. The nonlinear parts are taken at the step's start (they move little within a
-step and the fixed point, the steady state, is exact):
+Plant structure the nominal model lacks enters the same way, each with its coefficient zero
+in a row that does not have it, so that row's arithmetic is the nominal one to the bit. A
+machine's configuration sets it (:class:`Structure`, :meth:`RowSpec.from_config`) and the
+simulator's effects (``sim.effects``: ``leak_orifice``, ``leak_speed``, ``seal_friction``,
+``hose_expansion``) add to it; :meth:`Structure.row` is the one conversion from its physical
+parameters to the row's coefficients. The nonlinear parts are taken at the step's start (they
+move little within a step and the fixed point, the steady state, is exact):
 
 - pump leakage  q = [k_lam dp / mu + k_orf dp / sqrt(max(|dp|, p_t))] (b + s_pump |n|), the
   orifice share's conductance at the start pressure (laminar below p_t = 1 bar, where a gap's
@@ -63,12 +65,16 @@ from __future__ import annotations
 
 import ctypes
 import importlib.machinery
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from ddh_vsensor.config import Config, HydraulicsConfig
+from ddh_vsensor.physics.conversions import BAR_PA, CST_M2S
 from ddh_vsensor.physics.unit import DDHUnit
 
 NOT_BUILT = ("ddh_vsensor.model._unit was not built: install a C compiler (gcc) and reinstall "
@@ -79,6 +85,7 @@ F_DOWN, F_STUCK, F_UP, F_IMPACT = -1, 0, 1, 2
 M_LIM_NEG, M_NEG, M_STUCK, M_POS, M_LIM_POS, M_SPEED = -2, -1, 0, 1, 2, 3
 # valve regimes per side
 R_ANTICAV, R_BELOW, R_ABOVE, R_RELIEF = 0, 1, 2, 3
+SEAL_CONTACT_M = 4.0e-3         # contact width of a compact piston or rod seal
 
 
 @dataclass(frozen=True)
@@ -94,13 +101,102 @@ class RowSpec:
     # orifice (turbulent) leakage of each side's pumps, q = k sign(dp) sqrt(|dp|)
     orifice_leak_a_m3_s_sqrt_pa: float = 0.0
     orifice_leak_b_m3_s_sqrt_pa: float = 0.0
-    # leakage x (1 + gain |n_pump| / rated) / (1 + gain): the rating point's leakage kept
-    leak_speed_gain: float = 0.0
+    # each side's leakage x (1 + gain |n_pump| / rated) / (1 + gain): the rating point's kept
+    leak_speed_gain_a: float = 0.0
+    leak_speed_gain_b: float = 0.0
     leak_rated_pump_speed_rpm: float = 1.0
     # seal friction per pascal of each chamber's (positive) gauge pressure, N/Pa
     seal_friction_a_n_per_pa: float = 0.0
     seal_friction_b_n_per_pa: float = 0.0
     hose_compliance_per_pa: float = 0.0   # hoses' (dead volume's) wall expansion dV/V per Pa
+
+    @classmethod
+    def from_config(cls, cfg: Config, actuator: str, payload_kg: float = 0.0) -> RowSpec:
+        """The configured machine's row of ``actuator``: its unit with its structure."""
+        return Structure.from_config(cfg, actuator).row(DDHUnit.from_config(cfg, actuator),
+                                                       cfg.hydraulics, payload_kg)
+
+
+@dataclass(frozen=True)
+class Structure:
+    """Plant structure the nominal model lacks, in physical terms (all 0: the nominal model).
+
+    The configuration's keys of the same names set it; a simulator effect adds its own
+    (:meth:`plus`: shares and gains add). Per side, the share of the rating point's leakage
+    through orifices and the leakage's gain with shaft speed; per unit, the share of the
+    chamber pressures' force on the seal rings that is friction; the dead volume's growth per
+    100 bar."""
+
+    leakage_orifice_share_a: float = 0.0
+    leakage_orifice_share_b: float = 0.0
+    leakage_speed_gain_a: float = 0.0
+    leakage_speed_gain_b: float = 0.0
+    seal_friction_share: float = 0.0
+    hose_expansion_per_100bar: float = 0.0
+
+    @classmethod
+    def from_config(cls, cfg: Config, actuator: str) -> Structure:
+        u = cfg.unit(actuator)
+        return cls(leakage_orifice_share_a=u.pump_a.leakage_orifice_share,
+                   leakage_orifice_share_b=u.pump_b.leakage_orifice_share,
+                   leakage_speed_gain_a=u.pump_a.leakage_speed_gain,
+                   leakage_speed_gain_b=u.pump_b.leakage_speed_gain,
+                   seal_friction_share=u.seal_friction_share,
+                   hose_expansion_per_100bar=cfg.hydraulics.hose_expansion_per_100bar)
+
+    def plus(self, other: Structure) -> Structure:
+        """Both together: every share and gain is the sum (a 0 adds nothing, to the bit)."""
+        return Structure(**{f.name: getattr(self, f.name) + getattr(other, f.name)
+                            for f in fields(self)})
+
+    def row(self, unit: DDHUnit, hydraulics: HydraulicsConfig | None, payload_kg: float = 0.0,
+            **extras: Any) -> RowSpec:
+        """The row of ``unit`` (pump effects already applied) with this structure;
+        ``hydraulics`` is the pumps' rating point the leakage terms keep (needed only where
+        they are set); ``extras`` are the row's other fields."""
+        shares = (self.leakage_orifice_share_a, self.leakage_orifice_share_b)
+        gains = (self.leakage_speed_gain_a, self.leakage_speed_gain_b)
+        if hydraulics is None and any(shares + gains):
+            raise ValueError("the orifice share and the speed gain need the pumps' rating point")
+        orifice = (0.0, 0.0)
+        if any(shares):
+            unit, orifice = orifice_leakage(unit, shares, hydraulics)
+        ring_a, ring_b = seal_rings_m2(unit)
+        return RowSpec(unit=unit, payload_kg=payload_kg,
+                       orifice_leak_a_m3_s_sqrt_pa=orifice[0],
+                       orifice_leak_b_m3_s_sqrt_pa=orifice[1],
+                       leak_speed_gain_a=gains[0], leak_speed_gain_b=gains[1],
+                       leak_rated_pump_speed_rpm=(hydraulics.nominal_pump_speed_rpm
+                                                  if hydraulics else 1.0),
+                       seal_friction_a_n_per_pa=self.seal_friction_share * ring_a,
+                       seal_friction_b_n_per_pa=self.seal_friction_share * ring_b,
+                       hose_compliance_per_pa=self.hose_expansion_per_100bar / (100.0 * BAR_PA),
+                       **extras)
+
+
+def orifice_leakage(unit: DDHUnit, shares: tuple[float, float], hydraulics: HydraulicsConfig
+                    ) -> tuple[DDHUnit, tuple[float, float]]:
+    """``unit`` with each side's laminar leakage cut to 1 - its share, and each side's orifice
+    coefficient (m^3/s/sqrt(Pa)) carrying that share at the rating point: k_orf sqrt(dp_r) =
+    share x k dp_r / mu_r, so the rating point's leakage is kept."""
+    dp_r = hydraulics.nominal_pressure_bar * BAR_PA
+    t_r = unit.oil.temperature_at_viscosity_c(hydraulics.nominal_viscosity_cst)
+    mu_r = hydraulics.nominal_viscosity_cst * CST_M2S * float(unit.oil.density_kg_m3(t_r))
+    orifice_a, orifice_b = (share * s.pump.leak_coeff_m3 * math.sqrt(dp_r) / mu_r
+                            for share, s in zip(shares, unit.sides))
+    return (replace(unit, a=replace(unit.a, pump=unit.a.pump.scaled(leakage=1.0 - shares[0])),
+                    b=replace(unit.b, pump=unit.b.pump.scaled(leakage=1.0 - shares[1]))),
+            (orifice_a, orifice_b))
+
+
+def seal_rings_m2(unit: DDHUnit) -> tuple[float, float]:
+    """Contact areas the chamber pressures press seals onto (all cylinders): A's the piston
+    seal's on the bore, B's the piston seal's and the rod seal's."""
+    cyl = unit.cylinder
+    bore = math.sqrt(4.0 * cyl.area_a_m2 / (cyl.count * math.pi))
+    rod = math.sqrt(4.0 * max(cyl.area_a_m2 - cyl.area_b_m2, 0.0) / (cyl.count * math.pi))
+    ring = cyl.count * math.pi * SEAL_CONTACT_M
+    return ring * bore, ring * (bore + rod)
 
 
 _D = ctypes.c_double
@@ -213,8 +309,12 @@ def params(row: RowSpec) -> Params:
     """One row's constants: everything of the unit and its extras the step reads."""
     u = row.unit
     cyl, pa, pb = u.cylinder, u.a.pump, u.b.pump
-    gain = row.leak_speed_gain
-    base = 1.0 / (1.0 + gain)
+    gain_a, gain_b = row.leak_speed_gain_a, row.leak_speed_gain_b
+    rated = row.leak_rated_pump_speed_rpm
+    base = 1.0 / (1.0 + gain_a)
+    # the C takes one base for both sides: B's leakage (laminar and orifice) is scaled by its
+    # own base over A's (exactly 1 where the gains are equal), its slope taken over A's base
+    scale_b = (1.0 + gain_a) / (1.0 + gain_b)
     p = Params(
         area_a_m2=u.a.area_m2, area_b_m2=u.b.area_m2, stroke_m=cyl.stroke_m,
         dead_volume_m3=u.dead_volume_m3, mass_kg=u.moving_mass_kg(row.payload_kg),
@@ -226,15 +326,15 @@ def params(row: RowSpec) -> Params:
         air_fraction=row.air_fraction, belt_slip_per_nm=row.belt_slip_per_nm,
         fill_loss=row.fill_loss, bore_leak_m3_s_pa=row.bore_leak_m3_s_pa,
         orifice_leak_a_m3_s_sqrt_pa=row.orifice_leak_a_m3_s_sqrt_pa,
-        orifice_leak_b_m3_s_sqrt_pa=row.orifice_leak_b_m3_s_sqrt_pa, leak_base=base,
-        leak_slope_a_per_rpm=abs(pa.speed_ratio) * gain / row.leak_rated_pump_speed_rpm * base,
-        leak_slope_b_per_rpm=abs(pb.speed_ratio) * gain / row.leak_rated_pump_speed_rpm * base,
+        orifice_leak_b_m3_s_sqrt_pa=row.orifice_leak_b_m3_s_sqrt_pa * scale_b, leak_base=base,
+        leak_slope_a_per_rpm=abs(pa.speed_ratio) * gain_a / rated * base,
+        leak_slope_b_per_rpm=abs(pb.speed_ratio) * gain_b / rated * base,
         seal_friction_a_n_per_pa=row.seal_friction_a_n_per_pa,
         seal_friction_b_n_per_pa=row.seal_friction_b_n_per_pa,
         hose_compliance_per_pa=row.hose_compliance_per_pa,
         flow_a_m3_s_per_rpm=float(pa.geometric_flow_m3_s(1.0)),
         flow_b_m3_s_per_rpm=float(pb.geometric_flow_m3_s(1.0)),
-        leak_a_m3=pa.leak_coeff_m3, leak_b_m3=pb.leak_coeff_m3,
+        leak_a_m3=pa.leak_coeff_m3, leak_b_m3=pb.leak_coeff_m3 * scale_b,
         crack_a_pa=u.a.anticav.cracking_pa, crack_b_pa=u.b.anticav.cracking_pa,
         relief_a_pa=u.a.relief.setting_pa, relief_b_pa=u.b.relief.setting_pa)
     p_sign = np.array([-1.0, -1.0, 1.0, 1.0])          # the pressure's sign in each regime

@@ -49,7 +49,11 @@ Deviations the diagnosis' catalogue does not have (for testing it on the unknown
     independent of the viscosity; elsewhere it seals.
 
 Plant structure the estimator's model does not share (:data:`STRUCTURE_TYPICAL` holds each
-at its typical value; every one is neutral at 0):
+at its typical value; every one is neutral at 0). A machine's configuration may carry the same
+structure (``pump_a``/``pump_b.leakage_orifice_share``, ``leakage_speed_gain``,
+``seal_friction_share``, ``hydraulics.hose_expansion_per_100bar``); each of these four effects
+adds to the configured value (:meth:`ddh_vsensor.model.unit.Structure.plus`: the effect's
+percentage as a share, the gain as a gain, summed), the orifice shares together at most 90 %:
 
 ``leak_orifice`` (% of the pumps' leakage at the rating point, 0..90, neutral 0, typical 30)
     Part of each pump's leakage passes orifice-like paths (gear tip and side-plate gaps at
@@ -71,11 +75,11 @@ at its typical value; every one is neutral at 0):
 ``seal_friction`` (% friction coefficient, 0..20, neutral 0, typical 3)
     The seals' friction rises with the pressure pressing their lips: the Coulomb and static
     friction each gain mu_p (p_a A_a,ring + p_b A_b,ring), gauge pressures above zero, over
-    the seals' contact rings of width :data:`SEAL_CONTACT_M` (4 mm): the piston seal's on
-    the bore for both chambers, the rod seal's on the rod for B. Typical 3 %: lubricated
-    polyurethane and PTFE compound seals on honed or chromed steel run at friction
-    coefficients of a few percent under their contact pressure, which a chamber pressure
-    adds to; for the reference boom (2 x 114 mm bore) at its 60 bar holding pressure it is
+    the seals' contact rings of width :data:`ddh_vsensor.model.unit.SEAL_CONTACT_M` (4 mm):
+    the piston seal's on the bore for both chambers, the rod seal's on the rod for B. Typical
+    3 %: lubricated polyurethane and PTFE compound seals on honed or chromed steel run at
+    friction coefficients of a few percent under their contact pressure, which a chamber
+    pressure adds to; for the reference boom (2 x 114 mm bore) at its 60 bar holding pressure it is
     ~0.5 kN, of the order of the configured Coulomb friction.
 ``hose_expansion`` (% of the dead volume per 100 bar, 0..20, neutral 0, typical 1)
     The dead volume (hoses and fittings between pumps and cylinder) expands with pressure:
@@ -116,9 +120,9 @@ from typing import Callable, Iterable, Mapping, Sequence
 from ddh_vsensor.config import HydraulicsConfig
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.physics.unit import DDHUnit
-from ddh_vsensor.physics.conversions import BAR_PA, CST_M2S, LPM_M3S
+from ddh_vsensor.physics.conversions import BAR_PA, LPM_M3S
 from ddh_vsensor.physics.valves import ReliefValve
-from ddh_vsensor.model.unit import RowSpec
+from ddh_vsensor.model.unit import RowSpec, Structure
 
 
 @dataclass(frozen=True)
@@ -185,10 +189,10 @@ STRUCTURE_TYPICAL: dict[str, float] = {
     "leak_orifice": 30.0, "leak_speed": 0.25, "seal_friction": 3.0, "hose_expansion": 1.0,
     "compressibility": 0.005, "torque_lag": 3.0, "torque_ripple": 1.0,
     "torque_speed_offset": 1.5, "oil_temp_lag": 180.0}
-SEAL_CONTACT_M = 4.0e-3         # contact width of a compact piston or rod seal
 RIPPLE_ORDER = 24               # torque ripple periods per motor revolution
 
 VALVE_LEAK_OPEN_BAR = 40.0
+ORIFICE_SHARE_MAX = 0.9         # configured and effect together: some laminar leakage is left
 
 
 @dataclass(frozen=True)
@@ -221,55 +225,44 @@ class UnitEffects:
         return {f.name: getattr(self, f.name) for f in fields(self)
                 if getattr(self, f.name) != EFFECTS[f.name].neutral}
 
-    def row(self, unit: DDHUnit, payload_kg: float,
-            hydraulics: HydraulicsConfig | None = None) -> RowSpec:
+    def structure(self) -> Structure:
+        """The plant structure these effects stand for, in the configuration's terms (the
+        effects' percentages as shares, on both pump sides)."""
+        share = self.leak_orifice / 100.0
+        return Structure(leakage_orifice_share_a=share, leakage_orifice_share_b=share,
+                         leakage_speed_gain_a=self.leak_speed,
+                         leakage_speed_gain_b=self.leak_speed,
+                         seal_friction_share=self.seal_friction / 100.0,
+                         hose_expansion_per_100bar=self.hose_expansion / 100.0)
+
+    def row(self, unit: DDHUnit, payload_kg: float, hydraulics: HydraulicsConfig | None = None,
+            configured: Structure = Structure()) -> RowSpec:
         """The plant row of ``unit`` with these effects applied (``hydraulics``: the pumps'
-        rating point, which ``leak_orifice`` and ``leak_speed`` keep)."""
-        if (self.leak_orifice or self.leak_speed) and hydraulics is None:
-            raise ValueError("leak_orifice and leak_speed need the pumps' rating point")
+        rating point, which ``leak_orifice`` and ``leak_speed`` keep). The structure effects
+        add to the ``configured`` machine's (``Structure.plus``): the orifice shares of the
+        rating point's leakage, the speed gains, the seal friction shares and the hoses'
+        expansions are sums; the orifice shares together at most 90 %."""
+        structure = configured.plus(self.structure())
+        for side in ("a", "b"):
+            share = getattr(structure, f"leakage_orifice_share_{side}")
+            if share > ORIFICE_SHARE_MAX:
+                raise UserError(f"effect leak_orifice: {self.leak_orifice:g} % on top of the "
+                                f"configured pump_{side}.leakage_orifice_share "
+                                f"{getattr(configured, f'leakage_orifice_share_{side}'):g} is "
+                                f"{share:.3g} of the leakage, above {ORIFICE_SHARE_MAX:g}")
         if self.pump_leakage != 1.0 or self.displacement != 1.0:
             unit = unit.with_pumps(leakage=self.pump_leakage, displacement=self.displacement)
-        orifice_a = orifice_b = 0.0
-        if self.leak_orifice:
-            # k_orf sqrt(dp_r) = share x the rating point's leakage k dp_r / mu_r
-            share = self.leak_orifice / 100.0
-            dp_r = hydraulics.nominal_pressure_bar * BAR_PA
-            t_r = unit.oil.temperature_at_viscosity_c(hydraulics.nominal_viscosity_cst)
-            mu_r = hydraulics.nominal_viscosity_cst * CST_M2S * float(unit.oil.density_kg_m3(t_r))
-            orifice_a, orifice_b = (share * s.pump.leak_coeff_m3 * math.sqrt(dp_r) / mu_r
-                                    for s in unit.sides)
-            unit = unit.with_pumps(leakage=1.0 - share)
         if self.valve_leak:
             seep = ReliefValve(VALVE_LEAK_OPEN_BAR * BAR_PA,
                                self.valve_leak * LPM_M3S / (100.0 * BAR_PA))
             unit = replace(unit, a=replace(unit.a, relief=seep), b=replace(unit.b, relief=seep))
-        seal_a, seal_b = seal_rings_m2(unit)
-        mu_p = self.seal_friction / 100.0
-        return RowSpec(unit=unit, payload_kg=payload_kg, air_fraction=self.compressibility,
-                       belt_slip_per_nm=self.belt_slip / 100.0 / 100.0,
-                       fill_loss=self.pump_fill / 100.0,
-                       bore_leak_m3_s_pa=self.bore_leak * LPM_M3S / (100.0 * BAR_PA),
-                       orifice_leak_a_m3_s_sqrt_pa=orifice_a,
-                       orifice_leak_b_m3_s_sqrt_pa=orifice_b,
-                       leak_speed_gain=self.leak_speed,
-                       leak_rated_pump_speed_rpm=(hydraulics.nominal_pump_speed_rpm
-                                                  if hydraulics else 1.0),
-                       seal_friction_a_n_per_pa=mu_p * seal_a,
-                       seal_friction_b_n_per_pa=mu_p * seal_b,
-                       hose_compliance_per_pa=self.hose_expansion / 100.0 / (100.0 * BAR_PA))
+        return structure.row(unit, hydraulics, payload_kg, air_fraction=self.compressibility,
+                             belt_slip_per_nm=self.belt_slip / 100.0 / 100.0,
+                             fill_loss=self.pump_fill / 100.0,
+                             bore_leak_m3_s_pa=self.bore_leak * LPM_M3S / (100.0 * BAR_PA))
 
 
 NOMINAL = UnitEffects()
-
-
-def seal_rings_m2(unit: DDHUnit) -> tuple[float, float]:
-    """Contact areas the chamber pressures press seals onto (all cylinders): A's the piston
-    seal's on the bore, B's the piston seal's and the rod seal's."""
-    cyl = unit.cylinder
-    bore = math.sqrt(4.0 * cyl.area_a_m2 / (cyl.count * math.pi))
-    rod = math.sqrt(4.0 * max(cyl.area_a_m2 - cyl.area_b_m2, 0.0) / (cyl.count * math.pi))
-    ring = cyl.count * math.pi * SEAL_CONTACT_M
-    return ring * bore, ring * (bore + rod)
 
 
 def structure_effects(scale: float = 1.0) -> UnitEffects:

@@ -31,6 +31,7 @@ from ddh_vsensor.sim.control import PIDSettings, PositionPID
 from ddh_vsensor.sim.cycles import WORK, Profile, load_profile_csv, work_cycle
 from ddh_vsensor.sim.effects import UnitEffects, build_effects, describe
 from ddh_vsensor.model.plant import Plant, RowSpec
+from ddh_vsensor.model.unit import Structure
 from ddh_vsensor.sim.sensors import SensorSettings, Truth, measure
 
 DEFAULT_STEP_S = 1.0e-3
@@ -98,7 +99,9 @@ def _prepare(cfg: Config, spec: RunSpec) -> _Prepared:
     rows = {}
     for a in cfg.unit_names:
         unit = DDHUnit.from_config(cfg, a)
-        row = effects[a].row(unit, spec.payload_kg, cfg.hydraulics)
+        # the machine's configured structure, the run's effects on top
+        row = effects[a].row(unit, spec.payload_kg, cfg.hydraulics,
+                             Structure.from_config(cfg, a))
         force = unit.load_force_n(spec.payload_kg)
         try:
             speed = holding_speed(row.unit, force, spec.oil_temp_c).speed_rpm

@@ -18,10 +18,10 @@ from ddh_vsensor.sim.effects import (
     NOMINAL,
     STRUCTURE_TYPICAL,
     UnitEffects,
-    seal_rings_m2,
     structure_effects,
 )
 from ddh_vsensor.model.plant import Plant
+from ddh_vsensor.model.unit import seal_rings_m2
 from ddh_vsensor.sim.sensors import SensorSettings, first_order_lag
 
 T = 27.0
