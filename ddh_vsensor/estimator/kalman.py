@@ -76,7 +76,7 @@ force does not move by the kilonewtons such a torque would ask within a sample) 
 position's variance takes the travel the model predicted over that sample, which the sample
 does not confirm. The torque
 does not update what is position (x, the flow error, the switches' offsets and the clones: a
-Schmidt "consider" update, Joseph's covariance; :attr:`KalmanSettings.torque_position`):
+Schmidt "consider" update, Joseph's covariance):
 mid-stroke its dependence on x (the chambers' volumes) is too weak to trust, and near a
 stroke end any force the model lacks reads as the stop.
 
@@ -96,8 +96,8 @@ variance, its threshold (:func:`cusum_threshold`) set for a mean of 1 /
 bands are wrong for this machine and the samples carry :data:`MODEL_INCONSISTENT`.
 
 End stops: the plant stops its rows at them and the mean is clipped to [0, stroke]; the
-variance is not truncated (:attr:`KalmanSettings.truncate_at_stops`): truncating the
-re-Gaussianised estimate every sample re-counts one constraint as new information. Every
+variance is not truncated: truncating the re-Gaussianised estimate every sample re-counts one
+constraint as new information. Every
 variance is kept non-negative and a non-finite state raises.
 
 Published: position = x, uncertainty = :attr:`KalmanSettings.coverage` x sqrt(P_xx). Self-check:
@@ -118,7 +118,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import ndtr
 from scipy.stats import chi2
 
 from ddh_vsensor.config import DATASHEET_TOLERANCES, Config, HydraulicsConfig
@@ -141,7 +140,6 @@ N_ROWS = N_PLANT + 1            # nominal + one per perturbed plant state
 # finite-difference steps of the perturbed states (SI, K): well inside each state's
 # uncertainty, well above the step's rounding
 DELTAS = np.array([1e-4, 1e-4, 2e4, 2e4, 50.0, 0.1])
-SQRT_PI_2 = math.sqrt(2.0 * math.pi)
 SQRT_3 = math.sqrt(3.0)
 
 
@@ -150,17 +148,11 @@ class KalmanSettings:
     """The filter's noises and choices, each with what it stands for."""
 
     substeps: int = 5                   # plant steps per sample (2 ms at 100 Hz)
-    torque_at: str = "last"             # "last" substep's torque or the sample's "mean"
     coverage: float = 3.0               # published uncertainty = coverage x sigma
     floor_mm: float = 0.1               # sigma never below: a stroke end's mechanical tolerance
-    # at a stroke end: False clips the mean only. Truncating the Gaussian again every sample
-    # re-counts one constraint as new information (the variance collapses, the mean is
-    # pushed inwards, away from a rod stopped just short of the end)
-    truncate_at_stops: bool = False
     # x's finite-difference step, in its sigmas, away from the nearer stroke end: the slope of
     # the stop's clip over the spread (the position's spread closes as the rods behind arrive)
     stop_reach: float = 2.0
-    torque_position: str = "never"      # torque updates x: "always", "near_stop", "never"
     # measurement
     # the parameters' bands (the configuration's ``tolerances``; these defaults a datasheet's)
     drive_torque_nm: float = DATASHEET_TOLERANCES.torque_noise_nm     # the drive's torque error per sample
@@ -196,7 +188,6 @@ class KalmanSettings:
     temp_sd_c: float = DATASHEET_TOLERANCES.oil_temp_c
     temp_tau_s: float = 600.0           # the tank's thermal time constant
     temp_bound_sd: float = 4.0          # the offset's bound, in its sigmas
-    temp_state: bool = True             # False: no state; its leakage share folds into a
     # process noise, per sqrt(s)
     load_walk_share: float = 0.02       # of the start's |F_load| per sqrt(s): geometry, friction
     force_noise_n: float = 200.0        # white force (friction not modelled) per sqrt(s)
@@ -266,24 +257,6 @@ class _Job:
 def _set_mass(plant: Plant, mass_kg: np.ndarray) -> None:
     """Per-row moving mass (the C step reads it each step)."""
     plant.mass = mass_kg
-
-
-def _truncate(mean: np.ndarray, sd: np.ndarray, lo: np.ndarray,
-              hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and variance of N(mean, sd^2) truncated to [lo, hi]."""
-    a, b = (lo - mean) / sd, (hi - mean) / sd
-    z = ndtr(b) - ndtr(a)
-    pa, pb = np.exp(-0.5 * a * a) / SQRT_PI_2, np.exp(-0.5 * b * b) / SQRT_PI_2
-    ok = z > 1e-9
-    zs = np.where(ok, z, 1.0)
-    shift = (pa - pb) / zs
-    a_f = np.where(np.isfinite(a), a * pa, 0.0)
-    b_f = np.where(np.isfinite(b), b * pb, 0.0)
-    var = sd * sd * np.maximum(1.0 + (a_f - b_f) / zs - shift * shift, 1e-6)
-    m = mean + sd * shift
-    # all the mass far beyond one end: at that end, a thousandth of the variance left
-    nearest = np.where(mean < lo, lo, hi)
-    return np.where(ok, m, nearest), np.where(ok, var, 1e-3 * sd * sd)
 
 
 @functools.lru_cache
@@ -447,7 +420,7 @@ class _Bank:
             sf = max(s.load_share * abs(force), j.unit.cylinder.static_friction_n)
             p0[b, :N_BASE] = [(sx * 1e-3) ** 2, (s.velocity_mm_s * 1e-3) ** 2,
                               (s.pressure_bar * 1e5) ** 2, (s.pressure_bar * 1e5) ** 2, sf ** 2,
-                              s.temp_sd_c ** 2 if s.temp_state else 0.0, 1.0,
+                              s.temp_sd_c ** 2, 1.0,
                               s.torque_offset_nm ** 2, s.compliance_tolerance ** 2 / 3.0]
             # a switch mounted off is off by the same on every pass: uniform over its tolerance
             for sw in j.switches:
@@ -467,17 +440,11 @@ class _Bank:
         thin with cold oil nor fall linearly with pressure (at -10 degC it is most of the
         leakage, which the laminar law puts near zero); b |q_displacement(n)|: the delivered
         flow's own speed dependence (filling, the trapped volume's compression); c: a floor
-        for what bypasses the seals. Without a temperature state the viscosity's error folds into a:
-        the leakage goes as 1/mu(T), so a sensor off by sigma_T misreads it by
-        |d ln mu / dT| sigma_T."""
+        for what bypasses the seals."""
         s = self.s
         mu = self.oil.dynamic_viscosity_pa_s(temp_c + z[:, DT])
         leak = (np.abs(self.leak_a * z[:, PA]) + np.abs(self.leak_b * z[:, PB])) / mu
         a = s.leak_tolerance
-        if not s.temp_state:
-            dlog = np.abs(np.log(self.oil.dynamic_viscosity_pa_s(temp_c + 0.5))
-                          - np.log(self.oil.dynamic_viscosity_pa_s(temp_c - 0.5)))
-            a = np.sqrt(a * a + (dlog * s.temp_sd_c) ** 2)
         # the orifice law against the laminar one, per side, at the same rating-point leakage
         pa, pb = np.abs(z[:, PA]), np.abs(z[:, PB])
         orifice = (np.abs(self.orifice_a * np.sqrt(pa) - self.leak_a * pa / mu)
@@ -507,7 +474,7 @@ class _Bank:
         cap = (self.dead + self.area_a * 0.5 * self.stroke) / self.beta
         q[:, PA] = q[:, PB] = (s.flow_noise_share * self.rated_leak / cap) ** 2 * T
         q[:, LOAD] = (s.load_walk_share * self.load_scale) ** 2 * T
-        q[:, DT] = (s.temp_sd_c ** 2 if s.temp_state else 0.0) * (1.0 - self.phi_t ** 2)
+        q[:, DT] = s.temp_sd_c ** 2 * (1.0 - self.phi_t ** 2)
         q[:, EPS] = 1.0 - self.phi_q ** 2
         q[:, TOFF] = s.torque_offset_walk_nm ** 2 * T
         Q = np.zeros((self.B, n, n))
@@ -544,8 +511,6 @@ class _Bank:
         # mean there too, not when the mean arrives
         deltas = np.broadcast_to(DELTAS, (B, N_PLANT)).copy()
         away = np.where(z[:, X] > 0.5 * self.stroke, -1.0, 1.0)
-        room = np.where(away < 0.0, self.stroke - z[:, X], z[:, X])
-        self.room_sd = room / np.maximum(sd_x, 1e-9)
         deltas[:, X] = away * np.minimum(np.maximum(DELTAS[X], self.s.stop_reach * sd_x),
                                          0.5 * self.stroke)
         rows[:, 1:, :] += deltas[:, :, None] * np.eye(N_PLANT)[None, :, :]
@@ -566,13 +531,11 @@ class _Bank:
         t_mid = 0.5 * (self.temp[k - 1] + self.temp[k])
         mu = self.oil.dynamic_viscosity_pa_s(np.repeat(t_mid, N_ROWS) + rows[:, DT])
         mask = np.ones(B * N_ROWS, dtype=bool)
-        tsum = np.zeros(B * N_ROWS)
         zero = np.zeros(B * N_ROWS)       # torque command: unused in speed mode
         for i in range(sub):
             plant.set_speed_control(mask, np.repeat(n0 + (n1 - n0) * (i + 1) / sub, N_ROWS))
             plant.step(zero, mu)
-            tsum += plant.torque
-        tq = plant.torque if self.s.torque_at == "last" else tsum / sub
+        tq = plant.torque
         out = np.stack([plant.x, plant.v, plant.dp_a, plant.dp_b], axis=1).reshape(B, N_ROWS, 4)
         tq = tq.reshape(B, N_ROWS)
         nom = out[:, 0, :]
@@ -697,17 +660,15 @@ class _Bank:
                     unexplained = nis[k] > self.torque_gate
                     K[np.ix_(unexplained, SLOW)] = 0.0
                     P[unexplained, X, X] += (z[unexplained, X] - x_before[unexplained]) ** 2
-                # mid-stroke the torque's dependence on the position (the chambers' volumes)
-                # is too weak to trust under structure the model lacks: the position, the flow
-                # error and what is position too (the switches' offsets, the positions at
-                # pending edges) are "considered" (Schmidt), not updated, unless a stroke end
-                # is within reach; the covariance update then is Joseph's for that gain
-                if s.torque_position != "always":
-                    far = self.room_sd > s.stop_reach if s.torque_position == "near_stop" \
-                        else np.ones(B, dtype=bool)
-                    K[far, X] = 0.0
-                    K[far, EPS] = 0.0
-                    K[:, N_BASE:] = 0.0
+                # the torque's dependence on the position (the chambers' volumes) is too weak
+                # to trust under structure the model lacks, and at a stroke end any force the
+                # model lacks reads as the stop: the position, the flow error and what is
+                # position too (the switches' offsets, the positions at pending edges) are
+                # "considered" (Schmidt), not updated; the covariance update then is Joseph's
+                # for that gain
+                K[:, X] = 0.0
+                K[:, EPS] = 0.0
+                K[:, N_BASE:] = 0.0
                 z = z + K * y[:, None]
                 KPH = K[:, :, None] * PH[:, None, :]
                 P = (P - KPH - np.transpose(KPH, (0, 2, 1))
@@ -723,15 +684,6 @@ class _Bank:
             # the oil's offset stays within temp_bound_sd of its spread: a value beyond is
             # another error taken for temperature (and the viscosity law has no meaning there)
             z[:, DT] = np.clip(z[:, DT], -temp_bound, temp_bound)
-            # end stops
-            sd = np.sqrt(np.maximum(P[:, X, X], 1e-18))
-            m_t, v_t = _truncate(z[:, X], sd, np.zeros(B), self.stroke)
-            moved = (np.abs(m_t - z[:, X]) > 1e-12) | (v_t < 0.999999 * sd * sd)
-            if s.truncate_at_stops and moved.any():
-                px = P[:, :, X] / (sd * sd)[:, None]
-                shrink = 1.0 - v_t / (sd * sd)
-                z = z + px * (m_t - z[:, X])[:, None]
-                P = P - shrink[:, None, None] * px[:, :, None] * P[:, X, :][:, None, :]
             z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
             P[:, X, X] = np.maximum(P[:, X, X], (s.floor_mm * 1e-3) ** 2)
             P = 0.5 * (P + np.transpose(P, (0, 2, 1)))
