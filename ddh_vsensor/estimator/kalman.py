@@ -126,7 +126,8 @@ from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, Switch, accepted_edges,
                                               switches_from_config)
 from ddh_vsensor.measured import Run
-from ddh_vsensor.physics.conversions import BAR_PA, CST_M2S, RPM_RAD_S
+from ddh_vsensor.physics.conversions import BAR_PA, RPM_RAD_S
+from ddh_vsensor.physics.pump import rating_viscosity_pa_s
 from ddh_vsensor.physics.steady import steady_state_at_torque
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.model.plant import Plant, RowSpec
@@ -380,8 +381,7 @@ class _Bank:
         self.dead = col(lambda j: j.unit.dead_volume_m3)
         # a side's leakage at the rating point, through an orifice: k_lam dp_r / mu_r sqrt(dp/dp_r)
         dp_r = hydraulics.nominal_pressure_bar * BAR_PA
-        t_r = self.oil.temperature_at_viscosity_c(hydraulics.nominal_viscosity_cst)
-        mu_r = hydraulics.nominal_viscosity_cst * CST_M2S * float(self.oil.density_kg_m3(t_r))
+        mu_r = rating_viscosity_pa_s(self.oil, hydraulics)
         self.orifice_a = self.leak_a * math.sqrt(dp_r) / mu_r
         self.orifice_b = self.leak_b * math.sqrt(dp_r) / mu_r
         self.beta = col(lambda j: j.unit.bulk_modulus_pa)

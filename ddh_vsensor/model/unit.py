@@ -74,7 +74,8 @@ from typing import Any
 import numpy as np
 
 from ddh_vsensor.config import Config, HydraulicsConfig
-from ddh_vsensor.physics.conversions import BAR_PA, CST_M2S
+from ddh_vsensor.physics.conversions import BAR_PA
+from ddh_vsensor.physics.pump import rating_viscosity_pa_s
 from ddh_vsensor.physics.unit import DDHUnit
 
 NOT_BUILT = ("ddh_vsensor.model._unit was not built: install a C compiler (gcc) and reinstall "
@@ -180,8 +181,7 @@ def orifice_leakage(unit: DDHUnit, shares: tuple[float, float], hydraulics: Hydr
     coefficient (m^3/s/sqrt(Pa)) carrying that share at the rating point: k_orf sqrt(dp_r) =
     share x k dp_r / mu_r, so the rating point's leakage is kept."""
     dp_r = hydraulics.nominal_pressure_bar * BAR_PA
-    t_r = unit.oil.temperature_at_viscosity_c(hydraulics.nominal_viscosity_cst)
-    mu_r = hydraulics.nominal_viscosity_cst * CST_M2S * float(unit.oil.density_kg_m3(t_r))
+    mu_r = rating_viscosity_pa_s(unit.oil, hydraulics)
     orifice_a, orifice_b = (share * s.pump.leak_coeff_m3 * math.sqrt(dp_r) / mu_r
                             for share, s in zip(shares, unit.sides))
     return (replace(unit, a=replace(unit.a, pump=unit.a.pump.scaled(leakage=1.0 - shares[0])),

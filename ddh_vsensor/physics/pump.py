@@ -19,6 +19,13 @@ from ddh_vsensor.physics.oil import Oil
 from ddh_vsensor.physics.conversions import BAR_PA, CM3_M3, CST_M2S, RPM_REV_S
 
 
+def rating_viscosity_pa_s(oil: Oil, hyd: HydraulicsConfig) -> float:
+    """The dynamic viscosity of the pumps' rating point (its kinematic one, at the density of
+    the temperature where the oil has it): where the nominal efficiencies were measured."""
+    t_ref = oil.temperature_at_viscosity_c(hyd.nominal_viscosity_cst)
+    return hyd.nominal_viscosity_cst * CST_M2S * float(oil.density_kg_m3(t_ref))
+
+
 @dataclass(frozen=True)
 class Pump:
     """``sign`` is +1 when positive motor speed pushes oil into the chamber, -1 when it draws."""
@@ -33,8 +40,7 @@ class Pump:
     @classmethod
     def from_config(cls, cfg: PumpConfig, hyd: HydraulicsConfig, oil: Oil, sign: int) -> "Pump":
         disp = cfg.displacement_cm3_rev * CM3_M3
-        t_ref = oil.temperature_at_viscosity_c(hyd.nominal_viscosity_cst)
-        mu_ref = hyd.nominal_viscosity_cst * CST_M2S * float(oil.density_kg_m3(t_ref))
+        mu_ref = rating_viscosity_pa_s(oil, hyd)
         q_nominal = disp * hyd.nominal_pump_speed_rpm * RPM_REV_S
         leak_nominal = (1.0 - cfg.volumetric_efficiency) * q_nominal
         k = leak_nominal * mu_ref / (hyd.nominal_pressure_bar * BAR_PA)
