@@ -1,5 +1,5 @@
-"""``ddh-vsensor commission``: a machine's Hall switches measured on its calibration runs (the
-draw-wire position still fitted), written into its configuration."""
+"""``ddh-vsensor commission``: a machine's Hall switches and its pumps' flow model measured on
+its calibration runs (the draw-wire position still fitted), written into its configuration."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import numpy as np
 
 from ddh_vsensor.atomic import output_dir, output_file
 from ddh_vsensor.cli.progress import ProgressBar
+from ddh_vsensor.commission.flow import FlowFit
 from ddh_vsensor.commission.switches import (KIND_WORDS, KINDS, SPREAD_FACTOR, UnitCalibration,
                                              calibrate_unit)
 from ddh_vsensor.config import Config, load_config
@@ -20,14 +21,18 @@ from ddh_vsensor.measured import Run
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "commission", help="measure the Hall switches' switching points on calibration runs "
-                           "with the position sensor fitted; write the machine's configuration",
+        "commission", help="measure the Hall switches' switching points and the pumps' "
+                           "leakage on calibration runs with the position sensor fitted; "
+                           "write the machine's configuration",
         description="Finds every Hall switch's edges in the runs, the rod's measured position "
                     "at each, and fits the configuration's switch positions, window and "
                     "hysteresis to them; the tolerance becomes the fit's largest residual plus "
-                    "k x the edges' spread. Writes the datasheet configuration with those keys "
-                    "set and commented with their evidence; a switch the runs do not calibrate "
-                    "keeps its values, with the run that would calibrate it.")
+                    "k x the edges' spread. Fits each unit's pump leakage (per side), its "
+                    "orifice share and speed gain (and, from logged chamber pressures, the "
+                    "hoses' expansion) to the chambers' oil balance against the measured "
+                    "travel. Writes the datasheet configuration with those keys set and "
+                    "commented with their evidence; a value the runs do not measure keeps the "
+                    "datasheet's, with the run that would measure it.")
     p.add_argument("runs", nargs="+", metavar="RUN",
                    help="calibration runs: CSV of the measured-data format with position_mm "
                         "(one unit each, its '# actuator:' line or --actuator), or CAN logs "
@@ -41,6 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="commission this unit only (default: every unit the runs hold)")
     p.add_argument("--report", metavar="DIR",
                    help="write commission.json: every edge per switch, each kind's statistics")
+    p.add_argument("--switches-only", action="store_true",
+                   help="calibrate the Hall switches only, not the pumps' flow model")
     p.add_argument("--spread-factor", type=float, default=SPREAD_FACTOR, metavar="K",
                    help="the tolerance is the largest residual plus K standard deviations of "
                         "the edges (default %(default)g)")
@@ -99,7 +106,25 @@ def _summary(cal: UnitCalibration) -> list[str]:
     return lines
 
 
+def _flow_summary(fit: FlowFit) -> list[str]:
+    lines = [f"  flow model (pressures {fit.pressures}; windows A {fit.windows['a']}, "
+             f"B {fit.windows['b']}; loaded A {fit.loaded_windows['a']}, "
+             f"B {fit.loaded_windows['b']}):"]
+    for name, e in ((f"pump {s.upper()} leakage factor", fit.leakage[s]) for s in "ab"):
+        lines.append(f"    {name}: " + (f"{e.value:.3f} +-{e.sd:.3f}" if e.identified
+                                         else f"not measured ({e.problem})"))
+    for name, e in (("orifice share", fit.orifice_share), ("speed gain", fit.speed_gain),
+                    ("hose expansion per 100 bar", fit.hose_expansion_per_100bar)):
+        lines.append(f"    {name}: " + (f"{e.value:.3f} +-{e.sd:.3f}" if e.identified
+                                         else f"not measured ({e.problem})"))
+    for s, rms in fit.residual_rms_ml.items():
+        lines.append(f"    side {s.upper()}: balance residual {rms:.2f} ml per window "
+                     f"(datasheet model {fit.datasheet_rms_ml[s]:.2f})")
+    return lines
+
+
 def _run(args: argparse.Namespace) -> int:
+    from ddh_vsensor.commission.flow import fit_flows
     from ddh_vsensor.commission.machine import write_config, write_report
     if not (args.spread_factor >= 0.0 and np.isfinite(args.spread_factor)):
         raise UserError(f"--spread-factor must be a number >= 0, got {args.spread_factor:g}")
@@ -115,19 +140,32 @@ def _run(args: argparse.Namespace) -> int:
     runs = read_runs(args.runs, cfg, args.actuator)
     cals = {a: calibrate_unit(a, cfg.unit(a), r, cfg.estimator.debounce_s, args.spread_factor)
             for a, r in runs.items()}
-    if not any(c.calibrated for c in cals.values()):
+    flows: dict[str, FlowFit] = {}
+    flow_problems: dict[str, str] = {}
+    if not args.switches_only:
+        for a, unit_runs in runs.items():
+            try:
+                flows.update(fit_flows(cfg, {a: unit_runs}))
+            except UserError as exc:
+                flow_problems[a] = str(exc)
+    if not any(c.calibrated for c in cals.values()) and not any(
+            f.measured for f in flows.values()):
         problems = [p for c in cals.values() for p in c.problems]
-        raise UserError("no switch calibrated: " + ("; ".join(problems) or "the runs hold no "
-                                                     "unit with its position"))
-    write_config(datasheet, out, cals, args.spread_factor)
+        raise UserError("no switch calibrated and no flow value measured: " + (
+            "; ".join(problems) or "the runs hold no unit with its position"))
+    write_config(datasheet, out, cals, args.spread_factor, flows, cfg)
     for a, cal in cals.items():
         print(f"{a}: {len(runs[a])} runs, {len(cal.calibrated)} of {len(cal.switches)} "
               "switches calibrated")
         print("\n".join(_summary(cal)))
+        if a in flows:
+            print("\n".join(_flow_summary(flows[a])))
+        elif a in flow_problems:
+            print(f"  flow model not measured: {flow_problems[a]}")
     missing = [a for a in cfg.unit_names if a not in cals and args.actuator is None]
     if missing:
         print(f"not commissioned (no run with its position): {', '.join(missing)}")
     print(f"written: {out}")
     if report is not None:
-        print(f"report: {write_report(output_dir(report, 'report directory'), cals)}")
+        print(f"report: {write_report(output_dir(report, 'report directory'), cals, flows)}")
     return 0

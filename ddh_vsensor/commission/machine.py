@@ -1,5 +1,6 @@
-"""The commissioned configuration: the datasheet file with the calibrated switch keys set and
-commented with their evidence, checked by loading it; and the edges behind them as JSON."""
+"""The commissioned configuration: the datasheet file with the calibrated switch keys and the
+measured flow model set and commented with their evidence, checked by loading it; and the
+evidence behind them as JSON and HTML."""
 
 from __future__ import annotations
 
@@ -10,8 +11,11 @@ from pathlib import Path
 from typing import Any
 
 import jinja2
+import numpy as np
+import yaml
 
 from ddh_vsensor.atomic import atomic_path, atomic_write
+from ddh_vsensor.commission.flow import Estimate, FlowFit
 from ddh_vsensor.commission.switches import KIND_KEYS, UnitCalibration
 from ddh_vsensor.commission.yaml_text import Setting, set_values
 from ddh_vsensor.config import Config, load_config
@@ -61,14 +65,91 @@ def settings(cal: UnitCalibration, spread_factor: float) -> list[Setting]:
     return out
 
 
+# a tolerance written from a fit is never narrower than this: with pressures read from the
+# torque, the pumps' torque efficiencies (known to a few percent) scale every pressure and so
+# the leakage fitted to it; with logged pressures, the transducers' calibration
+TOLERANCE_FLOOR = {"estimated": 0.1, "logged": 0.05}
+COVERAGE = 3.0                  # a tolerance is the fit's standard deviation times this
+
+
+def _evidence(e: Estimate, fit: FlowFit) -> str:
+    return (f"+-{e.sd:.3f} (1 sigma), {sum(fit.loaded_windows.values())} loaded windows, "
+            f"pressures {fit.pressures}")
+
+
+def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key: str,
+                  tolerances: bool) -> list[Setting]:
+    """The keys of the measured flow model, each with its evidence; a value the runs did not
+    identify keeps the datasheet's with what would measure it. ``tolerances``: the file has
+    a ``tolerances`` section to narrow."""
+    out = []
+    leak_sd: list[float] = []
+    share_sd: list[float] = []
+    floors = [TOLERANCE_FLOOR["estimated" if "estimated" in f.pressures else "logged"]
+              for f in fits.values()]
+    for unit, fit in fits.items():
+        for side in ("a", "b"):
+            base = ("units", unit, f"pump_{side}")
+            pump = getattr(cfg.unit(unit), f"pump_{side}")
+            e = fit.leakage[side]
+            if e.identified:
+                eta = 1.0 - e.value * (1.0 - pump.volumetric_efficiency)
+                out.append(Setting((*base, "volumetric_efficiency"), f"{eta:.4f}",
+                                   f"commissioned: leakage x{e.value:.3f} the datasheet's "
+                                   f"({pump.volumetric_efficiency:g}) {_evidence(e, fit)}"))
+                leak_sd.append(e.sd / e.value)
+            else:
+                out.append(Setting((*base, "volumetric_efficiency"), None,
+                                   f"not commissioned: {e.problem}"))
+            for key, est in (("leakage_orifice_share", fit.orifice_share),
+                             ("leakage_speed_gain", fit.speed_gain)):
+                if est.identified:
+                    out.append(Setting((*base, key), f"{est.value:.3f}",
+                                       f"commissioned: {_evidence(est, fit)}",
+                                       after="volumetric_efficiency"))
+        if fit.orifice_share.identified:
+            share_sd.append(fit.orifice_share.sd)
+    hoses = [f.hose_expansion_per_100bar for f in fits.values()
+             if f.hose_expansion_per_100bar.identified]
+    if hoses:
+        weights = np.array([1.0 / max(h.sd, 1e-6) ** 2 for h in hoses])
+        value = float(np.dot(weights, [h.value for h in hoses]) / weights.sum())
+        sd = float(1.0 / math.sqrt(weights.sum()))
+        out.append(Setting(("hydraulics", "hose_expansion_per_100bar"), f"{value:.4f}",
+                           f"commissioned: +-{sd:.4f} (1 sigma) from {len(hoses)} units' "
+                           "loaded windows, pressures logged", after=last_hydraulics_key))
+    if tolerances:
+        floor = max(floors, default=TOLERANCE_FLOOR["estimated"])
+        if leak_sd:
+            band = max(COVERAGE * max(leak_sd), floor)
+            out.append(Setting(("tolerances", "pump_leakage"), f"{band:.3f}",
+                               f"commissioned: {COVERAGE:g} x the largest fitted leakage's "
+                               f"sigma {max(leak_sd):.3f}, at least {floor:g}"))
+        if share_sd:
+            band = max(COVERAGE * max(share_sd), floor)
+            out.append(Setting(("tolerances", "leakage_orifice_share"), f"{band:.3f}",
+                               f"commissioned: {COVERAGE:g} x the fitted share's sigma "
+                               f"{max(share_sd):.3f}, at least {floor:g}"))
+    return out
+
+
 def write_config(datasheet: Path, out: Path, cals: Mapping[str, UnitCalibration],
-                 spread_factor: float) -> Config:
-    """Write the commissioned file atomically, only once it loads as a configuration."""
+                 spread_factor: float, flows: Mapping[str, FlowFit] | None = None,
+                 cfg: Config | None = None) -> Config:
+    """Write the commissioned file atomically, only once it loads as a configuration
+    (``cfg``: the datasheet file's, loaded; needed with ``flows``)."""
     try:
         text = datasheet.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"{datasheet}: cannot read: {exc}") from None
     items = [s for cal in cals.values() for s in settings(cal, spread_factor)]
+    if flows:
+        if cfg is None:
+            raise ValueError("the flow settings need the datasheet's configuration")
+        data = yaml.safe_load(text) or {}
+        hydraulics = list((data.get("hydraulics") or {}).keys())
+        items += flow_settings(cfg, flows, hydraulics[-1] if hydraulics else "",
+                               isinstance(data.get("tolerances"), dict))
     new = set_values(text, str(datasheet), items)
     with atomic_path(out) as tmp:
         tmp.write_text(new, encoding="utf-8")
@@ -81,11 +162,29 @@ def write_config(datasheet: Path, out: Path, cals: Mapping[str, UnitCalibration]
 
 
 def _number(x: float) -> float | None:
-    return None if math.isnan(x) else round(x, 4)
+    return None if not math.isfinite(x) else round(x, 4)
 
 
-def report_data(cals: Mapping[str, UnitCalibration]) -> dict[str, Any]:
-    """Per unit and switch: the calibrated values, each kind's statistics, every edge."""
+def _estimate_data(e: Estimate) -> dict[str, Any]:
+    return {"value": round(e.value, 5), "sd": None if not math.isfinite(e.sd) else round(e.sd, 5), "identified": e.identified,
+            "datasheet": e.datasheet, "problem": e.problem}
+
+
+def flow_data(fit: FlowFit) -> dict[str, Any]:
+    """One unit's fitted flow model as the report's JSON has it."""
+    return {"pressures": fit.pressures, "windows": fit.windows,
+            "loaded_windows": fit.loaded_windows,
+            "leakage_factor": {s: _estimate_data(e) for s, e in fit.leakage.items()},
+            "orifice_share": _estimate_data(fit.orifice_share),
+            "speed_gain": _estimate_data(fit.speed_gain),
+            "hose_expansion_per_100bar": _estimate_data(fit.hose_expansion_per_100bar),
+            "residual_rms_ml": fit.residual_rms_ml, "datasheet_rms_ml": fit.datasheet_rms_ml}
+
+
+def report_data(cals: Mapping[str, UnitCalibration],
+                flows: Mapping[str, FlowFit] | None = None) -> dict[str, Any]:
+    """Per unit and switch: the calibrated values, each kind's statistics, every edge; per
+    unit the fitted flow model."""
     units: dict[str, Any] = {}
     for unit, cal in cals.items():
         units[unit] = {
@@ -114,19 +213,40 @@ def report_data(cals: Mapping[str, UnitCalibration]) -> dict[str, Any]:
                            "bound_mm": round(e.bound_mm, 4), "timed": e.timed}
                           for e in s.edges]}
                 for s in cal.switches.values()}}
+    for unit, fit in (flows or {}).items():
+        units.setdefault(unit, {})["flow"] = flow_data(fit)
     return {"units": units}
 
 
 _PAGE = """<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>Commissioned Hall switches</title>
+<html lang="en"><head><meta charset="utf-8"><title>Commissioned machine</title>
 <style>body{font-family:sans-serif;max-width:60em;margin:2em auto}
 table{border-collapse:collapse;margin:0.5em 0 1.5em}td,th{border:1px solid #bbb;padding:2px 8px}
 td{text-align:right}.bad{color:#a00}</style></head><body>
-<h1>Commissioned Hall switches</h1>
+<h1>Commissioned machine</h1>
 <p>Switching positions (mm) measured at the rod's draw-wire position; the model is one position
 per switch and the unit's common window and hysteresis. Every edge is in commission.json.</p>
 {% for unit, u in units.items() %}
 <h2>{{ unit }}</h2>
+{% if "flow" in u %}
+<h3>Flow model</h3>
+<p>Chamber pressures {{ u.flow.pressures }}; balance windows A {{ u.flow.windows.a }},
+B {{ u.flow.windows.b }} (loaded A {{ u.flow.loaded_windows.a }}, B {{ u.flow.loaded_windows.b }}).
+{% for side, rms in u.flow.residual_rms_ml.items() %}<br>side {{ side|upper }}: residual
+{{ "%.2f"|format(rms) }} ml per window, datasheet model
+{{ "%.2f"|format(u.flow.datasheet_rms_ml[side]) }}{% endfor %}</p>
+<table><tr><th>parameter</th><th>value</th><th>sigma</th><th>datasheet</th><th>measured</th></tr>
+{% for name, e in [("pump A leakage factor", u.flow.leakage_factor.a),
+                   ("pump B leakage factor", u.flow.leakage_factor.b),
+                   ("orifice share", u.flow.orifice_share), ("speed gain", u.flow.speed_gain),
+                   ("hose expansion per 100 bar", u.flow.hose_expansion_per_100bar)] %}
+<tr><th>{{ name }}</th><td>{{ e.value }}</td><td>{{ e.sd if e.sd is not none else "" }}</td>
+<td>{{ e.datasheet }}</td><td{% if not e.identified %} class="bad"{% endif %}>
+{{ "yes" if e.identified else e.problem }}</td></tr>
+{% endfor %}</table>
+{% endif %}
+{% if "switches" in u %}
+<h3>Hall switches</h3>
 <p>window {{ "%.2f"|format(u.window_mm) }} mm (datasheet {{ u.configured.window_mm }}),
 hysteresis {{ "%.2f"|format(u.hysteresis_mm) }} mm ({{ u.configured.hysteresis_mm }}),
 tolerance {{ "%.2f"|format(u.tolerance_mm) }} mm ({{ u.configured.tolerance_mm }});
@@ -142,14 +262,16 @@ fitted: {{ u.fitted|join(", ") or "positions only" }}.
 <td>{{ "%.3f"|format(k.spread_mm) if k.spread_mm is not none else "" }}</td>
 <td>{{ "%.2f"|format(k.fitted_mm) }}</td><td>{{ k.configured_mm }}</td></tr>
 {% endfor %}{% endif %}{% endfor %}</table>
+{% endif %}
 {% endfor %}</body></html>
 """
 
 
-def write_report(directory: Path, cals: Mapping[str, UnitCalibration]) -> Path:
-    """commission.json (every edge) and commission.html (the table per switch); returns
-    the JSON's path."""
-    data = report_data(cals)
+def write_report(directory: Path, cals: Mapping[str, UnitCalibration],
+                 flows: Mapping[str, FlowFit] | None = None) -> Path:
+    """commission.json (every edge, the flow fits) and commission.html (the tables per
+    unit); returns the JSON's path."""
+    data = report_data(cals, flows)
     path = directory / "commission.json"
     with atomic_write(path) as fh:
         json.dump(data, fh, indent=1)

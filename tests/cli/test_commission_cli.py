@@ -46,7 +46,8 @@ def test_can_logs_give_a_configuration_with_the_measured_switches(
         run_dirs: list[Path], tmp_path: Path, capsys) -> None:
     out, report = tmp_path / "machine.yaml", tmp_path / "report"
     assert main(["commission", *(str(d / "run.blf") for d in run_dirs), "--config",
-                 str(DATASHEET), "--out", str(out), "--report", str(report)]) == 0
+                 str(DATASHEET), "--out", str(out), "--report", str(report),
+                 "--switches-only"]) == 0
     printed = capsys.readouterr().out
     assert "boom: 2 runs, 3 of 3 switches calibrated" in printed
     assert "bucket: 2 runs, 0 of 3 switches calibrated" in printed
@@ -108,7 +109,7 @@ def _no_position(path: Path, tmp_path: Path) -> Path:
     ("out not yaml", "its extension must be one of .yaml, .yml"),
     ("unknown unit", "bulldozer"),
     ("no position", "position"),
-    ("nothing calibrated", "no switch calibrated"),
+    ("nothing calibrated", "no switch calibrated and no flow value measured"),
     ("report over a file", "cannot create the report directory"),
     ("bad spread factor", "--spread-factor"),
 ])
@@ -144,3 +145,43 @@ def test_a_bad_input_is_one_line_and_exit_2(case: str, problem: str, run_dirs: l
     assert len(err.splitlines()) == 1 + (case == "nothing calibrated"), err
     assert datasheet.read_text() == original
     assert out == datasheet or not out.exists()
+
+
+@pytest.fixture(scope="module")
+def leaky_csvs(cfg: Config, tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """The boom's CSV runs (logged pressures) of a machine whose pumps leak 1.3x the
+    datasheet's, 30 % through orifices: loaded paper cycles at 20 and 60 degC."""
+    from ddh_vsensor.sim.effects import UnitEffects
+    plant = {a: UnitEffects(pump_leakage=1.3, leak_orifice=30.0) for a in cfg.unit_names}
+    runs = simulate_campaign(cfg, [RunSpec(speed=s, payload_kg=1040.0, oil_temp_c=t,
+                                           effects=plant, seed=s)
+                                   for t in (20.0, 60.0) for s in (2, 4)])
+    out = tmp_path_factory.mktemp("leaky")
+    for i, r in enumerate(runs):
+        write_run_dir(cfg, r, out / f"run{i}")
+    return [out / f"run{i}" / "boom.csv" for i in range(len(runs))]
+
+
+def test_the_measured_flow_model_is_written_with_its_evidence(
+        leaky_csvs: list[Path], tmp_path: Path, capsys) -> None:
+    out, report = tmp_path / "machine.yaml", tmp_path / "report"
+    assert main(["commission", *map(str, leaky_csvs), "--config", str(DATASHEET), "--out",
+                 str(out), "--actuator", "boom", "--report", str(report)]) == 0
+    printed = capsys.readouterr().out
+    assert "pump A leakage factor: 1.3" in printed and "pressures logged" in printed
+    datasheet, machine = load_config(DATASHEET).unit("boom"), load_config(out).unit("boom")
+    leak = (1.0 - machine.pump_a.volumetric_efficiency) / (
+        1.0 - datasheet.pump_a.volumetric_efficiency)
+    assert leak == pytest.approx(1.3, rel=0.02)
+    assert machine.pump_a.leakage_orifice_share == pytest.approx(0.3, abs=0.02)
+    # its chamber never loaded: its leakage kept; the structure is the unit's pumps'
+    assert machine.pump_b.volumetric_efficiency == datasheet.pump_b.volumetric_efficiency
+    assert machine.pump_b.leakage_orifice_share == machine.pump_a.leakage_orifice_share
+    text = out.read_text()
+    assert text.count("# commissioned: ") >= 4 and "hold it loaded" in text
+    flow = json.loads((report / "commission.json").read_text())["units"]["boom"]["flow"]
+    assert flow["leakage_factor"]["a"]["identified"] and not flow["leakage_factor"]["b"][
+        "identified"]
+    assert "Flow model" in (report / "commission.html").read_text()
+    # the leakage band narrows to what was measured (the floor for logged pressures)
+    assert load_config(out).tolerances.pump_leakage == pytest.approx(0.05)
