@@ -11,6 +11,7 @@ from pathlib import Path
 from ddh_vsensor.config import Config
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.sim.control import PIDSettings
+from ddh_vsensor.commission.programme import CALIBRATION, calibration_cycle
 from ddh_vsensor.sim.cycles import RANDOM, WORK, Profile, cycle_names, random_cycle, require_cycle
 from ddh_vsensor.sim.effects import EFFECTS, build_effects, describe
 from ddh_vsensor.sim.run import DEFAULT_STEP_S, RunSpec, simulate, write_run_dir
@@ -30,11 +31,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "control. Writes DIR/UNIT.csv per unit (measured-data format) and "
                     "DIR/run.blf.")
     add_config_arg(p)
-    p.add_argument("--cycle", required=True, metavar="NAME|random|FILE.csv",
+    p.add_argument("--cycle", required=True, metavar="NAME|random|calibration|FILE.csv",
                    help="'work' (the machine's typical cycle: the first of its configuration's "
                         "work_cycle.cycles), a cycle's name (reference loader: paper, "
                         "dig-dump), 'random' (random work, --duration-s long, seeded by "
-                        "--seed) or a CSV setpoint profile with columns time_s and UNIT_mm per "
+                        "--seed), 'calibration' (one run of the commissioning programme: the "
+                        "typical cycle at every speed, each unit swept and held; about 7 "
+                        "minutes) or a CSV setpoint profile with columns time_s and UNIT_mm per "
                         "unit")
     p.add_argument("--speed", type=int, default=4, help="speed level 1..4 of a named cycle: "
                    "N/4 of the units' travel speeds (4 = fastest; reference loader's paper "
@@ -60,6 +63,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _cycle(cfg: Config, args: argparse.Namespace) -> str | Path | Profile:
     """``--cycle`` as a RunSpec's cycle: a configured name, random work or a profile file."""
+    if args.cycle == CALIBRATION:
+        return calibration_cycle(cfg)
     if args.cycle == RANDOM:
         if not 5.0 <= args.duration_s <= 86400.0:
             raise UserError(f"--duration-s {args.duration_s:g}: a random cycle lasts 5..86400 s")
@@ -73,7 +78,7 @@ def _cycle(cfg: Config, args: argparse.Namespace) -> str | Path | Profile:
             raise UserError(f"--cycle {args.cycle}: not UTF-8 text ({exc.reason} at byte "
                             f"{exc.start}), not a profile CSV") from None
         return Path(args.cycle)
-    names = ", ".join((WORK,) + cycle_names(cfg) + (RANDOM,))
+    names = ", ".join((WORK,) + cycle_names(cfg) + (RANDOM, CALIBRATION))
     raise UserError(f"--cycle {args.cycle}: neither a cycle of this machine ({names}) nor a "
                     "readable profile file")
 

@@ -118,7 +118,32 @@ class Profile:
         return Profile(self.name, self.trajectories, self.cycle_s, cycles)
 
 
-def _move_time(distance_mm: float, velocity_mm_s: float) -> float:
+def sequence(name: str, profiles: list[Profile]) -> Profile:
+    """The profiles one after the other (each repeated as it says); each must start where
+    the one before ended, for every unit, and all be smooth."""
+    knots: dict[str, list[tuple[float, float]]] = {}
+    t0 = 0.0
+    for profile in profiles:
+        for _ in range(profile.cycles):
+            for unit, tr in profile.trajectories.items():
+                if not tr.smooth:
+                    raise ValueError(f"profile '{profile.name}' is not smooth: cannot join it")
+                pts = knots.setdefault(unit, [])
+                if pts and abs(pts[-1][1] - tr.position_mm[0]) > 1e-9:
+                    raise ValueError(f"profile '{profile.name}' starts the {unit} at "
+                                     f"{tr.position_mm[0]:g} mm, not at {pts[-1][1]:g}")
+                pts += [(t0 + t, x) for t, x in zip(tr.time_s, tr.position_mm)
+                        if not pts or t0 + t > pts[-1][0] + 1e-9]
+                if t0 + profile.cycle_s > pts[-1][0] + 1e-9:
+                    pts.append((t0 + profile.cycle_s, float(tr.position_mm[-1])))
+            t0 += profile.cycle_s
+    return Profile(name, {u: Trajectory(np.array([p[0] for p in pts]),
+                                        np.array([p[1] for p in pts]))
+                          for u, pts in knots.items()}, t0)
+
+
+def move_time(distance_mm: float, velocity_mm_s: float) -> float:
+    """A smooth move's duration (s) whose top speed is ``velocity_mm_s``."""
     return abs(distance_mm) / (velocity_mm_s * (1.0 - ACCEL_FRACTION))
 
 
@@ -165,7 +190,7 @@ def work_cycle(cfg: Config, name: str = WORK, speed: int = 4, cycles: int = 1) -
         velocity = work_unit(cfg, step.unit).travel_speed_mm_s * step.speed_share * f
         last_t, start = knots[step.unit][-1]
         begin = max(t, last_t)          # a unit's move waits for its previous (overlapping) one
-        end = begin + _move_time(step.to_mm - start, velocity)
+        end = begin + move_time(step.to_mm - start, velocity)
         knots[step.unit] += [(begin, start), (end, step.to_mm)]
         if not step.with_next:
             hold = design.pause_s if step.hold_s is None else step.hold_s
@@ -259,7 +284,7 @@ def random_cycle(cfg: Config, seed: int, duration_s: float = 60.0,
                           else stroke + END_STOP_OVERTRAVEL_MM)
             else:
                 target = rng.uniform(lo, hi)
-            move = _move_time(target - x, rng.uniform(0.3, 1.0) * v_top[actuator])
+            move = move_time(target - x, rng.uniform(0.3, 1.0) * v_top[actuator])
             if t + hold + move + 1.0 > duration_s:
                 break
             t += hold
@@ -269,9 +294,9 @@ def random_cycle(cfg: Config, seed: int, duration_s: float = 60.0,
             x = target
         if x < 0.0 or x > stroke:           # leave the stop before the end
             back = float(np.clip(x, lo, hi))
-            t_back = min(t + 0.3, duration_s - 0.5 - _move_time(back - x, v_top[actuator]))
+            t_back = min(t + 0.3, duration_s - 0.5 - move_time(back - x, v_top[actuator]))
             knots += [(max(t_back, t), x),
-                      (max(t_back, t) + _move_time(back - x, v_top[actuator]), back)]
+                      (max(t_back, t) + move_time(back - x, v_top[actuator]), back)]
         knots.append((max(duration_s, knots[-1][0]), knots[-1][1]))
         trajectories[actuator] = Trajectory(np.array([k[0] for k in knots]),
                                             np.array([k[1] for k in knots]), smooth=True)
