@@ -110,7 +110,9 @@ def _flow_summary(fit: FlowFit) -> list[str]:
     lines = [f"  flow model (pressures {fit.pressures}; windows A {fit.windows['a']}, "
              f"B {fit.windows['b']}; loaded A {fit.loaded_windows['a']}, "
              f"B {fit.loaded_windows['b']}):"]
-    for name, e in ((f"pump {s.upper()} leakage factor", fit.leakage[s]) for s in "ab"):
+    for name, e in [*((f"pump {s.upper()} displacement factor", fit.displacement[s])
+                      for s in "ab"),
+                    *((f"pump {s.upper()} leakage factor", fit.leakage[s]) for s in "ab")]:
         lines.append(f"    {name}: " + (f"{e.value:.3f} +-{e.sd:.3f}" if e.identified
                                          else f"not measured ({e.problem})"))
     for name, e in (("orifice share", fit.orifice_share), ("speed gain", fit.speed_gain),

@@ -52,6 +52,7 @@ def default_text() -> str:
 # Why a datasheet leaves each tolerance as wide as DATASHEET_TOLERANCES has it
 _DATASHEET_WHY = {
     "pump_leakage": "volumetric efficiency to about +-2 points",
+    "pump_displacement": "displacement, belt ratio and bore to +-1 %",
     "leakage_orifice_share": "the leakage law's shape is not given",
     "trapped_volume_share": "of the displacement, compressed and lost per revolution",
     "compliance": "air and hose walls unknown until measured",

@@ -5,7 +5,7 @@ With the valves closed, chamber s's oil is conserved (the unit model's chamber e
 integrated over a window of the run)::
 
     integral q_geo,s(n) dt - sign_s A_s dx - integral V_s(x)/beta dp_s
-        = integral q_leak,s dt + V_dead e_hose dp_s / 100 bar
+        = integral q_leak,s dt + V_dead e_hose dp_s / 100 bar - (d_s - 1) integral q_geo,s dt
 
 with q_geo the displacement flow of the measured motor speed, dx the draw-wire's travel,
 dp_s the chamber's gauge pressure (logged where a transducer was fitted, otherwise the
@@ -15,11 +15,14 @@ the unit model with the structure terms as unknowns::
     q_leak,s = f_s k_s [(1 - o) dp/mu + o sqrt(dp_r) / mu_r dp / sqrt(max(|dp|, 1 bar))]
                x (1 + g r) / (1 + g),                r = |n_pump| / n_rated
 
-f_s the leakage against the datasheet's (per side: it sets the volumetric efficiency), o the
-orifice share and g the speed gain (shared by the unit's two sides: one family of pumps),
-e_hose the hoses' expansion. The left side is known from the run; the right is linear in the
-window's sums of k dp/mu, its speed-weighted sum and the same of the orifice law, so one
-bounded least-squares fit over every window of every run finds them. Their standard
+f_s the leakage against the datasheet's (per side: it sets the volumetric efficiency), d_s
+the delivered displacement against the datasheet's per the cylinder's area (a belt ratio or
+a bore off by a percent moves the rod a percent of every stroke), o the orifice share and g
+the speed gain (shared by the unit's two sides: one family of pumps), e_hose the hoses'
+expansion. The left side is known from the run; the right is linear in the window's sums of
+k dp/mu, its speed-weighted sum, the same of the orifice law and of the displacement flow, so
+one bounded least-squares fit over every window of every run finds them (the displacement
+even on a side the load never presses: it does not need pressure). Their standard
 deviations come from the fit's Jacobian and residual; a value whose evidence does not pin it
 (too few loaded windows on a side, one temperature, one speed) keeps the datasheet's, with
 the run that would measure it.
@@ -53,11 +56,12 @@ LOADED_PA = 20.0 * BAR_PA       # a window loads a side when its mean pressure i
 MIN_LOADED_WINDOWS = 20         # a side's leakage factor needs this many loaded windows
 # identified when its standard deviation is below: the leakage factor (relative), the orifice
 # share, the speed gain, the hoses' expansion per 100 bar
-MAX_SD = {"leakage": 0.05, "orifice_share": 0.1, "speed_gain": 0.2, "hose_expansion": 0.01}
-BOUNDS = {"leakage": (0.05, 20.0), "orifice_share": (0.0, 0.9), "speed_gain": (0.0, 2.0),
-          "hose_expansion": (0.0, 0.2)}
+MAX_SD = {"leakage": 0.05, "displacement": 0.002, "orifice_share": 0.1, "speed_gain": 0.2,
+          "hose_expansion": 0.01}
+BOUNDS = {"leakage": (0.05, 20.0), "displacement": (0.8, 1.2), "orifice_share": (0.0, 0.9),
+          "speed_gain": (0.0, 2.0), "hose_expansion": (0.0, 0.2)}
 ESTIMATE_PASSES = 3             # fits with pressures estimated under the model fitted before
-COLUMNS = 5                     # per window: sums of L, L r, O, O r and V_dead dp / 100 bar
+COLUMNS = 6     # per window: sums of L, L r, O, O r, V_dead dp / 100 bar and q_geo
 
 
 @dataclass
@@ -73,6 +77,14 @@ class Balance:
     @classmethod
     def empty(cls) -> Balance:
         return cls(np.zeros(0), np.zeros((0, COLUMNS)), np.zeros(0), np.zeros(0), np.zeros(0))
+
+    def loaded(self) -> Balance:
+        """Only the windows whose mean pressure is above :data:`LOADED_PA`: where a pressure
+        read from the torque is the side's own (the torque carries the loaded chamber's;
+        the other's is the model's guess)."""
+        keep = self.mean_dp_pa > LOADED_PA
+        return Balance(*(getattr(self, f)[keep]
+                         for f in ("y_m3", "sums", "mean_dp_pa", "temp_c", "speed_ratio")))
 
     def extend(self, other: Balance) -> Balance:
         return Balance(*(np.concatenate([getattr(self, f), getattr(other, f)])
@@ -98,6 +110,7 @@ class FlowFit:
     unit: str
     pressures: str                                  # "logged" or "estimated"
     leakage: dict[str, Estimate]                    # per side "a", "b"
+    displacement: dict[str, Estimate]               # per side: against the datasheet's
     orifice_share: Estimate
     speed_gain: Estimate
     hose_expansion_per_100bar: Estimate
@@ -107,7 +120,8 @@ class FlowFit:
     @property
     def measured(self) -> bool:
         """Whether the runs measured any of the flow model's values."""
-        return any(e.identified for e in (*self.leakage.values(), self.orifice_share,
+        return any(e.identified for e in (*self.leakage.values(), *self.displacement.values(),
+                                          self.orifice_share,
                                           self.speed_gain, self.hose_expansion_per_100bar))
     residual_rms_ml: dict[str, float] = field(default_factory=dict)  # per side and window
     datasheet_rms_ml: dict[str, float] = field(default_factory=dict)
@@ -175,11 +189,13 @@ def balances(cfg: Config, unit: DDHUnit, run: Run, dp_a: np.ndarray, dp_b: np.nd
         def trapezoid(f: np.ndarray) -> np.ndarray:
             return 0.5 * (f[1:] + f[:-1]) * h
 
-        y = (trapezoid(pump.geometric_flow_m3_s(n)) - sign * side.area_m2 * np.diff(x)
+        geometric = trapezoid(pump.geometric_flow_m3_s(n))
+        y = (geometric - sign * side.area_m2 * np.diff(x)
              - volume[:-1] / unit.bulk_modulus_pa * np.diff(dp))
         cols = np.stack([trapezoid(laminar), trapezoid(laminar * r), trapezoid(orifice),
                          trapezoid(orifice * r),
-                         unit.dead_volume_m3 * np.diff(dp) / (100.0 * BAR_PA)], axis=1)
+                         unit.dead_volume_m3 * np.diff(dp) / (100.0 * BAR_PA), geometric],
+                        axis=1)
         closed = ((dp > -0.5 * side.anticav.cracking_pa)
                   & (dp < side.relief.setting_pa - RELIEF_MARGIN_PA) & off_stops)
         good = closed[1:] & closed[:-1]
@@ -197,59 +213,73 @@ def balances(cfg: Config, unit: DDHUnit, run: Run, dp_a: np.ndarray, dp_b: np.nd
     return out
 
 
-def _leakage(theta: np.ndarray, sums: np.ndarray) -> np.ndarray:
-    f, o, g, e = theta
-    lam, lam_r, orf, orf_r, hose = sums.T
-    return f / (1.0 + g) * ((1.0 - o) * (lam + g * lam_r) + o * (orf + g * orf_r)) + e * hose
+def _model(v: dict[str, float], side: str, sums: np.ndarray) -> np.ndarray:
+    """The windows' balance under parameters ``v``: the leakage, the hoses' share of the
+    compression, less the displacement's excess over the datasheet's."""
+    f, o, g = v[f"leakage_{side}"], v["orifice_share"], v["speed_gain"]
+    lam, lam_r, orf, orf_r, hose, geo = sums.T
+    return (f / (1.0 + g) * ((1.0 - o) * (lam + g * lam_r) + o * (orf + g * orf_r))
+            + v["hose_expansion"] * hose - (v[f"displacement_{side}"] - 1.0) * geo)
 
 
 def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
              pressures: str) -> FlowFit:
-    """The unit's leakage factors (per side), orifice share, speed gain and hoses' expansion
-    from its windows: one bounded least-squares fit; each value's standard deviation from
-    the Jacobian, the residual's variance per side."""
+    """The unit's leakage and displacement factors (per side), orifice share, speed gain and
+    hoses' expansion from its windows: one bounded least-squares fit; each value's standard
+    deviation from the Jacobian, the residual's variance per side."""
     from scipy.optimize import least_squares
     u = cfg.unit(unit_name)
     datasheet = {"orifice_share": (u.pump_a.leakage_orifice_share
                                    + u.pump_b.leakage_orifice_share) / 2,
                  "speed_gain": (u.pump_a.leakage_speed_gain + u.pump_b.leakage_speed_gain) / 2,
-                 "hose_expansion": cfg.hydraulics.hose_expansion_per_100bar}
+                 "hose_expansion": cfg.hydraulics.hose_expansion_per_100bar,
+                 "leakage_a": 1.0, "leakage_b": 1.0, "displacement_a": 1.0,
+                 "displacement_b": 1.0}
     sides = [s for s in ("a", "b") if len(side_balances[s].y_m3)]
     if not sides:
         raise UserError(f"{unit_name}: no window where the chambers' balance holds (valves "
                         "closed, the rod clear of its stops): run the calibration programme")
     loaded = {s: int(np.sum(side_balances[s].mean_dp_pa > LOADED_PA)) if s in sides else 0
               for s in ("a", "b")}
-    fitted_sides = [s for s in sides if loaded[s] >= MIN_LOADED_WINDOWS] or sides
-    # per side f_s; shared o, g and (from logged pressures only) e. The compliance term is
-    # dp/dt: a pressure estimated from the torque carries the drive's lag and ripple there
-    shared = ["orifice_share", "speed_gain"] + (["hose_expansion"] if pressures == "logged"
-                                                else [])
-    names = [f"leakage_{s}" for s in fitted_sides] + shared
-    lo = [BOUNDS[n.split("_")[0] if n.startswith("leakage_") else n][0] for n in names]
-    hi = [BOUNDS[n.split("_")[0] if n.startswith("leakage_") else n][1] for n in names]
+    leaky = [s for s in sides if loaded[s] >= MIN_LOADED_WINDOWS] or sides
+    # free: every side's displacement, the loaded sides' leakage, the shared shape and (from
+    # logged pressures only: it is dp/dt, which a pressure read from the torque has with the
+    # drive's lag and ripple) the hoses
+    # a pressure read from the torque is a loaded side's: there a side needs its loaded
+    # windows for its displacement too
+    moved = sides if pressures == "logged" else [s for s in sides
+                                                 if loaded[s] >= MIN_LOADED_WINDOWS]
+    names = ([f"displacement_{s}" for s in moved] + [f"leakage_{s}" for s in leaky]
+             + ["orifice_share", "speed_gain"]
+             + (["hose_expansion"] if pressures == "logged" else []))
+    bounds = [BOUNDS[n.rsplit("_", 1)[0] if n[-2:] in ("_a", "_b") else n] for n in names]
     # start inside the bounds, off the shares' and gain's lower bound (a zero gradient there)
-    start = {"orifice_share": min(datasheet["orifice_share"] + 0.05, 0.85),
-             "speed_gain": min(datasheet["speed_gain"] + 0.05, 1.95),
-             "hose_expansion": datasheet["hose_expansion"]}
-    x0 = np.array([1.0] * len(fitted_sides) + [start[k] for k in shared])
-    scale = {s: max(float(np.std(side_balances[s].y_m3)), 1e-12) for s in fitted_sides}
+    start = dict(datasheet, orifice_share=min(datasheet["orifice_share"] + 0.05, 0.85),
+                 speed_gain=min(datasheet["speed_gain"] + 0.05, 1.95))
+    scale = {s: max(float(np.std(side_balances[s].y_m3)), 1e-12) for s in sides}
 
-    def theta(p: np.ndarray, i: int) -> np.ndarray:
-        v = dict(zip(shared, p[len(fitted_sides):]))
-        return np.array([p[i], v["orifice_share"], v["speed_gain"],
-                         v.get("hose_expansion", datasheet["hose_expansion"])])
+    def values(p: np.ndarray) -> dict[str, float]:
+        """The parameters; a side whose leakage the runs cannot show leaks like the other
+        side's pumps (one family), not like the datasheet, in the other's balance terms."""
+        v = dict(datasheet, **dict(zip(names, p)))
+        for s in ("a", "b"):
+            other = "b" if s == "a" else "a"
+            if s not in leaky and other in leaky:
+                v[f"leakage_{s}"] = v[f"leakage_{other}"]
+        return v
 
     def residuals(p: np.ndarray) -> np.ndarray:
-        return np.concatenate([(_leakage(theta(p, i), side_balances[s].sums)
-                                - side_balances[s].y_m3) / scale[s]
-                               for i, s in enumerate(fitted_sides)])
+        v = values(p)
+        return np.concatenate([(_model(v, s, side_balances[s].sums) - side_balances[s].y_m3)
+                               / scale[s] for s in sides])
 
-    fit = least_squares(residuals, x0, bounds=(lo, hi), x_scale="jac")
+    lo, hi = zip(*bounds)
+    fit = least_squares(residuals, np.array([start[n] for n in names]), bounds=(lo, hi),
+                        x_scale="jac")
     # refit with each side's rows scaled by its own residual level: the sides weigh by
     # their noise
-    rows = np.cumsum([0] + [len(side_balances[s].y_m3) for s in fitted_sides])
-    for i, s in enumerate(fitted_sides):
+    rows = np.cumsum([0] + [len(side_balances[s].y_m3) for s in sides])
+    for i, s in enumerate(sides):
         part = fit.fun[rows[i]:rows[i + 1]]
         scale[s] *= max(float(np.sqrt(np.mean(part ** 2))), 1e-9)
     fit = least_squares(residuals, fit.x, bounds=(lo, hi), x_scale="jac")
@@ -260,14 +290,15 @@ def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
     # a parameter the windows do not move at all has no information, not zero variance
     blind = np.diag(info) <= 1e-12 * max(float(np.max(np.diag(info))), 1e-300)
     sd = dict(zip(names, np.where(blind, np.inf, np.sqrt(variance))))
-    value = dict(zip(names, fit.x))
+    value = values(fit.x)
     temps = np.concatenate([side_balances[s].temp_c for s in sides])
     speeds = np.concatenate([side_balances[s].speed_ratio for s in sides])
 
-    def estimate(key: str, name: str, what: str, ds: float) -> Estimate:
-        if key not in value:
+    def estimate(key: str, what: str) -> Estimate:
+        ds = datasheet[key]
+        if key not in sd:
             return Estimate(ds, math.nan, False, ds, what)
-        ok = sd[key] < MAX_SD[name]
+        ok = sd[key] < MAX_SD[key.rsplit("_", 1)[0] if key[-2:] in ("_a", "_b") else key]
         return Estimate(float(value[key]) if ok else ds, float(sd[key]), bool(ok), ds,
                         None if ok else f"+-{sd[key]:.3g}: {what}")
 
@@ -280,30 +311,33 @@ def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
     span = f"oil {temps.min():.0f}..{temps.max():.0f} degC" if len(temps) else "no oil"
     fitted = FlowFit(
         unit=unit_name, pressures=pressures,
-        leakage={s: estimate(f"leakage_{s}", "leakage", leak_why[s], 1.0) for s in ("a", "b")},
-        orifice_share=estimate("orifice_share", "orifice_share",
+        leakage={s: estimate(f"leakage_{s}", leak_why[s]) for s in ("a", "b")},
+        displacement={s: estimate(f"displacement_{s}",
+                                  f"the {s.upper()} chamber's balance held in "
+                                  f"{len(side_balances[s].y_m3)} windows"
+                                  + ("" if pressures == "logged" else
+                                     f" ({loaded[s]} loaded, {MIN_LOADED_WINDOWS} needed "
+                                     "where the pressures are read from the torque)")
+                                  + ": move the rod end to end clear of its stops, loaded")
+                      for s in ("a", "b")},
+        orifice_share=estimate("orifice_share",
                                f"{span}: loaded moves at two oil temperatures at least 30 K "
-                               "apart separate the orifice share from the laminar leakage",
-                               datasheet["orifice_share"]),
-        speed_gain=estimate("speed_gain", "speed_gain",
+                               "apart separate the orifice share from the laminar leakage"),
+        speed_gain=estimate("speed_gain",
                             f"pump speeds up to {speeds.max() if len(speeds) else 0:.2f} of "
-                            "the rated: loaded moves at low and high speed measure it",
-                            datasheet["speed_gain"]),
+                            "the rated: loaded moves at low and high speed measure it"),
         hose_expansion_per_100bar=estimate(
-            "hose_expansion", "hose_expansion",
+            "hose_expansion",
             "the chambers' compliance is their pressure's rate, which a pressure read from "
             "the torque has with the drive's lag and ripple: log the chamber pressures on a "
             "calibration day" if pressures != "logged" else
-            "pressure changes of 100 bar and more in loaded moves measure it",
-            datasheet["hose_expansion"]),
+            "pressure changes of 100 bar and more in loaded moves measure it"),
         windows={s: len(side_balances[s].y_m3) for s in ("a", "b")}, loaded_windows=loaded)
-    ds_theta = np.array([1.0, datasheet["orifice_share"], datasheet["speed_gain"],
-                         datasheet["hose_expansion"]])
-    for i, s in enumerate(fitted_sides):
+    for s in sides:
         b = side_balances[s]
-        fitted.residual_rms_ml[s] = float(np.sqrt(np.mean((_leakage(theta(fit.x, i), b.sums)
+        fitted.residual_rms_ml[s] = float(np.sqrt(np.mean((_model(value, s, b.sums)
                                                            - b.y_m3) ** 2))) * 1e6
-        fitted.datasheet_rms_ml[s] = float(np.sqrt(np.mean((_leakage(ds_theta, b.sums)
+        fitted.datasheet_rms_ml[s] = float(np.sqrt(np.mean((_model(datasheet, s, b.sums)
                                                             - b.y_m3) ** 2))) * 1e6
     return fitted
 
@@ -318,6 +352,9 @@ def applied(cfg: Config, fits: dict[str, FlowFit]) -> Config:
         for side in ("a", "b"):
             pump = getattr(u, f"pump_{side}")
             change = {}
+            if fit.displacement[side].identified:
+                change["displacement_cm3_rev"] = (pump.displacement_cm3_rev
+                                                  * fit.displacement[side].value)
             if fit.leakage[side].identified:
                 change["volumetric_efficiency"] = 1.0 - fit.leakage[side].value * (
                     1.0 - pump.volumetric_efficiency)
@@ -357,7 +394,7 @@ def fit_flows(cfg: Config, runs: dict[str, list[Run]],
                 kinds.add("logged" if p is not None else "estimated")
                 dp_a, dp_b = p if p is not None else next(estimated)
                 for s, b in balances(cfg, units[a], r, dp_a, dp_b).items():
-                    total[s] = total[s].extend(b)
+                    total[s] = total[s].extend(b if p is not None else b.loaded())
             out[a] = fit_unit(cfg, a, total, " and ".join(sorted(kinds)))
         model = applied(cfg, out)
     return out

@@ -70,6 +70,7 @@ def settings(cal: UnitCalibration, spread_factor: float) -> list[Setting]:
 # the leakage fitted to it; with logged pressures, the transducers' calibration
 TOLERANCE_FLOOR = {"estimated": 0.1, "logged": 0.05}
 COVERAGE = 3.0                  # a tolerance is the fit's standard deviation times this
+DISPLACEMENT_FLOOR = 0.001      # the draw-wire's own scale error (0.1 %) bounds what it measures
 
 
 def _evidence(e: Estimate, fit: FlowFit) -> str:
@@ -84,6 +85,7 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
     a ``tolerances`` section to narrow."""
     out = []
     leak_sd: list[float] = []
+    disp_sd: list[float] = []
     share_sd: list[float] = []
     floors = [TOLERANCE_FLOOR["estimated" if "estimated" in f.pressures else "logged"]
               for f in fits.values()]
@@ -91,6 +93,17 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
         for side in ("a", "b"):
             base = ("units", unit, f"pump_{side}")
             pump = getattr(cfg.unit(unit), f"pump_{side}")
+            d = fit.displacement[side]
+            if d.identified:
+                out.append(Setting((*base, "displacement_cm3_rev"),
+                                   f"{pump.displacement_cm3_rev * d.value:.4g}",
+                                   f"commissioned: x{d.value:.4f} the datasheet's "
+                                   f"({pump.displacement_cm3_rev:g}) per the cylinder's area "
+                                   f"{_evidence(d, fit)}"))
+                disp_sd.append(d.sd)
+            else:
+                out.append(Setting((*base, "displacement_cm3_rev"), None,
+                                   f"not commissioned: {d.problem}"))
             e = fit.leakage[side]
             if e.identified:
                 eta = 1.0 - e.value * (1.0 - pump.volumetric_efficiency)
@@ -125,6 +138,12 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
             out.append(Setting(("tolerances", "pump_leakage"), f"{band:.3f}",
                                f"commissioned: {COVERAGE:g} x the largest fitted leakage's "
                                f"sigma {max(leak_sd):.3f}, at least {floor:g}"))
+        if disp_sd:
+            band = max(COVERAGE * max(disp_sd), DISPLACEMENT_FLOOR)
+            out.append(Setting(("tolerances", "pump_displacement"), f"{band:.4f}",
+                               f"commissioned: {COVERAGE:g} x the largest fitted "
+                               f"displacement's sigma {max(disp_sd):.4f}, at least "
+                               f"{DISPLACEMENT_FLOOR:g}", after="pump_leakage"))
         if share_sd:
             band = max(COVERAGE * max(share_sd), floor)
             out.append(Setting(("tolerances", "leakage_orifice_share"), f"{band:.3f}",
@@ -175,6 +194,7 @@ def flow_data(fit: FlowFit) -> dict[str, Any]:
     return {"pressures": fit.pressures, "windows": fit.windows,
             "loaded_windows": fit.loaded_windows,
             "leakage_factor": {s: _estimate_data(e) for s, e in fit.leakage.items()},
+            "displacement_factor": {s: _estimate_data(e) for s, e in fit.displacement.items()},
             "orifice_share": _estimate_data(fit.orifice_share),
             "speed_gain": _estimate_data(fit.speed_gain),
             "hose_expansion_per_100bar": _estimate_data(fit.hose_expansion_per_100bar),
@@ -236,7 +256,9 @@ B {{ u.flow.windows.b }} (loaded A {{ u.flow.loaded_windows.a }}, B {{ u.flow.lo
 {{ "%.2f"|format(rms) }} ml per window, datasheet model
 {{ "%.2f"|format(u.flow.datasheet_rms_ml[side]) }}{% endfor %}</p>
 <table><tr><th>parameter</th><th>value</th><th>sigma</th><th>datasheet</th><th>measured</th></tr>
-{% for name, e in [("pump A leakage factor", u.flow.leakage_factor.a),
+{% for name, e in [("pump A displacement factor", u.flow.displacement_factor.a),
+                   ("pump B displacement factor", u.flow.displacement_factor.b),
+                   ("pump A leakage factor", u.flow.leakage_factor.a),
                    ("pump B leakage factor", u.flow.leakage_factor.b),
                    ("orifice share", u.flow.orifice_share), ("speed gain", u.flow.speed_gain),
                    ("hose expansion per 100 bar", u.flow.hose_expansion_per_100bar)] %}

@@ -427,6 +427,10 @@ class TolerancesConfig:
 
     # the pumps' leakage (1 - volumetric efficiency) against the configured efficiency
     pump_leakage: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
+    # the flow the pumps deliver per motor revolution per the cylinder's area (displacement,
+    # belt ratio, bore) against the configured: a percent off moves the rod a percent of
+    # every stroke
+    pump_displacement: float = field(default=0.005, metadata={"ge": 0.0, "le": 0.2})
     # of the rating point's leakage, the share that may flow through orifices (~ sqrt dp)
     # instead of the laminar gaps the model assumes
     leakage_orifice_share: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
@@ -444,7 +448,8 @@ class TolerancesConfig:
 
 
 # A datasheet's tolerances: what `config --write --datasheet` puts in a new machine's file.
-DATASHEET_TOLERANCES = TolerancesConfig(pump_leakage=0.3, leakage_orifice_share=0.3,
+DATASHEET_TOLERANCES = TolerancesConfig(pump_leakage=0.3, pump_displacement=0.01,
+                                        leakage_orifice_share=0.3,
                                         trapped_volume_share=0.3, compliance=0.3,
                                         oil_temp_c=3.0, torque_offset_nm=2.0,
                                         torque_noise_nm=1.0)

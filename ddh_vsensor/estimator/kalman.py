@@ -7,7 +7,7 @@ rod down under the model *and* what the model is known not to know, and checks i
 innovations to see when the model does not fit.
 
 State z = [x (m), v (m/s), dp_a (Pa), dp_b (Pa), F_load (N), dT (K), eps, tau_off (N*m),
-comp, o_1..o_m (m), c_1..c_m (m)]:
+comp, disp, o_1..o_m (m), c_1..c_m (m)]:
 
 - ``F_load`` the external load (random walk; the moving mass follows from the payload it
   implies), ``tau_off`` an offset of the drive's torque estimate (random walk);
@@ -43,6 +43,11 @@ comp, o_1..o_m (m), c_1..c_m (m)]:
   holds millimetres of travel in compression, so the signed oil volume the model's pressures
   take moves the rod by comp times that volume over the area (the mean of the two chambers'
   accounts); against a stroke end it moves nothing;
+- ``disp`` the pumps' delivered displacement per the cylinder's area off the model's
+  (relative, constant, uniform prior over +-:attr:`KalmanSettings.displacement_tolerance`):
+  the rod travels disp times more than the model moves it, on every stroke, so the error
+  grows with the travel, not its square root (the flow error's decorrelation would have
+  it); the Hall edges measure it;
 - ``o_i`` one offset per Hall switch (constant, prior uniform over
   +-``reference_tolerance_mm``): a switch mounted 2 mm off is off by 2 mm on every pass;
   ``c_i`` the rod's position at switch i's last edge, kept from the edge's sample until the
@@ -75,8 +80,8 @@ lacks): it leaves the slow states (load, oil offset, torque offset: a payload or
 force does not move by the kilonewtons such a torque would ask within a sample) and the
 position's variance takes the travel the model predicted over that sample, which the sample
 does not confirm. The torque
-does not update what is position (x, the flow error, the switches' offsets and the clones: a
-Schmidt "consider" update, Joseph's covariance):
+does not update what is position (x, the flow error, the displacement, the switches' offsets
+and the clones: a Schmidt "consider" update, Joseph's covariance):
 mid-stroke its dependence on x (the chambers' volumes) is too weak to trust, and near a
 stroke end any force the model lacks reads as the stop.
 
@@ -133,9 +138,9 @@ from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.model.plant import Plant, RowSpec
 
 MODEL_INCONSISTENT = 1 << 7     # proposed Flags bit: the torque innovations fail the chi-square
-X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP = range(9)
+X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP, DISP = range(10)
 SLOW = [LOAD, DT, TOFF]          # the slow states: a torque the model cannot explain leaves them
-N_BASE = 9                      # states before the per-switch offsets
+N_BASE = 10                     # states before the per-switch offsets
 N_PLANT = 6                     # states the plant sees (the rest enter linearly: no row)
 N_ROWS = N_PLANT + 1            # nominal + one per perturbed plant state
 # finite-difference steps of the perturbed states (SI, K): well inside each state's
@@ -183,6 +188,9 @@ class KalmanSettings:
     # the chambers' effective compliance (entrained air, hose walls) off the oil's by up to
     # this share: a state (comp), uniform prior
     compliance_tolerance: float = DATASHEET_TOLERANCES.compliance
+    # the pumps' delivered displacement per the cylinder's area off the model's by up to this
+    # share: a state (disp), uniform prior
+    displacement_tolerance: float = DATASHEET_TOLERANCES.pump_displacement
     # the pumps' oil against the tank sensor: a Gauss-Markov offset (K) on the viscosity. The
     # sensor lags the pumps' oil by its thermal lag (~3 min) while the oil warms at up to
     # ~1 K/min in work: sigma ~3 K; it wanders as fast as the tank's temperature does
@@ -219,7 +227,9 @@ def settings_from_config(cfg: Config, base: KalmanSettings | None = None) -> Kal
     return dataclasses.replace(base or KalmanSettings(), leak_tolerance=t.pump_leakage,
                                orifice_share=t.leakage_orifice_share,
                                trapped_share=t.trapped_volume_share,
-                               compliance_tolerance=t.compliance, temp_sd_c=t.oil_temp_c,
+                               compliance_tolerance=t.compliance,
+                               displacement_tolerance=t.pump_displacement,
+                               temp_sd_c=t.oil_temp_c,
                                torque_offset_nm=t.torque_offset_nm,
                                drive_torque_nm=t.torque_noise_nm)
 
@@ -416,12 +426,14 @@ class _Bank:
             force = float(st.load_force_n)
             z[b, :N_BASE] = [x0 * 1e-3, float(st.velocity_m_s),
                              float(st.p_a_pa - j.unit.reservoir_pa),
-                             float(st.p_b_pa - j.unit.reservoir_pa), force, 0.0, 0.0, 0.0, 0.0]
+                             float(st.p_b_pa - j.unit.reservoir_pa), force, 0.0, 0.0, 0.0, 0.0,
+                             0.0]
             sf = max(s.load_share * abs(force), j.unit.cylinder.static_friction_n)
             p0[b, :N_BASE] = [(sx * 1e-3) ** 2, (s.velocity_mm_s * 1e-3) ** 2,
                               (s.pressure_bar * 1e5) ** 2, (s.pressure_bar * 1e5) ** 2, sf ** 2,
                               s.temp_sd_c ** 2, 1.0,
-                              s.torque_offset_nm ** 2, s.compliance_tolerance ** 2 / 3.0]
+                              s.torque_offset_nm ** 2, s.compliance_tolerance ** 2 / 3.0,
+                              s.displacement_tolerance ** 2 / 3.0]
             # a switch mounted off is off by the same on every pass: uniform over its tolerance
             for sw in j.switches:
                 p0[b, self.slot[b][sw.name]] = (sw.tolerance_mm * 1e-3) ** 2 / 3.0
@@ -559,12 +571,15 @@ class _Bank:
         # (against a stroke end it moves nothing)
         comp_x = np.where(at_end, 0.0, self._compression_travel(z, nom))
         F[:, X, COMP] = comp_x
+        # the delivered displacement off by disp (relative): the step's travel with it
+        disp_x = np.where(at_end, 0.0, nom[:, X] - z[:, X])
+        F[:, X, DISP] = disp_x
         H = np.zeros((B, n))
         H[:, :N_PLANT] = (tq[:, 1:] - tq[:, :1]) / deltas
         H[:, TOFF] = 1.0
         z_new = z.copy()
         z_new[:, :4] = nom
-        z_new[:, X] += gain_x * z[:, EPS] + comp_x * z[:, COMP]
+        z_new[:, X] += gain_x * z[:, EPS] + comp_x * z[:, COMP] + disp_x * z[:, DISP]
         z_new[:, DT] *= self.phi_t
         z_new[:, EPS] *= self.phi_q
         new_discrete = (plant.friction_state[self.nom].copy(), plant.regime_a[self.nom].copy(),
@@ -662,12 +677,14 @@ class _Bank:
                     P[unexplained, X, X] += (z[unexplained, X] - x_before[unexplained]) ** 2
                 # the torque's dependence on the position (the chambers' volumes) is too weak
                 # to trust under structure the model lacks, and at a stroke end any force the
-                # model lacks reads as the stop: the position, the flow error and what is
+                # model lacks reads as the stop: the position, the flow error, the
+                # displacement (the travel's scale: only the edges measure it) and what is
                 # position too (the switches' offsets, the positions at pending edges) are
                 # "considered" (Schmidt), not updated; the covariance update then is Joseph's
                 # for that gain
                 K[:, X] = 0.0
                 K[:, EPS] = 0.0
+                K[:, DISP] = 0.0
                 K[:, N_BASE:] = 0.0
                 z = z + K * y[:, None]
                 KPH = K[:, :, None] * PH[:, None, :]

@@ -40,7 +40,7 @@ def test_write_datasheet_changes_only_the_tolerances(tmp_path: Path, capsys) -> 
     assert written.physics_hash() == shipped.physics_hash()
     changed = [a for a, b in zip(path.read_text().splitlines(),
                                  DEFAULT_CONFIG.read_text().splitlines()) if a != b]
-    assert len(changed) == 4 and all("# chosen (a datasheet: " in line for line in changed)
+    assert len(changed) == 5 and all("# chosen (a datasheet: " in line for line in changed)
     assert main(["config", "--write", str(path)]) == 2        # the plain default differs
     assert "differs from the default" in capsys.readouterr().err
 

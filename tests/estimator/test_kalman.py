@@ -54,9 +54,10 @@ def test_nominal_error_is_within_the_published_uncertainty(cfg, nominal):
             err = np.abs(e.position_mm - r.position_mm)
             assert _unflagged_beyond(e, r) == 0.0, (a, refs)
             assert err.max() < 1.5, (a, refs)          # measured: up to 1.09 mm (bucket)
-            # the flow error's spread, kept over the paper cycle's holds (measured medians
-            # 8.9..11.4 mm, with references 3.8..4.0)
-            assert np.median(e.uncertainty_mm) < (5.0 if refs else 14.0), (a, refs)
+            # the flow error's spread, kept over the paper cycle's holds, and a datasheet's
+            # displacement (+-1 %) over the travel (measured medians 10.3..11.6 mm, with
+            # references 4.2..6.1)
+            assert np.median(e.uncertainty_mm) < (7.0 if refs else 14.0), (a, refs)
             assert not (e.flags & kalman.MODEL_INCONSISTENT).any(), (a, refs)
 
 
