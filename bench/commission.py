@@ -13,11 +13,12 @@ datasheet position (the ends' inwards only). The drawn values are written to the
 
 Calibration day: ``simulate --cycle calibration`` twice (full payload at U(20, 35) degC,
 empty at U(60, 75) degC), commissioned as ``ddh-vsensor commission`` does (the switches and
-the flow model, pressures estimated from the torque: no transducers), the datasheet file
-(``config --write --datasheet``) written with the measured keys. Validation runs it never saw:
+the flow model) twice: with the chambers' pressures read from the torque (no transducers:
+``after_estimated``) and logged (a prototype's transducers: ``after_logged``), the datasheet
+file (``config --write --datasheet``) written with the measured keys. Validation runs it never saw:
 dig-dump, random work with end stops and the paper cycle at -10, 0, 20, 40, 60 and 80 degC,
 payloads drawn 0..1040 kg. Each estimated by the Kalman filter (``estimate --mode kalman``)
-under the datasheet configuration (before) and the commissioned one (after), without
+under the datasheet configuration (before) and the commissioned ones (after), without
 references and with them. Per machine and unit: the worst error from 27 degC up and below,
 the share of samples beyond their uncertainty with no flag, the median uncertainty.
 
@@ -108,9 +109,13 @@ def _rounded(value):
     return round(float(value), 5) if isinstance(value, float) else value
 
 
-def commission(datasheet_path: Path, cfg: Config, runs: list[dict], out: Path) -> Config:
-    """What ``ddh-vsensor commission`` does with these runs: switches and flow model."""
-    per_unit = {a: [r[a] for r in runs] for a in cfg.unit_names}
+def commission(datasheet_path: Path, cfg: Config, runs: list[dict], out: Path,
+               pressures: bool) -> tuple[Config, dict]:
+    """What ``ddh-vsensor commission`` does with these runs: switches and flow model
+    (``pressures``: the chambers' pressures logged, else read from the torque)."""
+    per_unit = {a: [r[a] if pressures else dataclasses.replace(r[a], p_a_bar=None,
+                                                                p_b_bar=None) for r in runs]
+                for a in cfg.unit_names}
     cals = {a: calibrate_unit(a, cfg.unit(a), rs, cfg.estimator.debounce_s)
             for a, rs in per_unit.items()}
     flows = fit_flows(cfg, per_unit)
@@ -168,32 +173,39 @@ def main() -> None:
                          oil_temp_c=t, effects=effects, seed=10 + i)
                  for i, t in enumerate(temps)]
         validation = simulate_campaign(true_cfg, specs)
-        after, flows = commission(datasheet_path, datasheet, calibration,
-                                  work / f"machine{m}.yaml")
+        configs = {"before": datasheet}
+        fitted = {}
+        for how, logged in (("estimated", False), ("logged", True)):
+            configs[f"after_{how}"], fitted[how] = commission(
+                datasheet_path, datasheet, calibration, work / f"machine{m}_{how}.yaml", logged)
         record = {"machine": m, "truth": truth,
                   "calibration_temps_c": [round(t, 1) for _, t in day],
-                  "fitted": {a: {"leakage_factor": {s: round(e.value, 3) if e.identified
+                  "fitted": {how: {a: {"leakage_factor": {s: round(e.value, 3) if e.identified
                                                     else None for s, e in f.leakage.items()},
                                  "displacement_factor": {
                                      s: round(e.value, 5) if e.identified else None
                                      for s, e in f.displacement.items()},
                                  "orifice_share": round(f.orifice_share.value, 3),
-                                 "speed_gain": round(f.speed_gain.value, 3)}
-                             for a, f in flows.items()}}
-        for name, cfg in (("before", datasheet), ("after", after)):
+                                 "speed_gain": round(f.speed_gain.value, 3),
+                                 "air_fraction": round(f.air_fraction.value, 5)
+                                 if f.air_fraction.identified else None}
+                             for a, f in flows.items()} for how, flows in fitted.items()}}
+        for name, cfg in configs.items():
             for refs in (False, True):
                 record[f"{name}_{'refs' if refs else 'norefs'}"] = judge(cfg, validation, temps,
                                                                           refs)
         machines.append(record)
-        a = record["after_norefs"]
-        b = record["before_norefs"]
-        print(f"machine {m:2d} ({time.time() - started:5.0f} s): "
-              + "; ".join(f"{u} warm {b[u]['warm_max_mm']:.2f} -> {a[u]['warm_max_mm']:.2f}, "
-                          f"cold {b[u]['cold_max_mm']:.2f} -> {a[u]['cold_max_mm']:.2f} mm"
-                          for u in base.unit_names), flush=True)
+        b, e, g = (record[f"{c}_norefs"] for c in ("before", "after_estimated", "after_logged"))
+        print(f"machine {m:2d} ({time.time() - started:5.0f} s), no references, before -> "
+              "after (pressures estimated | logged): " + "; ".join(
+                  f"{u} warm {b[u]['warm_max_mm']:.2f} -> {e[u]['warm_max_mm']:.2f} | "
+                  f"{g[u]['warm_max_mm']:.2f}, cold {b[u]['cold_max_mm']:.2f} -> "
+                  f"{e[u]['cold_max_mm']:.2f} | {g[u]['cold_max_mm']:.2f} mm"
+                  for u in base.unit_names), flush=True)
     figures: dict = {"machines": args.machines, "seed": args.seed,
                      "validation_temps_c": list(VALIDATION_TEMPS_C)}
-    for case in ("before_norefs", "after_norefs", "before_refs", "after_refs"):
+    for case in (f"{c}_{r}" for c in ("before", "after_estimated", "after_logged")
+                 for r in ("norefs", "refs")):
         for u in base.unit_names:
             rows = [m[case][u] for m in machines]
             figures[f"{case}_{u}_warm_max_mm"] = max(r["warm_max_mm"] for r in rows)

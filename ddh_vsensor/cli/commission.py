@@ -116,7 +116,8 @@ def _flow_summary(fit: FlowFit) -> list[str]:
         lines.append(f"    {name}: " + (f"{e.value:.3f} +-{e.sd:.3f}" if e.identified
                                          else f"not measured ({e.problem})"))
     for name, e in (("orifice share", fit.orifice_share), ("speed gain", fit.speed_gain),
-                    ("hose expansion per 100 bar", fit.hose_expansion_per_100bar)):
+                    ("hose expansion per 100 bar", fit.hose_expansion_per_100bar),
+                    ("entrained air (share at 1 atm)", fit.air_fraction)):
         lines.append(f"    {name}: " + (f"{e.value:.3f} +-{e.sd:.3f}" if e.identified
                                          else f"not measured ({e.problem})"))
     for s, rms in fit.residual_rms_ml.items():

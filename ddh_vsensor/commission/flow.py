@@ -44,6 +44,7 @@ import numpy as np
 from ddh_vsensor.config import Config
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.measured import Run
+from ddh_vsensor.physics.air import ATMOSPHERE_PA, MIN_ABSOLUTE_PA, POLYTROPIC_EXPONENT
 from ddh_vsensor.physics.conversions import BAR_PA
 from ddh_vsensor.physics.pump import rating_viscosity_pa_s
 from ddh_vsensor.physics.unit import DDHUnit
@@ -57,11 +58,11 @@ MIN_LOADED_WINDOWS = 20         # a side's leakage factor needs this many loaded
 # identified when its standard deviation is below: the leakage factor (relative), the orifice
 # share, the speed gain, the hoses' expansion per 100 bar
 MAX_SD = {"leakage": 0.05, "displacement": 0.002, "orifice_share": 0.1, "speed_gain": 0.2,
-          "hose_expansion": 0.01}
+          "hose_expansion": 0.01, "air_fraction": 0.001}
 BOUNDS = {"leakage": (0.05, 20.0), "displacement": (0.8, 1.2), "orifice_share": (0.0, 0.9),
-          "speed_gain": (0.0, 2.0), "hose_expansion": (0.0, 0.2)}
+          "speed_gain": (0.0, 2.0), "hose_expansion": (0.0, 0.2), "air_fraction": (0.0, 0.1)}
 ESTIMATE_PASSES = 3             # fits with pressures estimated under the model fitted before
-COLUMNS = 6     # per window: sums of L, L r, O, O r, V_dead dp / 100 bar and q_geo
+COLUMNS = 7     # per window: sums of L, L r, O, O r, V_dead dp / 100 bar, q_geo and the air's
 
 
 @dataclass
@@ -114,6 +115,7 @@ class FlowFit:
     orifice_share: Estimate
     speed_gain: Estimate
     hose_expansion_per_100bar: Estimate
+    air_fraction: Estimate
     windows: dict[str, int]                         # per side
     loaded_windows: dict[str, int]
 
@@ -122,7 +124,8 @@ class FlowFit:
         """Whether the runs measured any of the flow model's values."""
         return any(e.identified for e in (*self.leakage.values(), *self.displacement.values(),
                                           self.orifice_share,
-                                          self.speed_gain, self.hose_expansion_per_100bar))
+                                          self.speed_gain, self.hose_expansion_per_100bar,
+                                          self.air_fraction))
     residual_rms_ml: dict[str, float] = field(default_factory=dict)  # per side and window
     datasheet_rms_ml: dict[str, float] = field(default_factory=dict)
 
@@ -192,9 +195,12 @@ def balances(cfg: Config, unit: DDHUnit, run: Run, dp_a: np.ndarray, dp_b: np.nd
         geometric = trapezoid(pump.geometric_flow_m3_s(n))
         y = (geometric - sign * side.area_m2 * np.diff(x)
              - volume[:-1] / unit.bulk_modulus_pa * np.diff(dp))
+        # the air a unit share of entrained air holds, compressed polytropically
+        absolute = np.maximum(dp + unit.reservoir_pa + ATMOSPHERE_PA, MIN_ABSOLUTE_PA)
+        air = -volume[:-1] * np.diff((ATMOSPHERE_PA / absolute) ** (1.0 / POLYTROPIC_EXPONENT))
         cols = np.stack([trapezoid(laminar), trapezoid(laminar * r), trapezoid(orifice),
                          trapezoid(orifice * r),
-                         unit.dead_volume_m3 * np.diff(dp) / (100.0 * BAR_PA), geometric],
+                         unit.dead_volume_m3 * np.diff(dp) / (100.0 * BAR_PA), geometric, air],
                         axis=1)
         closed = ((dp > -0.5 * side.anticav.cracking_pa)
                   & (dp < side.relief.setting_pa - RELIEF_MARGIN_PA) & off_stops)
@@ -217,9 +223,10 @@ def _model(v: dict[str, float], side: str, sums: np.ndarray) -> np.ndarray:
     """The windows' balance under parameters ``v``: the leakage, the hoses' share of the
     compression, less the displacement's excess over the datasheet's."""
     f, o, g = v[f"leakage_{side}"], v["orifice_share"], v["speed_gain"]
-    lam, lam_r, orf, orf_r, hose, geo = sums.T
+    lam, lam_r, orf, orf_r, hose, geo, air = sums.T
     return (f / (1.0 + g) * ((1.0 - o) * (lam + g * lam_r) + o * (orf + g * orf_r))
-            + v["hose_expansion"] * hose - (v[f"displacement_{side}"] - 1.0) * geo)
+            + v["hose_expansion"] * hose - (v[f"displacement_{side}"] - 1.0) * geo
+            + v["air_fraction"] * air)
 
 
 def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
@@ -233,6 +240,7 @@ def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
                                    + u.pump_b.leakage_orifice_share) / 2,
                  "speed_gain": (u.pump_a.leakage_speed_gain + u.pump_b.leakage_speed_gain) / 2,
                  "hose_expansion": cfg.hydraulics.hose_expansion_per_100bar,
+                 "air_fraction": cfg.hydraulics.air_fraction,
                  "leakage_a": 1.0, "leakage_b": 1.0, "displacement_a": 1.0,
                  "displacement_b": 1.0}
     sides = [s for s in ("a", "b") if len(side_balances[s].y_m3)]
@@ -250,7 +258,7 @@ def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
     moved = sides if pressures == "logged" else [s for s in sides
                                                  if loaded[s] >= MIN_LOADED_WINDOWS]
     names = ([f"displacement_{s}" for s in moved] + [f"leakage_{s}" for s in leaky]
-             + ["orifice_share", "speed_gain"]
+             + ["orifice_share", "speed_gain", "air_fraction"]
              + (["hose_expansion"] if pressures == "logged" else []))
     bounds = [BOUNDS[n.rsplit("_", 1)[0] if n[-2:] in ("_a", "_b") else n] for n in names]
     # start inside the bounds, off the shares' and gain's lower bound (a zero gradient there)
@@ -332,6 +340,9 @@ def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
             "the torque has with the drive's lag and ripple: log the chamber pressures on a "
             "calibration day" if pressures != "logged" else
             "pressure changes of 100 bar and more in loaded moves measure it"),
+        air_fraction=estimate("air_fraction",
+                              "the air shows where a chamber's pressure rises from low: "
+                              "loaded moves from rest and reversals under load"),
         windows={s: len(side_balances[s].y_m3) for s in ("a", "b")}, loaded_windows=loaded)
     for s in sides:
         b = side_balances[s]
@@ -342,10 +353,23 @@ def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
     return fitted
 
 
+MACHINE_WIDE = ("hose_expansion_per_100bar", "air_fraction")   # the hydraulics' keys
+
+
+def machine_wide(fits: dict[str, FlowFit], key: str) -> Estimate | None:
+    """A value every unit's oil or hoses share: the units that measured it, weighted by
+    their variances (None where none did)."""
+    found = [getattr(f, key) for f in fits.values() if getattr(f, key).identified]
+    if not found:
+        return None
+    w = np.array([1.0 / max(e.sd, 1e-9) ** 2 for e in found])
+    return Estimate(float(np.dot(w, [e.value for e in found]) / w.sum()),
+                    float(1.0 / math.sqrt(w.sum())), True, found[0].datasheet)
+
+
 def applied(cfg: Config, fits: dict[str, FlowFit]) -> Config:
     """``cfg`` with the measured values of ``fits`` (the identified ones) in place."""
     units = dict(cfg.units)
-    hoses = []
     for a, fit in fits.items():
         u = cfg.unit(a)
         pumps = {}
@@ -364,14 +388,9 @@ def applied(cfg: Config, fits: dict[str, FlowFit]) -> Config:
                 change["leakage_speed_gain"] = fit.speed_gain.value
             pumps[f"pump_{side}"] = dataclasses.replace(pump, **change)
         units[a] = dataclasses.replace(u, **pumps)
-        if fit.hose_expansion_per_100bar.identified:
-            hoses.append(fit.hose_expansion_per_100bar)
-    hydraulics = cfg.hydraulics
-    if hoses:
-        w = np.array([1.0 / max(h.sd, 1e-6) ** 2 for h in hoses])
-        hydraulics = dataclasses.replace(hydraulics, hose_expansion_per_100bar=float(
-            np.dot(w, [h.value for h in hoses]) / w.sum()))
-    return dataclasses.replace(cfg, units=units, hydraulics=hydraulics)
+    shared = {key: e.value for key in MACHINE_WIDE if (e := machine_wide(fits, key))}
+    return dataclasses.replace(cfg, units=units,
+                               hydraulics=dataclasses.replace(cfg.hydraulics, **shared))
 
 
 def fit_flows(cfg: Config, runs: dict[str, list[Run]],

@@ -15,7 +15,7 @@ import numpy as np
 import yaml
 
 from ddh_vsensor.atomic import atomic_path, atomic_write
-from ddh_vsensor.commission.flow import Estimate, FlowFit
+from ddh_vsensor.commission.flow import MACHINE_WIDE, Estimate, FlowFit, machine_wide
 from ddh_vsensor.commission.switches import KIND_KEYS, UnitCalibration
 from ddh_vsensor.commission.yaml_text import Setting, set_values
 from ddh_vsensor.config import Config, load_config
@@ -122,15 +122,13 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
                                        after="volumetric_efficiency"))
         if fit.orifice_share.identified:
             share_sd.append(fit.orifice_share.sd)
-    hoses = [f.hose_expansion_per_100bar for f in fits.values()
-             if f.hose_expansion_per_100bar.identified]
-    if hoses:
-        weights = np.array([1.0 / max(h.sd, 1e-6) ** 2 for h in hoses])
-        value = float(np.dot(weights, [h.value for h in hoses]) / weights.sum())
-        sd = float(1.0 / math.sqrt(weights.sum()))
-        out.append(Setting(("hydraulics", "hose_expansion_per_100bar"), f"{value:.4f}",
-                           f"commissioned: +-{sd:.4f} (1 sigma) from {len(hoses)} units' "
-                           "loaded windows, pressures logged", after=last_hydraulics_key))
+    for key in MACHINE_WIDE:
+        e = machine_wide(fits, key)
+        if e is not None:
+            out.append(Setting(("hydraulics", key), f"{e.value:.4f}",
+                               f"commissioned: +-{e.sd:.4f} (1 sigma) from the units' "
+                               f"windows, pressures {', '.join(sorted({f.pressures for f in fits.values()}))}",
+                               after=last_hydraulics_key))
     if tolerances:
         floor = max(floors, default=TOLERANCE_FLOOR["estimated"])
         if leak_sd:
@@ -198,6 +196,7 @@ def flow_data(fit: FlowFit) -> dict[str, Any]:
             "orifice_share": _estimate_data(fit.orifice_share),
             "speed_gain": _estimate_data(fit.speed_gain),
             "hose_expansion_per_100bar": _estimate_data(fit.hose_expansion_per_100bar),
+            "air_fraction": _estimate_data(fit.air_fraction),
             "residual_rms_ml": fit.residual_rms_ml, "datasheet_rms_ml": fit.datasheet_rms_ml}
 
 
@@ -261,7 +260,8 @@ B {{ u.flow.windows.b }} (loaded A {{ u.flow.loaded_windows.a }}, B {{ u.flow.lo
                    ("pump A leakage factor", u.flow.leakage_factor.a),
                    ("pump B leakage factor", u.flow.leakage_factor.b),
                    ("orifice share", u.flow.orifice_share), ("speed gain", u.flow.speed_gain),
-                   ("hose expansion per 100 bar", u.flow.hose_expansion_per_100bar)] %}
+                   ("hose expansion per 100 bar", u.flow.hose_expansion_per_100bar),
+                   ("entrained air", u.flow.air_fraction)] %}
 <tr><th>{{ name }}</th><td>{{ e.value }}</td><td>{{ e.sd if e.sd is not none else "" }}</td>
 <td>{{ e.datasheet }}</td><td{% if not e.identified %} class="bad"{% endif %}>
 {{ "yes" if e.identified else e.problem }}</td></tr>

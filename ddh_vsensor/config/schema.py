@@ -67,6 +67,12 @@ class HydraulicsConfig:
     # Kalman filter's and the simulator's; the tables' steady state does not carry it, nor
     # does the `dynamic` mode's chamber model
     hose_expansion_per_100bar: float = field(default=0.0, metadata=_structure(le=0.2))
+    # free air entrained in the oil, as a volume share at atmospheric pressure: the chambers'
+    # compliance collapses at low pressure where it is not yet compressed (a mobile
+    # machine's oil holds a few tenths of a percent; ``physics/air.py``'s mixture law). The
+    # unit model's, the Kalman filter's and the simulator's; not the tables' steady state's
+    # nor the `dynamic` mode's
+    air_fraction: float = field(default=0.0, metadata=_structure(le=0.2))
 
 
 @dataclass(frozen=True)

@@ -126,7 +126,7 @@ class Structure:
     (:meth:`plus`: shares and gains add). Per side, the share of the rating point's leakage
     through orifices and the leakage's gain with shaft speed; per unit, the share of the
     chamber pressures' force on the seal rings that is friction; the dead volume's growth per
-    100 bar."""
+    100 bar; the oil's entrained air."""
 
     leakage_orifice_share_a: float = 0.0
     leakage_orifice_share_b: float = 0.0
@@ -134,6 +134,7 @@ class Structure:
     leakage_speed_gain_b: float = 0.0
     seal_friction_share: float = 0.0
     hose_expansion_per_100bar: float = 0.0
+    air_fraction: float = 0.0
 
     @classmethod
     def from_config(cls, cfg: Config, actuator: str) -> Structure:
@@ -143,7 +144,8 @@ class Structure:
                    leakage_speed_gain_a=u.pump_a.leakage_speed_gain,
                    leakage_speed_gain_b=u.pump_b.leakage_speed_gain,
                    seal_friction_share=u.seal_friction_share,
-                   hose_expansion_per_100bar=cfg.hydraulics.hose_expansion_per_100bar)
+                   hose_expansion_per_100bar=cfg.hydraulics.hose_expansion_per_100bar,
+                   air_fraction=cfg.hydraulics.air_fraction)
 
     def plus(self, other: Structure) -> Structure:
         """Both together: every share and gain is the sum (a 0 adds nothing, to the bit)."""
@@ -172,7 +174,7 @@ class Structure:
                        seal_friction_a_n_per_pa=self.seal_friction_share * ring_a,
                        seal_friction_b_n_per_pa=self.seal_friction_share * ring_b,
                        hose_compliance_per_pa=self.hose_expansion_per_100bar / (100.0 * BAR_PA),
-                       **extras)
+                       air_fraction=self.air_fraction, **extras)
 
 
 def orifice_leakage(unit: DDHUnit, shares: tuple[float, float], hydraulics: HydraulicsConfig

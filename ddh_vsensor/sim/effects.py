@@ -51,7 +51,8 @@ Deviations the diagnosis' catalogue does not have (for testing it on the unknown
 Plant structure the estimator's model does not share (:data:`STRUCTURE_TYPICAL` holds each
 at its typical value; every one is neutral at 0). A machine's configuration may carry the same
 structure (``pump_a``/``pump_b.leakage_orifice_share``, ``leakage_speed_gain``,
-``seal_friction_share``, ``hydraulics.hose_expansion_per_100bar``); each of these four effects
+``seal_friction_share``, ``hydraulics.hose_expansion_per_100bar``, ``hydraulics.air_fraction``:
+the ``compressibility`` effect's); each of these five effects
 adds to the configured value (:meth:`ddh_vsensor.model.unit.Structure.plus`: the effect's
 percentage as a share, the gain as a gain, summed), the orifice shares together at most 90 %:
 
@@ -233,7 +234,8 @@ class UnitEffects:
                          leakage_speed_gain_a=self.leak_speed,
                          leakage_speed_gain_b=self.leak_speed,
                          seal_friction_share=self.seal_friction / 100.0,
-                         hose_expansion_per_100bar=self.hose_expansion / 100.0)
+                         hose_expansion_per_100bar=self.hose_expansion / 100.0,
+                         air_fraction=self.compressibility)
 
     def row(self, unit: DDHUnit, payload_kg: float, hydraulics: HydraulicsConfig | None = None,
             configured: Structure = Structure()) -> RowSpec:
@@ -256,7 +258,7 @@ class UnitEffects:
             seep = ReliefValve(VALVE_LEAK_OPEN_BAR * BAR_PA,
                                self.valve_leak * LPM_M3S / (100.0 * BAR_PA))
             unit = replace(unit, a=replace(unit.a, relief=seep), b=replace(unit.b, relief=seep))
-        return structure.row(unit, hydraulics, payload_kg, air_fraction=self.compressibility,
+        return structure.row(unit, hydraulics, payload_kg,
                              belt_slip_per_nm=self.belt_slip / 100.0 / 100.0,
                              fill_loss=self.pump_fill / 100.0,
                              bore_leak_m3_s_pa=self.bore_leak * LPM_M3S / (100.0 * BAR_PA))
