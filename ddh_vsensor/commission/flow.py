@@ -47,6 +47,7 @@ from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.air import ATMOSPHERE_PA, MIN_ABSOLUTE_PA, POLYTROPIC_EXPONENT
 from ddh_vsensor.physics.conversions import BAR_PA
 from ddh_vsensor.physics.pump import rating_viscosity_pa_s
+from ddh_vsensor.physics.tank_sensor import pump_oil_temperature_c
 from ddh_vsensor.physics.unit import DDHUnit
 
 WINDOW_S = 1.0                  # balance window: long against the position's noise
@@ -173,7 +174,8 @@ def balances(cfg: Config, unit: DDHUnit, run: Run, dp_a: np.ndarray, dp_b: np.nd
     """Both sides' windows of one run (only those where the balance holds)."""
     hyd = cfg.hydraulics
     t, n, x = run.time_s, run.speed_rpm, _position_m(run)
-    mu = unit.oil.dynamic_viscosity_pa_s(run.oil_temp_c)
+    temp_c = pump_oil_temperature_c(t, run.oil_temp_c, cfg.hydraulics.oil_temp_lag_s)
+    mu = unit.oil.dynamic_viscosity_pa_s(temp_c)
     dp_r, mu_r = hyd.nominal_pressure_bar * BAR_PA, rating_viscosity_pa_s(unit.oil, hyd)
     stroke = unit.cylinder.stroke_m
     h = np.diff(t)
@@ -214,7 +216,7 @@ def balances(cfg: Config, unit: DDHUnit, run: Run, dp_a: np.ndarray, dp_b: np.nd
             np.array([y[i0:i1].sum() for i0, i1 in rows]),
             np.array([cols[i0:i1].sum(axis=0) for i0, i1 in rows]),
             np.array([dp[i0:i1].mean() for i0, i1 in rows]),
-            np.array([run.oil_temp_c[i0:i1].mean() for i0, i1 in rows]),
+            np.array([temp_c[i0:i1].mean() for i0, i1 in rows]),
             np.array([r[i0:i1].mean() for i0, i1 in rows]))
     return out
 

@@ -73,6 +73,11 @@ class HydraulicsConfig:
     # unit model's, the Kalman filter's and the simulator's; not the tables' steady state's
     # nor the `dynamic` mode's
     air_fraction: float = field(default=0.0, metadata=_structure(le=0.2))
+    # the oil temperature sensor's thermal lag behind the oil the pumps work (s): the pumps'
+    # oil is the reading plus this lag times the reading's rate (``physics/tank_sensor.py``;
+    # a tank sensor: minutes). The Kalman filter's and the commissioning's; not the tables'
+    # nor the `dynamic` mode's
+    oil_temp_lag_s: float = field(default=0.0, metadata=_structure(le=3600.0))
 
 
 @dataclass(frozen=True)

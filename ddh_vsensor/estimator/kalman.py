@@ -134,6 +134,7 @@ from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.conversions import BAR_PA, RPM_RAD_S
 from ddh_vsensor.physics.pump import rating_viscosity_pa_s
 from ddh_vsensor.physics.steady import steady_state_at_torque
+from ddh_vsensor.physics.tank_sensor import pump_oil_temperature_c
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.model.plant import Plant, RowSpec
 
@@ -356,7 +357,9 @@ class _Bank:
             return out
         self.speed = pad(lambda r: r.speed_rpm)
         self.torque = pad(lambda r: r.torque_nm)
-        self.temp = pad(lambda r: r.oil_temp_c)
+        # the pumps' oil: the tank sensor's reading ahead by its configured lag
+        self.temp = pad(lambda r: pump_oil_temperature_c(r.time_s, r.oil_temp_c,
+                                                         hydraulics.oil_temp_lag_s))
         self.time = pad(lambda r: r.time_s)
         col = lambda f: np.array([float(f(j)) for j in jobs])  # noqa: E731
         self.stroke = col(lambda j: j.unit.cylinder.stroke_m)

@@ -92,3 +92,20 @@ def test_one_temperature_knows_the_orifice_share_less(
     warm = fit_flows(cfg, {a: rs[1:] for a, rs in runs.items()})["boom"].orifice_share
     assert warm.sd > 3 * both.sd
     assert abs(warm.value - TRUE["orifice_share"]) < 3 * warm.sd
+
+
+def test_the_tank_sensors_lag_is_configured_not_measured(cfg: Config) -> None:
+    """The tank sensor trails the warming oil by 3 minutes: configured, the leakage comes out
+    as it is; left at 0, the leakage factor takes the steady offset (measured 1.355 for 1.3),
+    and the balance's residual cannot tell the two apart (within 0.2 %)."""
+    effects = {a: dataclasses.replace(PLANT, oil_temp_lag=180.0) for a in cfg.unit_names}
+    simulated = simulate_campaign(cfg, [
+        RunSpec(cycle=calibration_cycle(cfg), payload_kg=p, oil_temp_c=t, effects=effects,
+                seed=i) for i, (p, t) in enumerate(((1040.0, 25.0), (0.0, 65.0)))])
+    runs = {a: [r[a] for r in simulated] for a in cfg.unit_names}
+    told = dataclasses.replace(cfg, hydraulics=dataclasses.replace(cfg.hydraulics,
+                                                                   oil_temp_lag_s=180.0))
+    right, blind = fit_flows(told, runs)["boom"], fit_flows(cfg, runs)["boom"]
+    assert right.leakage["a"].value == pytest.approx(TRUE["leakage"], rel=0.01)
+    assert blind.leakage["a"].value > TRUE["leakage"] * 1.03
+    assert blind.residual_rms_ml["a"] == pytest.approx(right.residual_rms_ml["a"], rel=0.002)
