@@ -27,10 +27,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Finds every Hall switch's edges in the runs, the rod's measured position "
                     "at each, and fits the configuration's switch positions, window and "
                     "hysteresis to them; the tolerance becomes the fit's largest residual plus "
-                    "k x the edges' spread. Fits each unit's pump leakage (per side), its "
-                    "orifice share and speed gain (and, from logged chamber pressures, the "
-                    "hoses' expansion) to the chambers' oil balance against the measured "
-                    "travel. Writes the datasheet configuration with those keys set and "
+                    "k x the edges' spread. Fits each unit's pump leakage and displacement "
+                    "(per side), the leakage's orifice share and speed gain (and, from logged "
+                    "chamber pressures, the oil's entrained air and the hoses' expansion) to "
+                    "the chambers' oil balance against the measured travel. Writes the datasheet configuration with those keys set and "
                     "commented with their evidence; a value the runs do not measure keeps the "
                     "datasheet's, with the run that would measure it.")
     p.add_argument("runs", nargs="+", metavar="RUN",
@@ -40,12 +40,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="FILE", required=True,
                    help="the datasheet configuration the machine was filled in with")
     p.add_argument("--out", metavar="FILE.yaml", required=True,
-                   help="the commissioned configuration (the datasheet file with the switch "
-                        "keys set; not the datasheet itself)")
+                   help="the commissioned configuration (the datasheet file with the "
+                        "measured keys set; not the datasheet itself)")
     p.add_argument("--actuator", metavar="UNIT", default=None,
                    help="commission this unit only (default: every unit the runs hold)")
     p.add_argument("--report", metavar="DIR",
-                   help="write commission.json: every edge per switch, each kind's statistics")
+                   help="write commission.json (every edge per switch, each kind's "
+                        "statistics, each unit's flow fit) and commission.html")
     p.add_argument("--switches-only", action="store_true",
                    help="calibrate the Hall switches only, not the pumps' flow model")
     p.add_argument("--spread-factor", type=float, default=SPREAD_FACTOR, metavar="K",

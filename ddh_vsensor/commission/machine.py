@@ -65,31 +65,36 @@ def settings(cal: UnitCalibration, spread_factor: float) -> list[Setting]:
     return out
 
 
-# a tolerance written from a fit is never narrower than this: with pressures read from the
-# torque, the pumps' torque efficiencies (known to a few percent) scale every pressure and so
-# the leakage fitted to it; with logged pressures, the transducers' calibration
-TOLERANCE_FLOOR = {"estimated": 0.1, "logged": 0.05}
-COVERAGE = 3.0                  # a tolerance is the fit's standard deviation times this
-DISPLACEMENT_FLOOR = 0.001      # the draw-wire's own scale error (0.1 %) bounds what it measures
+# A band written from a fit is 3 sigma, never narrower than what the pressures allow: read
+# from the torque, the chambers' split of it and the pumps' torque efficiencies scale the
+# pressures and so the leakage (and, less, the displacement) fitted to them; logged, the
+# transducers' calibration. Measured on bench/commission.py's drawn machines (the floors
+# cover their worst): see docs/commission.md
+COVERAGE = 3.0
+FLOORS = {"estimated": {"leakage": 0.3, "displacement": 0.004, "orifice_share": 0.1},
+          "logged": {"leakage": 0.08, "displacement": 0.001, "orifice_share": 0.05}}
 
 
 def _evidence(e: Estimate, fit: FlowFit) -> str:
-    return (f"+-{e.sd:.3f} (1 sigma), {sum(fit.loaded_windows.values())} loaded windows, "
+    return (f"+-{e.sd:.4g} (1 sigma), {sum(fit.loaded_windows.values())} loaded windows, "
             f"pressures {fit.pressures}")
+
+
+def _band(fit: FlowFit, name: str, sd: float) -> float:
+    floors = FLOORS["estimated" if "estimated" in fit.pressures else "logged"]
+    return max(COVERAGE * sd, floors[name])
 
 
 def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key: str,
                   tolerances: bool) -> list[Setting]:
-    """The keys of the measured flow model, each with its evidence; a value the runs did not
-    identify keeps the datasheet's with what would measure it. ``tolerances``: the file has
-    a ``tolerances`` section to narrow."""
+    """The keys of the measured flow model, each with its evidence, and the bands of what is
+    now known: each measured pump's leakage band, a unit's displacement band where both its
+    sides were measured; a value the runs did not identify keeps the datasheet's (and its
+    band) with what would measure it. ``tolerances``: the file has a ``tolerances`` section
+    (the orifice share's band is the machine's: narrowed where every unit measured it)."""
     out = []
-    leak_sd: list[float] = []
-    disp_sd: list[float] = []
-    share_sd: list[float] = []
-    floors = [TOLERANCE_FLOOR["estimated" if "estimated" in f.pressures else "logged"]
-              for f in fits.values()]
     for unit, fit in fits.items():
+        bands: list[float] = []
         for side in ("a", "b"):
             base = ("units", unit, f"pump_{side}")
             pump = getattr(cfg.unit(unit), f"pump_{side}")
@@ -100,7 +105,7 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
                                    f"commissioned: x{d.value:.4f} the datasheet's "
                                    f"({pump.displacement_cm3_rev:g}) per the cylinder's area "
                                    f"{_evidence(d, fit)}"))
-                disp_sd.append(d.sd)
+                bands.append(_band(fit, "displacement", d.sd))
             else:
                 out.append(Setting((*base, "displacement_cm3_rev"), None,
                                    f"not commissioned: {d.problem}"))
@@ -110,7 +115,10 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
                 out.append(Setting((*base, "volumetric_efficiency"), f"{eta:.4f}",
                                    f"commissioned: leakage x{e.value:.3f} the datasheet's "
                                    f"({pump.volumetric_efficiency:g}) {_evidence(e, fit)}"))
-                leak_sd.append(e.sd / e.value)
+                band = _band(fit, "leakage", e.sd / e.value)
+                out.append(Setting((*base, "leakage_tolerance"), f"{band:.3f}",
+                                   f"commissioned: {COVERAGE:g} sigma, at least the floor of "
+                                   f"pressures {fit.pressures}", after="volumetric_efficiency"))
             else:
                 out.append(Setting((*base, "volumetric_efficiency"), None,
                                    f"not commissioned: {e.problem}"))
@@ -120,33 +128,24 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
                     out.append(Setting((*base, key), f"{est.value:.3f}",
                                        f"commissioned: {_evidence(est, fit)}",
                                        after="volumetric_efficiency"))
-        if fit.orifice_share.identified:
-            share_sd.append(fit.orifice_share.sd)
+        if len(bands) == 2:
+            out.append(Setting(("units", unit, "displacement_tolerance"), f"{max(bands):.4f}",
+                               f"commissioned: both sides' displacement, {COVERAGE:g} sigma, "
+                               f"at least the floor of pressures {fit.pressures}",
+                               after="dead_volume_l"))
     for key in MACHINE_WIDE:
         e = machine_wide(fits, key)
         if e is not None:
+            pressures = ", ".join(sorted({f.pressures for f in fits.values()}))
             out.append(Setting(("hydraulics", key), f"{e.value:.4f}",
-                               f"commissioned: +-{e.sd:.4f} (1 sigma) from the units' "
-                               f"windows, pressures {', '.join(sorted({f.pressures for f in fits.values()}))}",
-                               after=last_hydraulics_key))
-    if tolerances:
-        floor = max(floors, default=TOLERANCE_FLOOR["estimated"])
-        if leak_sd:
-            band = max(COVERAGE * max(leak_sd), floor)
-            out.append(Setting(("tolerances", "pump_leakage"), f"{band:.3f}",
-                               f"commissioned: {COVERAGE:g} x the largest fitted leakage's "
-                               f"sigma {max(leak_sd):.3f}, at least {floor:g}"))
-        if disp_sd:
-            band = max(COVERAGE * max(disp_sd), DISPLACEMENT_FLOOR)
-            out.append(Setting(("tolerances", "pump_displacement"), f"{band:.4f}",
-                               f"commissioned: {COVERAGE:g} x the largest fitted "
-                               f"displacement's sigma {max(disp_sd):.4f}, at least "
-                               f"{DISPLACEMENT_FLOOR:g}", after="pump_leakage"))
-        if share_sd:
-            band = max(COVERAGE * max(share_sd), floor)
-            out.append(Setting(("tolerances", "leakage_orifice_share"), f"{band:.3f}",
-                               f"commissioned: {COVERAGE:g} x the fitted share's sigma "
-                               f"{max(share_sd):.3f}, at least {floor:g}"))
+                               f"commissioned: +-{e.sd:.4f} (1 sigma) from the units' windows, "
+                               f"pressures {pressures}", after=last_hydraulics_key))
+    shares = [f for f in fits.values() if f.orifice_share.identified]
+    if tolerances and shares and len(shares) == len(cfg.unit_names):
+        band = max(_band(f, "orifice_share", f.orifice_share.sd) for f in shares)
+        out.append(Setting(("tolerances", "leakage_orifice_share"), f"{band:.3f}",
+                           f"commissioned: {COVERAGE:g} sigma of every unit's fitted share, "
+                           "at least the floor of its pressures"))
     return out
 
 

@@ -101,6 +101,10 @@ class PumpConfig:
     # the Kalman filter's and the simulator's; the tables' steady state does not carry it,
     # nor does the `dynamic` mode's chamber model
     leakage_speed_gain: float = field(default=0.0, metadata=_structure(le=2.0))
+    # this pump's leakage band where commissioning measured it (relative, +-); unset: the
+    # machine's tolerances.pump_leakage. What is known, not physics: the tables and the hash
+    # do not depend on it
+    leakage_tolerance: float | None = field(default=None, metadata={"ge": 0.0, "le": 1.0})
 
 
 @dataclass(frozen=True)
@@ -155,6 +159,9 @@ class UnitConfig:
     # the simulator's; the tables' steady state does not carry it, nor does the `dynamic`
     # mode's chamber model
     seal_friction_share: float = field(default=0.0, metadata=_structure(le=0.2))
+    # the unit's delivered displacement band where commissioning measured it (relative, +-);
+    # unset: the machine's tolerances.pump_displacement. Not physics (not hashed)
+    displacement_tolerance: float | None = field(default=None, metadata={"ge": 0.0, "le": 0.2})
 
     def check(self, path: str) -> list[tuple[str, str]]:
         problems = []
@@ -606,6 +613,9 @@ class Config:
                         "reference_tolerance_mm"):
                 unit.pop(key)
             unit["motor"].pop("torque_lag_s")          # how the drive reports, not physics
+            unit.pop("displacement_tolerance")         # what is known, not physics
+            unit["pump_a"].pop("leakage_tolerance")
+            unit["pump_b"].pop("leakage_tolerance")
             _drop_unset(unit, UnitConfig)
             _drop_unset(unit["pump_a"], PumpConfig)
             _drop_unset(unit["pump_b"], PumpConfig)

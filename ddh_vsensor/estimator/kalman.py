@@ -264,6 +264,10 @@ class _Job:
     unit: DDHUnit
     switches: tuple[Switch, ...]
     x0_mm: float | None
+    # the bands of what is known of this unit: each side's leakage, the delivered displacement
+    leak_tolerance_a: float
+    leak_tolerance_b: float
+    displacement_tolerance: float
 
 
 def _set_mass(plant: Plant, mass_kg: np.ndarray) -> None:
@@ -311,9 +315,13 @@ def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool =
     for (actuator, r), x0 in zip(jobs, positions):
         if actuator not in units:
             units[actuator] = DDHUnit.from_config(cfg, actuator)
+        u = cfg.unit(actuator)
+        bands = [settings.leak_tolerance if p.leakage_tolerance is None else p.leakage_tolerance
+                 for p in (u.pump_a, u.pump_b)]
         prepared.append(_Job(actuator, r, units[actuator],
-                             switches_from_config(cfg.unit(actuator)) if references else (),
-                             x0))
+                             switches_from_config(u) if references else (), x0, *bands,
+                             settings.displacement_tolerance if u.displacement_tolerance
+                             is None else u.displacement_tolerance))
     periods = [float(np.median(np.diff(j.run.time_s))) for j in prepared]
     period = periods[0]
     for j, p in zip(prepared, periods):
@@ -384,6 +392,8 @@ class _Bank:
         self.n_states = N_BASE + 2 * m
         self.leak_a = col(lambda j: j.unit.a.pump.leak_coeff_m3)
         self.leak_b = col(lambda j: j.unit.b.pump.leak_coeff_m3)
+        self.leak_band_a = col(lambda j: j.leak_tolerance_a)
+        self.leak_band_b = col(lambda j: j.leak_tolerance_b)
         self.q_per_rpm_a = col(lambda j: abs(j.unit.a.pump.geometric_flow_m3_s(1.0)))
         self.q_per_rpm_b = col(lambda j: abs(j.unit.b.pump.geometric_flow_m3_s(1.0)))
         self.q_signed_a = col(lambda j: j.unit.a.pump.geometric_flow_m3_s(1.0))
@@ -436,7 +446,7 @@ class _Bank:
                               (s.pressure_bar * 1e5) ** 2, (s.pressure_bar * 1e5) ** 2, sf ** 2,
                               s.temp_sd_c ** 2, 1.0,
                               s.torque_offset_nm ** 2, s.compliance_tolerance ** 2 / 3.0,
-                              s.displacement_tolerance ** 2 / 3.0]
+                              j.displacement_tolerance ** 2 / 3.0]
             # a switch mounted off is off by the same on every pass: uniform over its tolerance
             for sw in j.switches:
                 p0[b, self.slot[b][sw.name]] = (sw.tolerance_mm * 1e-3) ** 2 / 3.0
@@ -458,8 +468,9 @@ class _Bank:
         for what bypasses the seals."""
         s = self.s
         mu = self.oil.dynamic_viscosity_pa_s(temp_c + z[:, DT])
-        leak = (np.abs(self.leak_a * z[:, PA]) + np.abs(self.leak_b * z[:, PB])) / mu
-        a = s.leak_tolerance
+        # each side's leakage off by its own band (a pump commissioning measured knows more)
+        leak = (self.leak_band_a * np.abs(self.leak_a * z[:, PA])
+                + self.leak_band_b * np.abs(self.leak_b * z[:, PB])) / mu
         # the orifice law against the laminar one, per side, at the same rating-point leakage
         pa, pb = np.abs(z[:, PA]), np.abs(z[:, PB])
         orifice = (np.abs(self.orifice_a * np.sqrt(pa) - self.leak_a * pa / mu)
@@ -467,7 +478,7 @@ class _Bank:
         trapped = s.trapped_share * np.abs(speed_rpm) * (
             self.q_per_rpm_a * pa + self.q_per_rpm_b * pb) / self.beta
         # each a bound of a share anywhere within [0, bound] (or +-bound): its RMS is bound/sqrt(3)
-        return (a * leak + s.orifice_share * orifice + trapped) / SQRT_3 + s.flow_floor_m3_s
+        return (leak + s.orifice_share * orifice + trapped) / SQRT_3 + s.flow_floor_m3_s
 
     def _compression_travel(self, z: np.ndarray, nom: np.ndarray) -> np.ndarray:
         """The rod's travel per unit relative error of the chambers' compliance over this step

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from ddh_vsensor.cli.main import main
+from ddh_vsensor.commission.machine import FLOORS
 from ddh_vsensor.commission.programme import calibration_profile
 from ddh_vsensor.config import Config, load_config
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign, write_run_dir
@@ -169,7 +170,8 @@ def test_the_measured_flow_model_is_written_with_its_evidence(
                  str(out), "--actuator", "boom", "--report", str(report)]) == 0
     printed = capsys.readouterr().out
     assert "pump A leakage factor: 1.3" in printed and "pressures logged" in printed
-    datasheet, machine = load_config(DATASHEET).unit("boom"), load_config(out).unit("boom")
+    datasheet_cfg = load_config(DATASHEET)
+    datasheet, machine = datasheet_cfg.unit("boom"), load_config(out).unit("boom")
     leak = (1.0 - machine.pump_a.volumetric_efficiency) / (
         1.0 - datasheet.pump_a.volumetric_efficiency)
     assert leak == pytest.approx(1.3, rel=0.02)
@@ -183,5 +185,10 @@ def test_the_measured_flow_model_is_written_with_its_evidence(
     assert flow["leakage_factor"]["a"]["identified"] and not flow["leakage_factor"]["b"][
         "identified"]
     assert "Flow model" in (report / "commission.html").read_text()
-    # the leakage band narrows to what was measured (the floor for logged pressures)
-    assert load_config(out).tolerances.pump_leakage == pytest.approx(0.05)
+    # the measured pump's leakage band narrows to what was measured (the floor for logged
+    # pressures); the pump not measured keeps the machine's band; both sides' displacement
+    # measured (logged pressures): the unit's band narrows
+    assert machine.pump_a.leakage_tolerance == pytest.approx(FLOORS["logged"]["leakage"])
+    assert machine.pump_b.leakage_tolerance is None
+    assert load_config(out).tolerances == datasheet_cfg.tolerances
+    assert machine.displacement_tolerance == pytest.approx(FLOORS["logged"]["displacement"])
