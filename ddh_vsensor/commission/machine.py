@@ -71,8 +71,8 @@ def settings(cal: UnitCalibration, spread_factor: float) -> list[Setting]:
 # transducers' calibration. Measured on bench/commission.py's drawn machines (the floors
 # cover their worst): see docs/commission.md
 COVERAGE = 3.0
-FLOORS = {"estimated": {"leakage": 0.3, "displacement": 0.004, "orifice_share": 0.1},
-          "logged": {"leakage": 0.08, "displacement": 0.001, "orifice_share": 0.05}}
+FLOORS = {"estimated": {"leakage": 0.35, "displacement": 0.01, "orifice_share": 0.4},
+          "logged": {"leakage": 0.16, "displacement": 0.0025, "orifice_share": 0.12}}
 
 
 def _evidence(e: Estimate, fit: FlowFit) -> str:
@@ -83,6 +83,12 @@ def _evidence(e: Estimate, fit: FlowFit) -> str:
 def _band(fit: FlowFit, name: str, sd: float) -> float:
     floors = FLOORS["estimated" if "estimated" in fit.pressures else "logged"]
     return max(COVERAGE * sd, floors[name])
+
+
+def _configured(cfg: Config, own: float | None, key: str) -> float:
+    """The band the configuration has now: the pump's or unit's own, else the machine's (a
+    fit never widens it)."""
+    return getattr(cfg.tolerances, key) if own is None else own
 
 
 def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key: str,
@@ -116,9 +122,11 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
                                    f"commissioned: leakage x{e.value:.3f} the datasheet's "
                                    f"({pump.volumetric_efficiency:g}) {_evidence(e, fit)}"))
                 band = _band(fit, "leakage", e.sd / e.value)
-                out.append(Setting((*base, "leakage_tolerance"), f"{band:.3f}",
-                                   f"commissioned: {COVERAGE:g} sigma, at least the floor of "
-                                   f"pressures {fit.pressures}", after="volumetric_efficiency"))
+                if band < _configured(cfg, pump.leakage_tolerance, "pump_leakage"):
+                    out.append(Setting((*base, "leakage_tolerance"), f"{band:.3f}",
+                                       f"commissioned: {COVERAGE:g} sigma, at least the floor "
+                                       f"of pressures {fit.pressures}",
+                                       after="volumetric_efficiency"))
             else:
                 out.append(Setting((*base, "volumetric_efficiency"), None,
                                    f"not commissioned: {e.problem}"))
@@ -128,7 +136,8 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
                     out.append(Setting((*base, key), f"{est.value:.3f}",
                                        f"commissioned: {_evidence(est, fit)}",
                                        after="volumetric_efficiency"))
-        if len(bands) == 2:
+        if len(bands) == 2 and max(bands) < _configured(
+                cfg, cfg.unit(unit).displacement_tolerance, "pump_displacement"):
             out.append(Setting(("units", unit, "displacement_tolerance"), f"{max(bands):.4f}",
                                f"commissioned: both sides' displacement, {COVERAGE:g} sigma, "
                                f"at least the floor of pressures {fit.pressures}",
@@ -141,8 +150,9 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
                                f"commissioned: +-{e.sd:.4f} (1 sigma) from the units' windows, "
                                f"pressures {pressures}", after=last_hydraulics_key))
     shares = [f for f in fits.values() if f.orifice_share.identified]
-    if tolerances and shares and len(shares) == len(cfg.unit_names):
-        band = max(_band(f, "orifice_share", f.orifice_share.sd) for f in shares)
+    band = max((_band(f, "orifice_share", f.orifice_share.sd) for f in shares), default=1.0)
+    if (tolerances and len(shares) == len(cfg.unit_names)
+            and band < cfg.tolerances.leakage_orifice_share):
         out.append(Setting(("tolerances", "leakage_orifice_share"), f"{band:.3f}",
                            f"commissioned: {COVERAGE:g} sigma of every unit's fitted share, "
                            "at least the floor of its pressures"))

@@ -291,8 +291,40 @@ def _kalman(figures: dict[str, Any], consumed: set[str]) -> str:
     return table(heads, rows)
 
 
+# --- commission.json ----------------------------------------------------------------------
+_COMMISSION_CASES = (("before", "datasheet"), ("after_estimated", "commissioned, pressures "
+                     "read from the torque"), ("after_logged", "commissioned, pressures logged"))
+
+
+def _commission(figures: dict[str, Any], consumed: set[str]) -> str:
+    """Per configuration, references and unit: the worst validation run from 27 degC up and
+    below, how many machines are within the issue's bands, the median uncertainty and how
+    many machines published a value beyond its uncertainty with no flag (per machine: the
+    JSON's ``per_machine``, with each drawn machine's truth)."""
+    consumed.add("per_machine")
+    n = figures["machines"]
+    rows = []
+    for case, label in _COMMISSION_CASES:
+        for refs in ("norefs", "refs"):
+            units = sorted({k.split("_")[-4] for k in figures
+                            if k.startswith(f"{case}_{refs}_") and k.endswith("_warm_max_mm")})
+            for unit in units:
+                base = f"{case}_{refs}_{unit}_"
+                keys = [base + k for k in ("warm_max_mm", "cold_max_mm", "warm_within_0_5mm",
+                                           "cold_within_1_0mm", "median_uncertainty_mm",
+                                           "machines_with_unflagged_beyond")]
+                consumed.update(keys)
+                w, c, wn, cn, u, bad = (figures[k] for k in keys)
+                rows.append([label, "yes" if refs == "refs" else "no", unit, fmt(w), fmt(c),
+                             f"{wn}/{n}", f"{cn}/{n}", fmt(u), f"{bad}/{n}"])
+    return table(["configuration", "refs", "unit", "worst mm from 27 degC",
+                  "worst mm below", "machines within 0.5 mm (27 degC up)",
+                  "machines within 1.0 mm (below)", "median u mm",
+                  "machines with an unflagged value beyond u"], rows)
+
+
 CURATED = {"accuracy": _accuracy_all, "daemon": _daemon, "diagnosis": _diagnosis,
-           "kalman": _kalman}
+           "kalman": _kalman, "commission": _commission}
 
 
 def bench_section(root: Path, name: str) -> str:

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from ddh_vsensor.cli.main import main
+from ddh_vsensor.cli.config import datasheet_text
 from ddh_vsensor.commission.machine import FLOORS
 from ddh_vsensor.commission.programme import calibration_profile
 from ddh_vsensor.config import Config, load_config
@@ -166,11 +167,13 @@ def leaky_csvs(cfg: Config, tmp_path_factory: pytest.TempPathFactory) -> list[Pa
 def test_the_measured_flow_model_is_written_with_its_evidence(
         leaky_csvs: list[Path], tmp_path: Path, capsys) -> None:
     out, report = tmp_path / "machine.yaml", tmp_path / "report"
-    assert main(["commission", *map(str, leaky_csvs), "--config", str(DATASHEET), "--out",
+    sheet = tmp_path / "datasheet.yaml"             # a datasheet's bands: wider than measured
+    sheet.write_text(datasheet_text())
+    assert main(["commission", *map(str, leaky_csvs), "--config", str(sheet), "--out",
                  str(out), "--actuator", "boom", "--report", str(report)]) == 0
     printed = capsys.readouterr().out
     assert "pump A leakage factor: 1.3" in printed and "pressures logged" in printed
-    datasheet_cfg = load_config(DATASHEET)
+    datasheet_cfg = load_config(sheet)
     datasheet, machine = datasheet_cfg.unit("boom"), load_config(out).unit("boom")
     leak = (1.0 - machine.pump_a.volumetric_efficiency) / (
         1.0 - datasheet.pump_a.volumetric_efficiency)
@@ -192,3 +195,16 @@ def test_the_measured_flow_model_is_written_with_its_evidence(
     assert machine.pump_b.leakage_tolerance is None
     assert load_config(out).tolerances == datasheet_cfg.tolerances
     assert machine.displacement_tolerance == pytest.approx(FLOORS["logged"]["displacement"])
+
+
+def test_a_fit_never_widens_a_band(leaky_csvs: list[Path], tmp_path: Path) -> None:
+    """The reference loader's leakage is known to +-10 % (its pumps measured): a calibration
+    day whose pressures allow +-16 % leaves that band as it is."""
+    out = tmp_path / "machine.yaml"
+    assert main(["commission", *map(str, leaky_csvs), "--config", str(DATASHEET), "--out",
+                 str(out), "--actuator", "boom"]) == 0
+    machine = load_config(out).unit("boom")
+    assert FLOORS["logged"]["leakage"] > load_config(DATASHEET).tolerances.pump_leakage
+    assert machine.pump_a.leakage_tolerance is None
+    assert machine.pump_a.volumetric_efficiency != load_config(DATASHEET).unit(
+        "boom").pump_a.volumetric_efficiency          # the value is still measured
