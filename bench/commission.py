@@ -215,8 +215,8 @@ def main() -> None:
             figures[f"{case}_{u}_cold_max_mm"] = max(r["cold_max_mm"] for r in rows)
             figures[f"{case}_{u}_warm_within_0_5mm"] = sum(r["warm_max_mm"] <= 0.5 for r in rows)
             figures[f"{case}_{u}_cold_within_1_0mm"] = sum(r["cold_max_mm"] <= 1.0 for r in rows)
-            figures[f"{case}_{u}_median_uncertainty_mm"] = float(np.median(
-                [r["median_uncertainty_mm"] for r in rows]))
+            figures[f"{case}_{u}_median_uncertainty_mm"] = round(float(np.median(
+                [r["median_uncertainty_mm"] for r in rows])), 3)
             figures[f"{case}_{u}_machines_with_unflagged_beyond"] = sum(
                 r["unflagged_beyond_share"] > 0 for r in rows)
     figures["seconds"] = round(time.time() - started, 1)
