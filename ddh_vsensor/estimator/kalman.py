@@ -452,6 +452,11 @@ class _Bank:
                 p0[b, self.slot[b][sw.name]] = (sw.tolerance_mm * 1e-3) ** 2 / 3.0
         P = np.zeros((B, n, n))
         P[:, np.arange(n), np.arange(n)] = p0
+        # the constant parameters' prior variances (their bands') cap their variance
+        self.prior_var = np.full((B, n), np.inf)
+        constant = [COMP, DISP, *range(N_BASE, N_BASE + max((len(j.switches)
+                                                            for j in self.jobs), default=0))]
+        self.prior_var[:, constant] = p0[:, constant]
         self.load_scale = np.maximum(np.abs(z[:, LOAD]), 1.0)
         return z, P, referenced
 
@@ -656,6 +661,12 @@ class _Bank:
                     grow = np.where(ratio > 1.0,
                                     np.minimum(ratio, s.max_inflation) ** inflate_per_sample, 1.0)
                     P = P * grow[:, None, None]
+                    # a constant parameter is never less known than its band says: the fading
+                    # memory widens what moves, not a bound (scaled as D P D, P stays PSD)
+                    diag = np.arange(self.n_states)
+                    d = np.sqrt(np.minimum(1.0, self.prior_var / np.maximum(
+                        P[:, diag, diag], 1e-300)))
+                    P = d[:, :, None] * P * d[:, None, :]
                 # torque update
                 R = self._torque_variance(k)
                 # a motor standing still is held by the pumps' friction: any torque between
