@@ -392,6 +392,21 @@ class _Bank:
         self.n_states = N_BASE + 2 * m
         self.leak_a = col(lambda j: j.unit.a.pump.leak_coeff_m3)
         self.leak_b = col(lambda j: j.unit.b.pump.leak_coeff_m3)
+        # what the valves let a chamber's pressure reach: the anti-cavitation valve's opening
+        # less, and the relief's setting plus, the pressure over which each passes the side's
+        # largest pump flow (at the speed limit); an update never takes a pressure beyond
+        # (with entrained air, a chamber taken below vacuum would hold the air of a vacuum)
+        def reach(side, valve) -> np.ndarray:
+            return col(lambda j: abs(getattr(j.unit, side).pump.geometric_flow_m3_s(
+                j.unit.motor.speed_limit_rpm)) / getattr(getattr(j.unit, side),
+                                                         valve).gradient_m3_s_pa)
+        self.p_floor = np.stack([col(lambda j: j.unit.a.anticav.cracking_pa)
+                                 - reach("a", "anticav"),
+                                 col(lambda j: j.unit.b.anticav.cracking_pa)
+                                 - reach("b", "anticav")], axis=1)
+        self.p_ceiling = np.stack([col(lambda j: j.unit.a.relief.setting_pa) + reach("a", "relief"),
+                                   col(lambda j: j.unit.b.relief.setting_pa) + reach("b", "relief")],
+                                  axis=1)
         self.leak_band_a = col(lambda j: j.leak_tolerance_a)
         self.leak_band_b = col(lambda j: j.leak_tolerance_b)
         self.q_per_rpm_a = col(lambda j: abs(j.unit.a.pump.geometric_flow_m3_s(1.0)))
@@ -712,6 +727,7 @@ class _Bank:
                 K[:, DISP] = 0.0
                 K[:, N_BASE:] = 0.0
                 z = z + K * y[:, None]
+                z[:, [PA, PB]] = np.clip(z[:, [PA, PB]], self.p_floor, self.p_ceiling)
                 KPH = K[:, :, None] * PH[:, None, :]
                 P = (P - KPH - np.transpose(KPH, (0, 2, 1))
                      + K[:, :, None] * (S[:, None, None] * K[:, None, :]))
@@ -843,6 +859,7 @@ class _Bank:
         s_ = max(float(h @ ph), 0.0) + r
         K = ph / s_
         z[b] += K * y
+        z[b, [PA, PB]] = np.clip(z[b, [PA, PB]], self.p_floor[b], self.p_ceiling[b])
         P[b] -= np.outer(K, ph)
         events[b].append(ReferenceEvent(k, c, sw.name, rising, p_mm, -y * 1e3, False,
                                         float(K[X])))
