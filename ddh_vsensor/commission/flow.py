@@ -6,6 +6,7 @@ integrated over a window of the run)::
 
     integral q_geo,s(n) dt - sign_s A_s dx - integral V_s(x)/beta dp_s
         = integral q_leak,s dt + V_dead e_hose dp_s / 100 bar - (d_s - 1) integral q_geo,s dt
+          + X dV_air,s
 
 with q_geo the displacement flow of the measured motor speed, dx the draw-wire's travel,
 dp_s the chamber's gauge pressure (logged where a transducer was fitted, otherwise the
@@ -15,14 +16,17 @@ the unit model with the structure terms as unknowns::
     q_leak,s = f_s k_s [(1 - o) dp/mu + o sqrt(dp_r) / mu_r dp / sqrt(max(|dp|, 1 bar))]
                x (1 + g r) / (1 + g),                r = |n_pump| / n_rated
 
-f_s the leakage against the datasheet's (per side: it sets the volumetric efficiency), d_s
+X the free air in the oil at atmospheric pressure (dV_air the volume a unit share of air in
+the chamber loses, compressed polytropically over the window), f_s the leakage against the datasheet's (per side: it sets the volumetric efficiency), d_s
 the delivered displacement against the datasheet's per the cylinder's area (a belt ratio or
 a bore off by a percent moves the rod a percent of every stroke), o the orifice share and g
 the speed gain (shared by the unit's two sides: one family of pumps), e_hose the hoses'
 expansion. The left side is known from the run; the right is linear in the window's sums of
 k dp/mu, its speed-weighted sum, the same of the orifice law and of the displacement flow, so
-one bounded least-squares fit over every window of every run finds them (the displacement
-even on a side the load never presses: it does not need pressure). Their standard
+one bounded least-squares fit over every window of every run finds them (from logged
+pressures the displacement even on a side the load never presses: it does not need
+pressure; read from the torque, a pressure is a loaded side's only, and air and hoses, which
+are the pressure's rate, are left out). Their standard
 deviations come from the fit's Jacobian and residual; a value whose evidence does not pin it
 (too few loaded windows on a side, one temperature, one speed) keeps the datasheet's, with
 the run that would measure it.
@@ -56,8 +60,9 @@ RELIEF_MARGIN_PA = 10.0 * BAR_PA
 ORIFICE_LAMINAR_PA = 1.0e5      # the unit model's: an orifice path flows laminar below 1 bar
 LOADED_PA = 20.0 * BAR_PA       # a window loads a side when its mean pressure is above this
 MIN_LOADED_WINDOWS = 20         # a side's leakage factor needs this many loaded windows
-# identified when its standard deviation is below: the leakage factor (relative), the orifice
-# share, the speed gain, the hoses' expansion per 100 bar
+# identified when its standard deviation is below: the leakage factor (relative), the
+# displacement factor, the orifice share, the speed gain, the hoses' expansion per 100 bar,
+# the entrained air's share
 MAX_SD = {"leakage": 0.05, "displacement": 0.002, "orifice_share": 0.1, "speed_gain": 0.2,
           "hose_expansion": 0.01, "air_fraction": 0.001}
 BOUNDS = {"leakage": (0.05, 20.0), "displacement": (0.8, 1.2), "orifice_share": (0.0, 0.9),
