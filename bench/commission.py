@@ -5,9 +5,10 @@ x U(0.7, 1.4) per pump (a datasheet's band), displacement x U(0.99, 1.01), torqu
 efficiency +-0.02, the cylinders' friction x U(0.7, 1.3); the structure the datasheet does not
 state - an orifice share of the leakage U(0, 0.5), its speed gain U(0, 0.6), seal friction
 U(0, 5 %) of the pressure force on the rings, hoses U(0, 2 %) per 100 bar, entrained air
-U(0, 1 %); the drive's torque estimate lagging U(0, 5) ms with ripple U(0, 1.5 %) of its limit,
-an offset U(-2, 2) N*m and a speed-proportional one U(-2, 2) N*m at the speed limit; the tank
-sensor lagging the pumps' oil by U(60, 300) s; each Hall switch U(-3, 3) mm off its
+U(0, 1 %) (the machine's: one tank); the drive's torque estimate lagging U(0, 5) ms with
+ripple U(0, 1.5 %) of its limit, an offset U(-2, 2) N*m and a speed-proportional one
+U(-2, 2) N*m at the speed limit; the tank sensor lagging the pumps' oil by U(60, 300) s (one
+sensor); each Hall switch U(-3, 3) mm off its
 datasheet position (the ends' inwards only). The drawn values are written to the results'
 ``truth`` and never read by the commissioning.
 
@@ -62,6 +63,8 @@ def draw_machine(cfg: Config, rng: np.random.Generator
                  ) -> tuple[Config, dict[str, UnitEffects], dict]:
     """A machine's true configuration, its measurement chains, and the drawn values."""
     units, effects, truth = dict(cfg.units), {}, {}
+    # one tank: the oil's air and the tank sensor's lag are the machine's, not a unit's
+    air, tank_lag = rng.uniform(0.0, 0.01), rng.uniform(60.0, 300.0)
     for a in cfg.unit_names:
         u = cfg.unit(a)
         t: dict = {}
@@ -91,10 +94,9 @@ def draw_machine(cfg: Config, rng: np.random.Generator
             friction_coulomb_n=u.friction_coulomb_n * friction,
             friction_viscous_n_s_per_m=u.friction_viscous_n_s_per_m * friction,
             seal_friction_share=seal, references_mm=refs)
-        chain = dict(compressibility=rng.uniform(0.0, 0.01), torque_lag=rng.uniform(0.0, 5.0),
+        chain = dict(compressibility=air, torque_lag=rng.uniform(0.0, 5.0),
                      torque_ripple=rng.uniform(0.0, 1.5), torque_offset=rng.uniform(-2.0, 2.0),
-                     torque_speed_offset=rng.uniform(-2.0, 2.0),
-                     oil_temp_lag=rng.uniform(60.0, 300.0))
+                     torque_speed_offset=rng.uniform(-2.0, 2.0), oil_temp_lag=tank_lag)
         effects[a] = UnitEffects(**chain)
         t.update(orifice_share=share, speed_gain=gain, friction_factor=friction,
                  seal_friction_share=seal, references_mm=refs, **chain)
