@@ -17,7 +17,8 @@ the unit model with the structure terms as unknowns::
                x (1 + g r) / (1 + g),                r = |n_pump| / n_rated
 
 X the free air in the oil at atmospheric pressure (dV_air the volume a unit share of air in
-the chamber loses, compressed polytropically over the window), f_s the leakage against the datasheet's (per side: it sets the volumetric efficiency), d_s
+the chamber loses, compressed polytropically over the window), f_s the leakage against the
+datasheet's (per side: it sets the volumetric efficiency), d_s
 the delivered displacement against the datasheet's per the cylinder's area (a belt ratio or
 a bore off by a percent moves the rod a percent of every stroke), o the orifice share and g
 the speed gain (shared by the unit's two sides: one family of pumps), e_hose the hoses'

@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import jinja2
-import numpy as np
 import yaml
 
 from ddh_vsensor.atomic import atomic_path, atomic_write
@@ -192,7 +191,7 @@ def _number(x: float) -> float | None:
 
 
 def _estimate_data(e: Estimate) -> dict[str, Any]:
-    return {"value": round(e.value, 5), "sd": None if not math.isfinite(e.sd) else round(e.sd, 5), "identified": e.identified,
+    return {"value": round(e.value, 5), "sd": _number(e.sd), "identified": e.identified,
             "datasheet": e.datasheet, "problem": e.problem}
 
 

@@ -400,13 +400,12 @@ class _Bank:
             return col(lambda j: abs(getattr(j.unit, side).pump.geometric_flow_m3_s(
                 j.unit.motor.speed_limit_rpm)) / getattr(getattr(j.unit, side),
                                                          valve).gradient_m3_s_pa)
-        self.p_floor = np.stack([col(lambda j: j.unit.a.anticav.cracking_pa)
-                                 - reach("a", "anticav"),
-                                 col(lambda j: j.unit.b.anticav.cracking_pa)
-                                 - reach("b", "anticav")], axis=1)
-        self.p_ceiling = np.stack([col(lambda j: j.unit.a.relief.setting_pa) + reach("a", "relief"),
-                                   col(lambda j: j.unit.b.relief.setting_pa) + reach("b", "relief")],
-                                  axis=1)
+        self.p_floor = np.stack(
+            [col(lambda j: j.unit.a.anticav.cracking_pa) - reach("a", "anticav"),
+             col(lambda j: j.unit.b.anticav.cracking_pa) - reach("b", "anticav")], axis=1)
+        self.p_ceiling = np.stack(
+            [col(lambda j: j.unit.a.relief.setting_pa) + reach("a", "relief"),
+             col(lambda j: j.unit.b.relief.setting_pa) + reach("b", "relief")], axis=1)
         self.leak_band_a = col(lambda j: j.leak_tolerance_a)
         self.leak_band_b = col(lambda j: j.leak_tolerance_b)
         self.q_per_rpm_a = col(lambda j: abs(j.unit.a.pump.geometric_flow_m3_s(1.0)))
