@@ -30,8 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "k x the edges' spread. Fits each unit's pump leakage and displacement "
                     "(per side), the leakage's orifice share and speed gain (and, from logged "
                     "chamber pressures, the oil's entrained air and the hoses' expansion) to "
-                    "the chambers' oil balance against the measured travel. Writes the datasheet configuration with those keys set and "
-                    "commented with their evidence; a value the runs do not measure keeps the "
+                    "the chambers' oil balance against the measured travel. Writes the "
+                    "datasheet configuration with those keys set and commented with their "
+                    "evidence; a value the runs do not measure keeps the "
                     "datasheet's, with the run that would measure it.")
     p.add_argument("runs", nargs="+", metavar="RUN",
                    help="calibration runs: CSV of the measured-data format with position_mm "
@@ -111,14 +112,7 @@ def _flow_summary(fit: FlowFit) -> list[str]:
     lines = [f"  flow model (pressures {fit.pressures}; windows A {fit.windows['a']}, "
              f"B {fit.windows['b']}; loaded A {fit.loaded_windows['a']}, "
              f"B {fit.loaded_windows['b']}):"]
-    for name, e in [*((f"pump {s.upper()} displacement factor", fit.displacement[s])
-                      for s in "ab"),
-                    *((f"pump {s.upper()} leakage factor", fit.leakage[s]) for s in "ab")]:
-        lines.append(f"    {name}: " + (f"{e.value:.3f} +-{e.sd:.3f}" if e.identified
-                                         else f"not measured ({e.problem})"))
-    for name, e in (("orifice share", fit.orifice_share), ("speed gain", fit.speed_gain),
-                    ("hose expansion per 100 bar", fit.hose_expansion_per_100bar),
-                    ("entrained air (share at 1 atm)", fit.air_fraction)):
+    for name, e in fit.named():
         lines.append(f"    {name}: " + (f"{e.value:.3f} +-{e.sd:.3f}" if e.identified
                                          else f"not measured ({e.problem})"))
     for s, rms in fit.residual_rms_ml.items():

@@ -125,16 +125,22 @@ class FlowFit:
     air_fraction: Estimate
     windows: dict[str, int]                         # per side
     loaded_windows: dict[str, int]
+    residual_rms_ml: dict[str, float] = field(default_factory=dict)  # per side and window
+    datasheet_rms_ml: dict[str, float] = field(default_factory=dict)
+
+    def named(self) -> list[tuple[str, Estimate]]:
+        """Every value with the name the command and the report give it."""
+        return [*((f"pump {s.upper()} displacement factor", self.displacement[s])
+                  for s in "ab"),
+                *((f"pump {s.upper()} leakage factor", self.leakage[s]) for s in "ab"),
+                ("orifice share", self.orifice_share), ("speed gain", self.speed_gain),
+                ("hose expansion per 100 bar", self.hose_expansion_per_100bar),
+                ("entrained air (share at 1 atm)", self.air_fraction)]
 
     @property
     def measured(self) -> bool:
         """Whether the runs measured any of the flow model's values."""
-        return any(e.identified for e in (*self.leakage.values(), *self.displacement.values(),
-                                          self.orifice_share,
-                                          self.speed_gain, self.hose_expansion_per_100bar,
-                                          self.air_fraction))
-    residual_rms_ml: dict[str, float] = field(default_factory=dict)  # per side and window
-    datasheet_rms_ml: dict[str, float] = field(default_factory=dict)
+        return any(e.identified for _, e in self.named())
 
 
 def gauge_pressures(unit: DDHUnit, run: Run) -> tuple[np.ndarray, np.ndarray] | None:

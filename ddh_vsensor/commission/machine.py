@@ -14,7 +14,8 @@ import jinja2
 import yaml
 
 from ddh_vsensor.atomic import atomic_path, atomic_write
-from ddh_vsensor.commission.flow import MACHINE_WIDE, Estimate, FlowFit, machine_wide
+from ddh_vsensor.commission.flow import (MACHINE_WIDE, Estimate, FlowFit, applied,
+                                         machine_wide)
 from ddh_vsensor.commission.switches import KIND_KEYS, UnitCalibration
 from ddh_vsensor.commission.yaml_text import Setting, set_values
 from ddh_vsensor.config import Config, load_config
@@ -98,15 +99,17 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
     band) with what would measure it. ``tolerances``: the file has a ``tolerances`` section
     (the orifice share's band is the machine's: narrowed where every unit measured it)."""
     out = []
+    measured = applied(cfg, dict(fits))     # the values, converted once
     for unit, fit in fits.items():
         bands: list[float] = []
         for side in ("a", "b"):
             base = ("units", unit, f"pump_{side}")
             pump = getattr(cfg.unit(unit), f"pump_{side}")
+            new = getattr(measured.unit(unit), f"pump_{side}")
             d = fit.displacement[side]
             if d.identified:
                 out.append(Setting((*base, "displacement_cm3_rev"),
-                                   f"{pump.displacement_cm3_rev * d.value:.4g}",
+                                   f"{new.displacement_cm3_rev:.4g}",
                                    f"commissioned: x{d.value:.4f} the datasheet's "
                                    f"({pump.displacement_cm3_rev:g}) per the cylinder's area "
                                    f"{_evidence(d, fit)}"))
@@ -116,8 +119,8 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
                                    f"not commissioned: {d.problem}"))
             e = fit.leakage[side]
             if e.identified:
-                eta = 1.0 - e.value * (1.0 - pump.volumetric_efficiency)
-                out.append(Setting((*base, "volumetric_efficiency"), f"{eta:.4f}",
+                out.append(Setting((*base, "volumetric_efficiency"),
+                                   f"{new.volumetric_efficiency:.4f}",
                                    f"commissioned: leakage x{e.value:.3f} the datasheet's "
                                    f"({pump.volumetric_efficiency:g}) {_evidence(e, fit)}"))
                 band = _band(fit, "leakage", e.sd / e.value)
@@ -145,7 +148,7 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
         e = machine_wide(fits, key)
         if e is not None:
             pressures = ", ".join(sorted({f.pressures for f in fits.values()}))
-            out.append(Setting(("hydraulics", key), f"{e.value:.4f}",
+            out.append(Setting(("hydraulics", key), f"{getattr(measured.hydraulics, key):.4f}",
                                f"commissioned: +-{e.sd:.4f} (1 sigma) from the units' windows, "
                                f"pressures {pressures}", after=last_hydraulics_key))
     shares = [f for f in fits.values() if f.orifice_share.identified]
@@ -205,7 +208,8 @@ def flow_data(fit: FlowFit) -> dict[str, Any]:
             "speed_gain": _estimate_data(fit.speed_gain),
             "hose_expansion_per_100bar": _estimate_data(fit.hose_expansion_per_100bar),
             "air_fraction": _estimate_data(fit.air_fraction),
-            "residual_rms_ml": fit.residual_rms_ml, "datasheet_rms_ml": fit.datasheet_rms_ml}
+            "residual_rms_ml": fit.residual_rms_ml, "datasheet_rms_ml": fit.datasheet_rms_ml,
+            "rows": [{"name": name, **_estimate_data(e)} for name, e in fit.named()]}
 
 
 def report_data(cals: Mapping[str, UnitCalibration],
@@ -263,14 +267,8 @@ B {{ u.flow.windows.b }} (loaded A {{ u.flow.loaded_windows.a }}, B {{ u.flow.lo
 {{ "%.2f"|format(rms) }} ml per window, datasheet model
 {{ "%.2f"|format(u.flow.datasheet_rms_ml[side]) }}{% endfor %}</p>
 <table><tr><th>parameter</th><th>value</th><th>sigma</th><th>datasheet</th><th>measured</th></tr>
-{% for name, e in [("pump A displacement factor", u.flow.displacement_factor.a),
-                   ("pump B displacement factor", u.flow.displacement_factor.b),
-                   ("pump A leakage factor", u.flow.leakage_factor.a),
-                   ("pump B leakage factor", u.flow.leakage_factor.b),
-                   ("orifice share", u.flow.orifice_share), ("speed gain", u.flow.speed_gain),
-                   ("hose expansion per 100 bar", u.flow.hose_expansion_per_100bar),
-                   ("entrained air", u.flow.air_fraction)] %}
-<tr><th>{{ name }}</th><td>{{ e.value }}</td><td>{{ e.sd if e.sd is not none else "" }}</td>
+{% for e in u.flow.rows %}
+<tr><th>{{ e.name }}</th><td>{{ e.value }}</td><td>{{ e.sd if e.sd is not none else "" }}</td>
 <td>{{ e.datasheet }}</td><td{% if not e.identified %} class="bad"{% endif %}>
 {{ "yes" if e.identified else e.problem }}</td></tr>
 {% endfor %}</table>
