@@ -7,7 +7,7 @@ rod down under the model *and* what the model is known not to know, and checks i
 innovations to see when the model does not fit.
 
 State z = [x (m), v (m/s), dp_a (Pa), dp_b (Pa), F_load (N), dT (K), eps, tau_off (N*m),
-comp, disp, o_1..o_m (m), c_1..c_m (m)]:
+comp, disp, tau_stuck (N*m), o_1..o_m (m), c_1..c_m (m)]:
 
 - ``F_load`` the external load (random walk; the moving mass follows from the payload it
   implies), ``tau_off`` an offset of the drive's torque estimate (random walk);
@@ -48,6 +48,12 @@ comp, disp, o_1..o_m (m), c_1..c_m (m)]:
   the rod travels disp times more than the model moves it, on every stroke, so the error
   grows with the travel, not its square root (the flow error's decorrelation would have
   it); the Hall edges measure it;
+- ``tau_stuck`` where in the pumps' friction band a motor standing still stuck: the band's
+  pumping and motoring torques both hold the pressures, so the drive's torque is anywhere
+  between them, but it is *one* value for the stop, not a new draw each sample. Drawn anew
+  (uniform over the band) as the motor stops, moved across the band by the drive's
+  controller over :attr:`KalmanSettings.stuck_torque_s`, never wider than the band; it
+  enters the torque only while the motor stands;
 - ``o_i`` one offset per Hall switch (constant, prior uniform over
   +-``reference_tolerance_mm``): a switch mounted 2 mm off is off by 2 mm on every pass;
   ``c_i`` the rod's position at switch i's last edge, kept from the edge's sample until the
@@ -72,7 +78,7 @@ Measurement: the logged motor torque is the plant's torque over the *last* subst
 ``tau_off`` plus noise whose variance is physics (the drive's estimate error, the reading's
 timing within its sample, the speed's resolution read as inertia torque, the limiter at the
 speed limit); a motor standing still is held in its pumps' friction band (taken at the band's
-middle with the band's uniform variance). An innovation beyond :attr:`KalmanSettings.huber`
+middle plus ``tau_stuck``). An innovation beyond :attr:`KalmanSettings.huber`
 sigma is down-weighted (Huber): it is a linearisation the sample does not fit. One beyond the
 chi-square gate at :attr:`KalmanSettings.false_alarm` is a torque the model cannot explain (a
 chamber the model pressurises at a reversal while the plant's still cavitates, a force it
@@ -139,9 +145,9 @@ from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.model.plant import Plant, RowSpec
 
 MODEL_INCONSISTENT = 1 << 7     # proposed Flags bit: the torque innovations fail the chi-square
-X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP, DISP = range(10)
+X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP, DISP, STICK = range(11)
 SLOW = [LOAD, DT, TOFF]          # the slow states: a torque the model cannot explain leaves them
-N_BASE = 10                     # states before the per-switch offsets
+N_BASE = 11                     # states before the per-switch offsets
 N_PLANT = 6                     # states the plant sees (the rest enter linearly: no row)
 N_ROWS = N_PLANT + 1            # nominal + one per perturbed plant state
 # finite-difference steps of the perturbed states (SI, K): well inside each state's
@@ -162,7 +168,8 @@ class KalmanSettings:
     stop_reach: float = 2.0
     # measurement
     # the parameters' bands (the configuration's ``tolerances``; these defaults a datasheet's)
-    drive_torque_nm: float = DATASHEET_TOLERANCES.torque_noise_nm     # the drive's torque error per sample
+    # the drive's torque error per sample
+    drive_torque_nm: float = DATASHEET_TOLERANCES.torque_noise_nm
     torque_timing_s: float = 1.0e-3     # when the torque was read within its sample vs speed
     speed_step_rpm: float = 1.0         # the logged speed's resolution
     limiter_torque_nm: float = 5.0      # at the speed limit the limiter sets the torque
@@ -203,6 +210,10 @@ class KalmanSettings:
     force_noise_n: float = 200.0        # white force (friction not modelled) per sqrt(s)
     flow_noise_share: float = 0.02      # white flow, share of a pump's rated leakage, per sqrt(s)
     torque_offset_walk_nm: float = 0.05
+    # a motor stuck in its pumps' friction band: its torque is one value within the band
+    # (the stuck torque state), moved across it by the drive's controller within about this
+    # time (a position loop's integral action winding while the rod stands)
+    stuck_torque_s: float = 1.0
     switch_repeat_mm: float = 0.05      # a Hall switch's switching point from pass to pass
     huber: float = 3.0                  # torque innovations beyond this many sigma: down-weighted
     # a torque innovation beyond the chi-square gate at false_alarm: the slow states keep
@@ -412,9 +423,10 @@ class _Bank:
         self.q_per_rpm_b = col(lambda j: abs(j.unit.b.pump.geometric_flow_m3_s(1.0)))
         self.q_signed_a = col(lambda j: j.unit.a.pump.geometric_flow_m3_s(1.0))
         # half the pumps' friction band at standstill per Pa: ideal (1/eta - eta) / 2 per side
-        self.band_half = np.array([[sd.pump.sign * sd.pump.speed_ratio * sd.pump.displacement_m3_rev
-                                    / (2.0 * math.pi) * (1.0 / sd.pump.eta_hm - sd.pump.eta_hm)
-                                    / 2.0 for sd in j.unit.sides] for j in jobs])
+        self.band_half = np.array([[sd.pump.sign * sd.pump.speed_ratio
+                                    * sd.pump.displacement_m3_rev / (2.0 * math.pi)
+                                    * (1.0 / sd.pump.eta_hm - sd.pump.eta_hm) / 2.0
+                                    for sd in j.unit.sides] for j in jobs])
         self.dead = col(lambda j: j.unit.dead_volume_m3)
         # a side's leakage at the rating point, through an orifice: k_lam dp_r / mu_r sqrt(dp/dp_r)
         dp_r = hydraulics.nominal_pressure_bar * BAR_PA
@@ -454,13 +466,13 @@ class _Bank:
             z[b, :N_BASE] = [x0 * 1e-3, float(st.velocity_m_s),
                              float(st.p_a_pa - j.unit.reservoir_pa),
                              float(st.p_b_pa - j.unit.reservoir_pa), force, 0.0, 0.0, 0.0, 0.0,
-                             0.0]
+                             0.0, 0.0]
             sf = max(s.load_share * abs(force), j.unit.cylinder.static_friction_n)
             p0[b, :N_BASE] = [(sx * 1e-3) ** 2, (s.velocity_mm_s * 1e-3) ** 2,
                               (s.pressure_bar * 1e5) ** 2, (s.pressure_bar * 1e5) ** 2, sf ** 2,
                               s.temp_sd_c ** 2, 1.0,
                               s.torque_offset_nm ** 2, s.compliance_tolerance ** 2 / 3.0,
-                              j.displacement_tolerance ** 2 / 3.0]
+                              j.displacement_tolerance ** 2 / 3.0, 0.0]
             # a switch mounted off is off by the same on every pass: uniform over its tolerance
             for sw in j.switches:
                 p0[b, self.slot[b][sw.name]] = (sw.tolerance_mm * 1e-3) ** 2 / 3.0
@@ -468,7 +480,7 @@ class _Bank:
         P[:, np.arange(n), np.arange(n)] = p0
         # the constant parameters' prior variances (their bands') cap their variance
         self.prior_var = np.full((B, n), np.inf)
-        constant = [COMP, DISP, *range(N_BASE, N_BASE + max((len(j.switches)
+        constant = [COMP, DISP, STICK, *range(N_BASE, N_BASE + max((len(j.switches)
                                                             for j in self.jobs), default=0))]
         self.prior_var[:, constant] = p0[:, constant]
         self.load_scale = np.maximum(np.abs(z[:, LOAD]), 1.0)
@@ -522,6 +534,9 @@ class _Bank:
         q[:, DT] = s.temp_sd_c ** 2 * (1.0 - self.phi_t ** 2)
         q[:, EPS] = 1.0 - self.phi_q ** 2
         q[:, TOFF] = s.torque_offset_walk_nm ** 2 * T
+        # a stuck motor's torque moves within the band as the drive's controller winds
+        q[:, STICK] = np.where(self.was_stopped, self.prior_var[:, STICK], 0.0) * T \
+            / s.stuck_torque_s
         Q = np.zeros((self.B, n, n))
         Q[:, np.arange(n), np.arange(n)] = q
         return Q
@@ -626,6 +641,7 @@ class _Bank:
         t_start = time.perf_counter()
         z, P, referenced = self._initial()
         self.suspect: list[str | None] = [None] * B
+        self.was_stopped = np.zeros(B, dtype=bool)
         self.edge_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
         self.torque_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
         win = max(1, int(round(s.nis_window_s / T)))
@@ -693,9 +709,23 @@ class _Bank:
                     H = H.copy()
                     H[:, PA] -= half[:, 0]
                     H[:, PB] -= half[:, 1]
-                    R = R + (np.abs(half[:, 0] * z[:, PA]) + np.abs(half[:, 1] * z[:, PB])) ** 2 \
-                        * 4.0 / 12.0
-                y = self.torque[k] - (tq_model + z[:, TOFF])
+                    # where in the band the motor stuck is one value for the whole stop (the
+                    # friction holds it until the drive breaks it loose): a state drawn anew,
+                    # uniform over the band, as the motor stops, not a noise of each sample
+                    # (a hundred samples of one stuck torque would teach the filter a
+                    # hundred times what one does)
+                    new = stopped & ~self.was_stopped
+                    if new.any():
+                        band_var = (np.abs(half[:, 0] * z[:, PA])
+                                    + np.abs(half[:, 1] * z[:, PB])) ** 2 / 3.0
+                        z[new, STICK] = 0.0
+                        P[new, STICK, :] = 0.0
+                        P[new, :, STICK] = 0.0
+                        P[new, STICK, STICK] = band_var[new]
+                        self.prior_var[new, STICK] = band_var[new]
+                    H[:, STICK] = stopped
+                self.was_stopped = stopped
+                y = self.torque[k] - (tq_model + z[:, TOFF] + np.where(stopped, z[:, STICK], 0.0))
                 PH = np.einsum("bij,bj->bi", P, H)
                 # never below the measurement's own variance (R > 0): a covariance rounded
                 # off positive definiteness must not give a gain beyond the sample's weight
