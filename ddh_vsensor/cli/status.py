@@ -1,14 +1,19 @@
-"""``ddh-vsensor status``: the emulated sensor nodes' object dictionaries, read over SDO."""
+"""``ddh-vsensor status``: the emulated sensor nodes' object dictionaries, read over SDO, and
+the reference switches' drift records the service keeps in its state directory."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+from pathlib import Path
 from typing import Any
 
 from ddh_vsensor.errors import UserError
 from ddh_vsensor.cli.common import add_config_arg, config_from
-from ddh_vsensor.cli.run import add_bus_args, bus_from_args
+from ddh_vsensor.cli.install import DEFAULT_STATE_DIR
+from ddh_vsensor.cli.run import add_bus_args, bus_from_args, default_state_dir
+from ddh_vsensor.config import Config
 
 
 def _preset(text: str) -> tuple[str, float]:
@@ -24,8 +29,10 @@ def _preset(text: str) -> tuple[str, float]:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("status", help="read the emulated sensors' state over SDO",
                        description="Reads each emulated CiA 406 node over SDO: position, speed, "
-                       "uncertainty, flags, input counters, measuring step, timers. --preset "
-                       "writes the CiA 406 preset value (a manual reference) first.")
+                       "uncertainty, flags, input counters, measuring step, timers; and, from "
+                       "the service's state directory, whether each reference switch's travel "
+                       "between its edges still matches its configured window and hysteresis. "
+                       "--preset writes the CiA 406 preset value (a manual reference) first.")
     add_config_arg(p)
     add_bus_args(p)
     p.add_argument("--timeout", type=float, default=1.0, metavar="S",
@@ -33,6 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", type=_preset, action="append", default=[],
                    metavar="UNIT=MM", help="set a cylinder's position (manual reference; "
                    "refused outside the stroke)")
+    p.add_argument("--state-dir", metavar="DIR", help="the service's state directory, where it "
+                   "records its reference switches' drift (default: $STATE_DIRECTORY, else "
+                   f"{DEFAULT_STATE_DIR} where it exists, else $XDG_STATE_HOME/ddh-vsensor)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_run)
 
@@ -47,6 +57,7 @@ def _run(args: argparse.Namespace) -> int:
 
     cfg = config_from(args)
     presets = [(cfg.require_unit(unit), mm) for unit, mm in args.preset]
+    state_dir = _state_dir(args.state_dir)
     if not 0.01 <= args.timeout <= 60:
         raise UserError(f"--timeout {args.timeout}: outside 0.01..60 s")
     out: dict[str, Any] = {}
@@ -82,6 +93,8 @@ def _run(args: argparse.Namespace) -> int:
         finally:
             bus.shutdown()
     out = {unit: out[unit] for unit in cfg.unit_names}
+    for unit, r in out.items():
+        r["switches"], r["switches_problem"] = switch_report(cfg, unit, state_dir)
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
@@ -98,7 +111,56 @@ def _run(args: argparse.Namespace) -> int:
               f"{r['tpdo2_event_timer_ms']} ms, heartbeat {r['heartbeat_ms']} ms, guarding "
               + (f"{r['guard_time_ms']} ms x {r['life_time_factor']}"
                  if r['guard_time_ms'] and r['life_time_factor'] else "off"))
+        for line in switch_lines(r["switches"], r["switches_problem"]):
+            print(f"  {line}")
     return 0
+
+
+def _state_dir(given: str | None) -> Path:
+    if given:
+        if not Path(given).is_dir():
+            raise UserError(f"--state-dir {given}: "
+                            + ("not a directory" if Path(given).exists() else "no such directory"))
+        return Path(given)
+    if not os.environ.get("STATE_DIRECTORY") and Path(DEFAULT_STATE_DIR).is_dir():
+        return Path(DEFAULT_STATE_DIR)
+    return default_state_dir()
+
+
+def switch_report(cfg: Config, unit: str, state_dir: Path
+                  ) -> tuple[dict[str, Any] | None, str | None]:
+    """Each switch's verdict and spans from the service's record (None, with why, where
+    there is none to read)."""
+    from ddh_vsensor.estimator.switch_drift import SwitchDrift
+    from ddh_vsensor.service.persistence import load_switch_record, switches_path
+
+    path = switches_path(state_dir, unit)
+    assert path is not None
+    drift = SwitchDrift.from_config(cfg, unit)
+    try:
+        record = load_switch_record(path, unit, cfg.faults.state_file_max_bytes)
+        if record is None:
+            return None, f"no record in {state_dir} (the service's --state-dir)"
+        drift.restore(record)
+    except PermissionError:
+        return None, (f"cannot read {path}: permission denied (the service's state directory "
+                      "is its own: run status as root)")
+    except (OSError, ValueError, TypeError, RecursionError) as exc:
+        return None, f"{path} unusable ({type(exc).__name__}: {str(exc)[:120]})"
+    return {name: s.summary() for name, s in drift.switches.items()}, None
+
+
+def switch_lines(switches: dict[str, Any] | None, problem: str | None) -> list[str]:
+    """The text output's lines for one unit's switches."""
+    if switches is None:
+        return [f"switches      {problem}"]
+    lines = []
+    for name, s in switches.items():
+        spans = "; ".join(f"{span} {v['measured_mm']:.2f} mm, configured "
+                          f"{v['configured_mm']:.2f} ({v['pairs']} pairs)"
+                          for span, v in s["spans"].items()) or "no pair measured yet"
+        lines.append(f"switch {name:<7}{'DRIFTED' if s['drifted'] else 'ok':>10}  {spans}")
+    return lines
 
 
 def _no_answer(unit: str, node_id: int, exc: Exception) -> str:

@@ -239,6 +239,10 @@ class EstimatorConfig:
     # (beyond its static friction) gives the empty machine's mass, plus this acceleration
     # (m/s²) for the pressures' own error; a torque that says more is misread
     dynamic_start_tolerance_m_s2: float = field(default=0.0, metadata={"ge": 0.0, "le": 1000.0})
+    # how far a Hall switch's span, the travel between two of its edges (2 window + hysteresis
+    # passing through, the hysteresis turning back), may on average depart from the configured
+    # one before the service reports the switch drifted (:mod:`.estimator.switch_drift`)
+    reference_drift_mm: float = field(default=1.0, metadata={"gt": 0.0, "le": 100.0})
 
 
 DEFAULT_BUS = "default"      # the bus of the top-level `bus:` key; `buses:` names the others

@@ -27,8 +27,8 @@ from ddh_vsensor.estimator.bounded import bounded_cumsum
 from ddh_vsensor.estimator.dynamic import DynamicModel
 from ddh_vsensor.estimator.model import Mode, VelocityModel
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.estimator.references import (Debouncer, Switch, accepted_edges, share_after_crossing,
-                         switches_from_config)
+from ddh_vsensor.estimator.references import (Debouncer, Switch, accepted_edges,
+                                              share_after_crossing, switches_from_config)
 from ddh_vsensor.estimator.state import EstimatorState
 from ddh_vsensor.estimator.timing import torque_at_speed_instant, torque_at_speed_instants
 
@@ -51,6 +51,8 @@ class Step:
     # transient size met at speed, see Estimator._reference).
     reference: str | None = None
     reference_gain: float = 0.0
+    # every edge taken in this step, in order (:mod:`.switch_drift` pairs them)
+    events: tuple[ReferenceEvent, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -63,6 +65,13 @@ class ReferenceEvent:
     error_mm: float         # estimate minus switching position, at the edge
     adapted: bool
     gain: float = 1.0       # share of the error corrected (1.0: whole)
+    # the velocity at the edge sample and over the debounce time after it (the direction of
+    # the crossing), and the estimate's travel and standstill time since the previous
+    # reference (NaN: not known)
+    velocity_mm_s: float = math.nan
+    crossing_mm_s: float = math.nan
+    path_mm: float = math.nan
+    held_s: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -267,6 +276,7 @@ class Estimator:
         adapted = (self.referenced and consistent and abs(error) > 0.5 * abs(snap.dx)
                    and self.gain.update(error, snap.s_up - self.s_ref[0],
                                         snap.s_down - self.s_ref[1]))
+        path_mm, held_s = self.travel_mm, self.hold_s
         self.s_ref = (snap.s_up, snap.s_down)
         # An edge met at speed is exact, but the estimate then carries a transient offset (oil
         # compression, not in the steady-state tables) that vanishes when the rod stops: take
@@ -282,7 +292,8 @@ class Estimator:
                        + self.suspect_mm)
         self.referenced = True
         return self._clip(x_now - k * error), ReferenceEvent(
-            index, snap.index, sw.name, rising, p, error, adapted, k)
+            index, snap.index, sw.name, rising, p, error, adapted, k, snap.v, v_cross, path_mm,
+            held_s)
 
     def _edge_snapshot(self, index: int, x: float, dx: float, v: float, t_s: float,
                        dt: float, since_s: float | None, timed: bool = False) -> _Snapshot:
@@ -356,6 +367,7 @@ class Estimator:
         else:
             on.s_down += dx_raw
         taken: ReferenceEvent | None = None
+        events: tuple[ReferenceEvent, ...] = ()
         if refs:
             accepted = None
             for i, deb in enumerate(on.debouncers):
@@ -376,6 +388,7 @@ class Estimator:
                 for sw, rising, snap in accepted:
                     self.position_mm, taken = self._reference(sw, rising, snap, self.position_mm,
                                                               (on.s_up, on.s_down), index)
+                    events += (taken,)
                     if self.dynamic is not None:
                         self.dynamic.set_position(self.position_mm)
                 x = self.position_mm
@@ -391,7 +404,7 @@ class Estimator:
         u = self.u_base + self.per_travel * self.travel_mm + self.hold_rate * self.hold_s
         if taken is None:
             return Step(x, v, u, flags)
-        return Step(x, v, u, flags, taken.switch, taken.gain)
+        return Step(x, v, u, flags, taken.switch, taken.gain, events)
 
     # --- offline face ----------------------------------------------------------------------
 

@@ -55,7 +55,7 @@ from ddh_vsensor.service.limits import LogLimiter, RateLimitedLog
 from ddh_vsensor.device.network import ServiceNetwork
 from ddh_vsensor.device.node import SensorNode
 from ddh_vsensor.device.objects import Published
-from ddh_vsensor.service.persistence import StateStore, write_states
+from ddh_vsensor.service.persistence import StateStore, write_states, write_switch_records
 from ddh_vsensor.service.scheduler import Tick, Ticker
 from ddh_vsensor.service.sdnotify import SystemdNotifier
 from ddh_vsensor.service.unit_state import STALE_PERIODS, Unit
@@ -353,10 +353,12 @@ class Service:
     # --- persistence -------------------------------------------------------------------------
 
     def save_states(self, clean: bool = False) -> None:
-        """Write every unit's estimate now (blocking). ``clean`` only at a clean stop: the
-        one state a restart trusts at its saved uncertainty."""
+        """Write every unit's estimate now (blocking), and the switch records that changed.
+        ``clean`` only at a clean stop: the one state a restart trusts at its saved
+        uncertainty."""
         self.saves += 1
-        write_states(self.states.snapshots(self.units, self.published, clean))
+        _write(self.states.snapshots(self.units, self.published, clean),
+               self.states.switch_records(self.units))
 
     def on_signal(self, name: str) -> None:
         """A signal that does not stop the service (SIGHUP, SIGUSR1, SIGUSR2): the
@@ -377,10 +379,11 @@ class Service:
             return
         self._save_again = False
         snapshots = self.states.snapshots(self.units, self.published)
+        records = self.states.switch_records(self.units)
         self.saves += 1
         if snapshots:
             self._save_task = asyncio.get_running_loop().run_in_executor(
-                None, write_states, snapshots)
+                None, _write, snapshots, records)
             self._save_task.add_done_callback(self._saved)
 
     def _saved(self, _: asyncio.Future) -> None:
@@ -531,6 +534,10 @@ class Service:
         inputs = self.inputs
         parts.append(f"in {sum(u.received for u in inputs.units.values())} "
                      f"rejected {inputs.rejected_total} unknown {inputs.counts['unknown']}")
+        drifted = [f"{a} {name}" for a, u in self.units.items()
+                   for name in u.switch_drift.drifted]
+        if drifted:
+            parts.append("reference switch drift: " + ", ".join(drifted))
         presets = [f"{a} {u.presets_accepted}/{u.presets_refused}"
                    for a, u in self.units.items() if u.presets_accepted or u.presets_refused]
         if presets:
@@ -540,3 +547,10 @@ class Service:
             parts.append(f"dropped {ingest.dropped_frames} backlog, {ingest.canopen_dropped} "
                          "canopen")
         return "; ".join(parts)
+
+
+def _write(snapshots: list[tuple[Path, Any]], records: list[tuple[Path, Any]]) -> None:
+    """One save (in a worker thread while running): the estimates, then the switch records
+    that changed."""
+    write_states(snapshots)
+    write_switch_records(records)

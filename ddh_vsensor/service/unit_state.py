@@ -20,6 +20,11 @@ the uncertainty: from then on the bound holds again.
 
 A preset (SDO 0x6010) is accepted only as configured (``faults.preset``), near standstill
 and within the jump bound, and stays flagged until a reference switch confirms it.
+
+Each switch's travel between its edges is checked against its configured window and
+hysteresis (:mod:`ddh_vsensor.estimator.switch_drift`): a change of verdict is logged once,
+and nothing published changes with it. Gaps, presets and the estimate clipped at a soft limit
+end the pair an edge would start.
 """
 
 from __future__ import annotations
@@ -36,12 +41,13 @@ from canopen.sdo import SdoAbortedError
 from ddh_vsensor.config import Config
 from ddh_vsensor.estimator.estimator import Estimator, Step
 from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.estimator.switch_drift import Change, SwitchDrift
 from ddh_vsensor.service.heartbeat import HeartbeatConsumer
 from ddh_vsensor.service.inputs import Inputs
 from ddh_vsensor.service.limits import RateLimitedLog
 from ddh_vsensor.device.node import SensorNode
-from ddh_vsensor.device.objects import (ABORT_DEVICE_STATE, ABORT_READ_ONLY, ABORT_VALUE_RANGE, UNCERTAINTY_MAX_COUNTS,
-                      UNCERTAINTY_STEP_MM, Published)
+from ddh_vsensor.device.objects import (ABORT_DEVICE_STATE, ABORT_READ_ONLY, ABORT_VALUE_RANGE,
+                                        UNCERTAINTY_MAX_COUNTS, UNCERTAINTY_STEP_MM, Published)
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +79,8 @@ _NOT_REFERENCED = int(Flags.NOT_REFERENCED)
 _TABLE_CLAMPED = int(Flags.TABLE_CLAMPED)
 _PRESET_UNCONFIRMED = int(Flags.PRESET_UNCONFIRMED)
 _CONTROLLER_NOT_OPERATIONAL = int(Flags.CONTROLLER_NOT_OPERATIONAL)
+# a step at a soft limit (the estimate clipped) or not integrated ends a switch's pair
+_ENDS_PAIR = int(Flags.AT_SOFT_LIMIT | Flags.STALE_INPUT)
 
 
 def read_wall_offset() -> tuple[float, float, float]:
@@ -143,6 +151,7 @@ class Unit:
     def __post_init__(self) -> None:
         self.max_speed_mm_s = self.cfg.max_speed_mm_s(self.actuator)
         self.stroke_mm = self.cfg.unit(self.actuator).stroke_mm
+        self.switch_drift = SwitchDrift.from_config(self.cfg, self.actuator)
 
     @property
     def velocity_mm_s(self) -> float:
@@ -159,6 +168,7 @@ class Unit:
         self.gaps += 1
         self.gap_widening_mm += add
         est.forget_switch_states()          # a switch that changed in the gap is no edge
+        self.switch_drift.interrupt()
         if add >= stroke or est.uncertainty_mm + add >= stroke:
             est.add_uncertainty(max(stroke - est.uncertainty_mm, 0.0))
             est.referenced = False
@@ -219,6 +229,11 @@ class Unit:
         step = est.step(sample.t_s, sample.speed_rpm, sample.torque_nm, oil, refs,
                         self.inputs.refs_since_s, self.inputs.io_sends_on_change)
         self.last_step = step
+        if step.events:
+            for change in self.switch_drift.edges(step.events, sample.t_s):
+                self.report_drift(change)
+        if step.flags & _ENDS_PAIR:
+            self.switch_drift.interrupt()
         self.last_frame_t, self.last_rx_s = sample.t_s, now
         self.last_wall_offset_s, self.last_wall_offset_err_s = wall_offset_s, offset_err_s
         self._learn_stamp_offset(wall_s - sample.t_s, now)
@@ -326,6 +341,7 @@ class Unit:
             raise SdoAbortedError(refusal[0])
         est.preset(position_mm, self.cfg.estimator.uncertainty_reference_mm)
         est.referenced = False                       # provisional: see Unit.provisional
+        self.switch_drift.interrupt()
         if self.stale_since_s is not None:
             self.stale_since_s = self.clock()       # worst-case travel counts from here
         self.preset_pending = self.provisional = True
@@ -337,6 +353,20 @@ class Unit:
             self.last_step = Step(est.position_mm, self.last_step.velocity_mm_s,
                                   est.uncertainty_mm,
                                   estimator_flags(est) & ~Flags.NOT_REFERENCED)
+
+    def report_drift(self, change: Change, restored: bool = False) -> None:
+        """A switch's verdict changed (``restored``: carried over from before the start):
+        one line, at warning while drifted."""
+        tol = self.switch_drift.tolerance_mm
+        if change.drifted:
+            log.warning("%s: reference switch %s drifted%s: its spans depart from the "
+                        "configured window and hysteresis by more than %g mm "
+                        "(estimator.reference_drift_mm): %s", self.actuator, change.switch,
+                        " (carried over from before the start)" if restored else "", tol,
+                        change.text)
+        else:
+            log.info("%s: reference switch %s back within %g mm of its configured window "
+                     "and hysteresis: %s", self.actuator, change.switch, tol, change.text)
 
     # --- what is published -----------------------------------------------------------------
 

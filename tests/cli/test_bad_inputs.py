@@ -104,6 +104,7 @@ SLOTS: dict[tuple[str, str], tuple[str, list[str]]] = {
                                           "OUT/c.yaml"]),
     ("commission", "--out"): ("out-file", ["commission", "RUN", "--config", "YAML", "--out",
                                            "SLOT"]),
+    ("status", "--state-dir"): ("state-dir", ["status", *BUS, "--state-dir", "SLOT"]),
     ("commission", "--report"): ("out-dir", ["commission", "RUN", "--config", "YAML", "--out",
                                              "OUT/c.yaml", "--report", "SLOT"]),
 }
@@ -154,6 +155,10 @@ def _bad_inputs(kind: str, tmp: Path, good: dict[str, Path]) -> dict[str, Path]:
         else:
             wrong.write_bytes(good["run"].read_bytes())      # a CSV where a BLF belongs
         out["wrong"] = wrong
+    elif kind == "state-dir":
+        out["missing"] = tmp / "no_such_dir"
+        out["file"] = binary
+        binary.write_bytes(BINARY)
     elif kind == "in-dir":
         out["missing"] = tmp / "no_such_dir"
         out["empty"] = tmp / "empty_dir"
@@ -224,6 +229,8 @@ CASES = [(slot, bad) for slot, (kind, _) in SLOTS.items()
                      "profile": ("missing", "empty", "truncated", "wrong", "directory",
                                  "binary"),
                      "in-dir": ("missing", "empty", "file"),
+                     # the service's state directory: empty until its first save
+                     "state-dir": ("missing", "file"),
                      "out-file": ("unwritable", "no parent", "directory"),
                      # the tools that make the file's directory
                      "out-png": ("unwritable", "directory"),
