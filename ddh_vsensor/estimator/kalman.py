@@ -61,18 +61,17 @@ comp, disp, tau_stuck (N*m), o_1..o_m (m), c_1..c_m (m)]:
   covariance, so a stop met within the debounce time is not mistaken for the switch's
   offset).
 
-Prediction is the simulator's own plant (:class:`ddh_vsensor.model.plant.Plant`, its rows
-built from the configuration with the structure terms it states) in speed mode:
-the motor follows the measured speed (linear between samples, over ``substeps`` backward-Euler
-steps per sample) and the plant reports the torque the drive needs, inertia included; the
-drive at its torque limit, the rod on a stop and the relief valves open are the plant's own
-states, so a rod pressed on a stop by the drive at its limit needs no mode of its own. One
-plant batch holds, per filter, the nominal row and one row per perturbed plant state (x, v,
-dp_a, dp_b, F_load, dT): the Jacobian comes from one batched step by finite differences. x is
-perturbed away from the nearer stroke end by :attr:`KalmanSettings.stop_reach` sigma: the
-slope of a stop's clip over the position's spread is the share of rods not yet there, so the
-spread closes as the pumps push the rods behind the mean onto the stop, not when the mean
-arrives.
+Prediction is the simulator's own plant (:class:`ddh_vsensor.model.plant.Plant`, its rows built
+from the configuration with the structure terms it states) in speed mode: the motor follows the
+measured speed (the parabola through the last three samples, over ``substeps`` backward-Euler
+steps per sample) and the plant reports the torque the drive needs, inertia included; the drive
+at its torque limit, the rod on a stop and the relief valves open are the plant's own states,
+so a rod pressed on a stop by the drive at its limit needs no mode of its own. One plant batch
+holds, per filter, the nominal row and one row per perturbed plant state (x, v, dp_a, dp_b,
+F_load, dT): the Jacobian comes from one batched step by finite differences. x is perturbed
+away from the nearer stroke end by :attr:`KalmanSettings.stop_reach` sigma: the slope of a
+stop's clip over the position's spread is the share of rods not yet there, so the spread closes
+as the pumps push the rods behind the mean onto the stop, not when the mean arrives.
 
 Measurement: the logged motor torque is the plant's torque over the *last* substep plus
 ``tau_off`` plus noise whose variance is physics (the drive's estimate error, the reading's
@@ -551,6 +550,8 @@ class _Bank:
         j_per_rpm = self.inertia * RPM_RAD_S / T
         var += j_per_rpm ** 2 * s.speed_step_rpm ** 2 / 6.0
         if k >= 2:
+            # the parabola through three samples is the speed's path only as far as its bend
+            # tells: the bend's own inertia torque stays a noise of that size
             var += (0.5 * j_per_rpm * (n[k] - 2.0 * n[k - 1] + n[k - 2])) ** 2
         at_limit = np.abs(n[k]) >= self.speed_limit - s.speed_step_rpm
         if k >= 1:
@@ -592,8 +593,16 @@ class _Bank:
         mu = self.oil.dynamic_viscosity_pa_s(np.repeat(t_mid, N_ROWS) + rows[:, DT])
         mask = np.ones(B * N_ROWS, dtype=bool)
         zero = np.zeros(B * N_ROWS)       # torque command: unused in speed mode
+        # the motor's speed over the sample: the parabola through the last three samples (a
+        # speed is smooth, its rotor's inertia sees to it), so the model's torque at the
+        # sample's instant carries the inertia torque of the speed's slope *there*, not of its
+        # mean over the sample, half a sample late (a deceleration's rising torque then read
+        # as a falling pressure, the oil it implies moving the rod ~1 % of the travel)
+        nm = self.speed[k - 2] if k >= 2 else 2.0 * n0 - n1
         for i in range(sub):
-            plant.set_speed_control(mask, np.repeat(n0 + (n1 - n0) * (i + 1) / sub, N_ROWS))
+            tau = (i + 1) / sub
+            n_tau = n0 + tau * (n1 - nm) / 2.0 + tau * tau * (n1 - 2.0 * n0 + nm) / 2.0
+            plant.set_speed_control(mask, np.repeat(n_tau, N_ROWS))
             plant.step(zero, mu)
         tq = plant.torque
         out = np.stack([plant.x, plant.v, plant.dp_a, plant.dp_b], axis=1).reshape(B, N_ROWS, 4)

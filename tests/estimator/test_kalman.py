@@ -171,6 +171,19 @@ def test_a_motor_stuck_in_its_friction_band_teaches_what_one_sample_does(cfg):
     assert np.abs(res.estimate.position_mm - r.position_mm).max() < 0.3
 
 
+def test_the_speed_between_samples_is_a_parabola_not_a_line(cfg):
+    """The paper cycle at -5 degC with 500 kg: the bucket's motor decelerates from 5300 rpm in
+    half a second. Followed as a line between samples, the model's inertia torque at each
+    sample was the mean slope's, half a sample late: the rising torque read as a falling
+    pressure, whose oil moved the rod. Measured: worst error without references 0.44 mm
+    (0.79 mm with the line)."""
+    r = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=500.0, oil_temp_c=-5.0)])[0]["bucket"]
+    res = kalman.run_many(cfg, [("bucket", r)], references=False,
+                          initial_positions_mm=[float(r.position_mm[0])],
+                          settings=kalman.settings_from_config(cfg))[0]
+    assert np.abs(res.estimate.position_mm - r.position_mm).max() < 0.55
+
+
 def test_twice_the_typical_structure_stays_finite_and_bounded(cfg):
     """The random cycle at 27 degC with the structure at twice its typical value (beyond the
     bounds): the oil's offset is held within its bound, so the viscosity stays finite and so
@@ -226,11 +239,11 @@ def test_a_switch_mounted_elsewhere_is_flagged_model_inconsistent(cfg, nominal):
     assert np.all(err[first:][plain[first:]] <= est.uncertainty_mm[first:][plain[first:]])
 
 
-@pytest.mark.xfail(strict=True, reason="issue 36 finding: the load and torque-offset states "
-                   "absorb a torque gain error (boom: no flag, samples beyond)")
 def test_a_drive_whose_torque_reads_high_fails_the_self_check(cfg):
     """A torque 40 % high (a drive calibrated for another motor) is no offset the filter may
-    take up: its torque innovations should fail the chi-square test while the boom moves."""
+    take up: its torque innovations fail the chi-square test while the boom moves (measured:
+    1.2 % of the samples flagged, none beyond its uncertainty unflagged; none flagged while
+    the speed between samples was followed as a line)."""
     effects = build_effects(["torque_gain=1.4"], cfg.unit_names)
     r = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=27.0,
                                         effects=effects)])[0]["boom"]
