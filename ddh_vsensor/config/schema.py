@@ -128,6 +128,19 @@ class MotorConfig:
     torque_limit_nm: float = field(metadata=_positive(le=100000.0))
     speed_limit_rpm: float = field(metadata=_positive(le=100000.0))
     torque_lag_s: float = field(default=0.0005, metadata={"ge": -0.005, "le": 0.005})
+    # The drive's torque is its estimate from the currents, not the shaft's: it reads
+    # torque_offset_nm more, torque_speed_offset_nm more at the speed limit (the motor's own
+    # speed-proportional losses) and trails the shaft's by a first-order filter of
+    # torque_filter_s. How the drive reports, not physics (not hashed): every estimator takes
+    # the shaft's torque from its reading through them (commissioning measures them where
+    # the chamber pressures are logged)
+    torque_offset_nm: float = field(default=0.0, metadata={"ge": -100.0, "le": 100.0})
+    torque_speed_offset_nm: float = field(default=0.0, metadata={"ge": -100.0, "le": 100.0})
+    torque_filter_s: float = field(default=0.0, metadata={"ge": 0.0, "le": 0.05})
+    # what is known of the offset (N*m, one sigma); unset: the machine's
+    # tolerances.torque_offset_nm. What is known, not physics
+    torque_offset_tolerance_nm: float | None = field(default=None,
+                                                     metadata={"ge": 0.0, "le": 100.0})
 
 
 @dataclass(frozen=True)
@@ -616,7 +629,9 @@ class Config:
             for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm",
                         "reference_tolerance_mm"):
                 unit.pop(key)
-            unit["motor"].pop("torque_lag_s")          # how the drive reports, not physics
+            for key in ("torque_lag_s", "torque_offset_nm", "torque_speed_offset_nm",
+                        "torque_filter_s", "torque_offset_tolerance_nm"):
+                unit["motor"].pop(key)                 # how the drive reports, not physics
             unit.pop("displacement_tolerance")         # what is known, not physics
             unit["pump_a"].pop("leakage_tolerance")
             unit["pump_b"].pop("leakage_tolerance")

@@ -24,7 +24,7 @@ from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.tables.build import build_unit_tables
 from ddh_vsensor.tables.lookup import UnitTables
 from ddh_vsensor.estimator.chambers import ChamberRow, track_chambers
-from ddh_vsensor.estimator.timing import torque_at_speed_instants
+from ddh_vsensor.estimator.timing import shaft_torques_nm
 from ddh_vsensor.estimator.extension import (NEUTRAL, corrected_inputs, shift_signal,
                                    with_inertia_compensation)
 from ddh_vsensor.diagnosis.runs import AnalysisRun
@@ -194,7 +194,8 @@ class Workbench:
                 scale = p.get("position_scale", 1.0)
                 x0 = r.initial_position_mm / scale
                 if "air_fraction" in p:
-                    rows.append(ChamberRow(r.time_s, pumps, self._at_speed_instants(r.time_s, tau),
+                    rows.append(ChamberRow(r.time_s, pumps,
+                                           self._shaft_torques(r.time_s, tau, pumps),
                                            temp, x0, p["air_fraction"]))
                     where.append((j, i, scale))
                     continue
@@ -220,11 +221,11 @@ class Workbench:
                     out[j][i] = scale * tr.position_mm
         return out  # type: ignore[return-value]
 
-    def _at_speed_instants(self, time_s: np.ndarray, torque_nm: np.ndarray) -> np.ndarray:
+    def _shaft_torques(self, time_s: np.ndarray, torque_nm: np.ndarray,
+                       speed_rpm: np.ndarray) -> np.ndarray:
         """The torque as the chamber track takes it (the estimator does this itself)."""
-        return torque_at_speed_instants(time_s, torque_nm,
-                                        self.cfg.unit(self.actuator).motor.torque_lag_s,
-                                        self.cfg.estimator.max_gap_s)
+        return shaft_torques_nm(time_s, torque_nm, speed_rpm, self.cfg.unit(self.actuator).motor,
+                                self.cfg.estimator.max_gap_s)
 
     def scaled_unit(self, p: Params) -> DDHUnit:
         """The unit with the pumps of ``p``."""
@@ -248,7 +249,8 @@ class Workbench:
         todo = sorted({float(x) for x in air_fractions} - set(self._chamber_cache))
         if todo:
             rows = [ChamberRow(r.time_s, r.speed_rpm,
-                               self._at_speed_instants(r.time_s, r.torque_nm), r.oil_temp_c,
+                               self._shaft_torques(r.time_s, r.torque_nm, r.speed_rpm),
+                               r.oil_temp_c,
                                r.initial_position_mm, x) for x in todo for r in self.runs]
             tracks = track_chambers(self.unit, rows, max_gap_s=self.cfg.estimator.max_gap_s,
                                     window_s=self.cfg.estimator.dynamic_window_s)

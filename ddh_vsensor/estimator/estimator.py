@@ -30,7 +30,8 @@ from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.references import (Debouncer, Switch, accepted_edges,
                                               share_after_crossing, switches_from_config)
 from ddh_vsensor.estimator.state import EstimatorState
-from ddh_vsensor.estimator.timing import torque_at_speed_instant, torque_at_speed_instants
+from ddh_vsensor.estimator.timing import (shaft_torque_nm, shaft_torques_nm,
+                                          torque_at_speed_instant)
 
 HOLD_SPEED_MM_S = 0.5       # below this the rod counts as held: uncertainty grows with time
 LATE_EDGE_MAX_S = 0.1       # an I/O frame read later than this: its edge is taken where seen
@@ -132,8 +133,12 @@ class Estimator:
         # motor accelerates part of its torque goes into the rotating inertia instead.
         self.inertia_nm_per_rpm_s = (ucfg.motor.inertia_kg_m2 * 2.0 * np.pi / 60.0
                                      if ecfg.inertia_compensation else 0.0)
-        # that term is the speed's change: the torque is taken at the speed's instants
-        self.torque_lag_s = ucfg.motor.torque_lag_s
+        # that term is the speed's change: the torque is taken at the speed's instants, and
+        # the shaft's, not the drive's reading of it (:mod:`.timing`)
+        self.motor = ucfg.motor
+        self.torque_lag_s = ucfg.motor.torque_lag_s + ucfg.motor.torque_filter_s
+        self.drive_offsets = bool(ucfg.motor.torque_offset_nm
+                                  or ucfg.motor.torque_speed_offset_nm)
         self.debounce_s = ecfg.debounce_s
         self.resync_gain_moving = ecfg.resync_gain_moving
         self.resync_slow_mm_s = ecfg.resync_slow_mm_s
@@ -197,8 +202,8 @@ class Estimator:
 
     @property
     def reported_torque_nm(self) -> float:
-        """The last torque sample as the drive reported it, before :mod:`.timing` moved it
-        (kept only where ``motor.torque_lag_s`` is set)."""
+        """The last torque sample less the drive's offsets, before :mod:`.timing` moved it
+        along its change (kept only where that lag is set)."""
         return self._on.tau
 
     @property
@@ -333,6 +338,8 @@ class Estimator:
         t_last = on.t
         dt = t_s - t_last if t_last is not None else 0.0
         valid = 0.0 < dt <= self.max_gap_s
+        if self.drive_offsets:
+            torque_nm = shaft_torque_nm(torque_nm, speed_rpm, self.motor)
         if self.torque_lag_s:
             reported, on.tau = on.tau, torque_nm
             if valid:
@@ -429,7 +436,7 @@ class Estimator:
         dt = np.diff(t)
         valid = (dt > 0.0) & (dt <= self.max_gap_s)
         speed = np.asarray(speed_rpm, dtype=float)
-        torque = torque_at_speed_instants(t, torque_nm, self.torque_lag_s, self.max_gap_s)
+        torque = shaft_torques_nm(t, torque_nm, speed, self.motor, self.max_gap_s)
         stale = np.zeros(n, dtype=bool)
         stale[1:] = ~valid & (dt > 0.0)
         v, dx_raw, hold_dt, s_up, s_down = (np.zeros(n) for _ in range(5))

@@ -53,7 +53,8 @@ from ddh_vsensor.tables.lookup import UnitTables
 from ddh_vsensor.estimator import chambers
 from ddh_vsensor.estimator.estimator import Estimator, RunEstimate, Step
 from ddh_vsensor.estimator.state import EstimatorState
-from ddh_vsensor.estimator.timing import torque_at_speed_instant, torque_at_speed_instants
+from ddh_vsensor.estimator.timing import (shaft_torque_nm, shaft_torques_nm,
+                                          torque_at_speed_instant)
 
 FORMAT = "ddh-vsensor-extension"
 FORMAT_VERSION = 2
@@ -409,8 +410,8 @@ class ExtendedEstimator:
             ch = chambers
             air = ch.track_chambers(self._unit, [ch.ChamberRow(
                 t[s0:], pumps_n[s0:],
-                torque_at_speed_instants(t[s0:], tau[s0:], self.estimator.torque_lag_s,
-                                         self._max_gap_s),
+                shaft_torques_nm(t[s0:], tau[s0:], pumps_n[s0:], self.estimator.motor,
+                                 self._max_gap_s),
                 temp[s0:], x0, ext.param("air_fraction"))], max_gap_s=self._max_gap_s)[0]
             correction[s0:] += air.position_mm - tables_x
         if ext.residual is not None:
@@ -454,16 +455,18 @@ class ExtendedEstimator:
         ok = h is not None and 0.0 < h <= self._max_gap_s
         mu = float(self._unit.oil.dynamic_viscosity_pa_s(temp))
         if self._air and self.estimator.referenced:     # tracked from a known position
+            shaft = (shaft_torque_nm(tau, pumps_n, self.estimator.motor)
+                     if self.estimator.drive_offsets else tau)
             if self._chambers is None:
                 ch = chambers
                 self._chambers = ch.ChamberModel(self._unit, [ext.param("air_fraction")],
-                                                 pumps_n, tau, temp, step.position_mm,
+                                                 pumps_n, shaft, temp, step.position_mm,
                                                  max_gap_s=self._max_gap_s)
                 self._tables_x = step.position_mm
             else:
                 lag_s = self.estimator.torque_lag_s
                 self._chambers.advance(h, pumps_n, torque_at_speed_instant(
-                    tau, reported, h, lag_s) if ok and lag_s else tau, mu)
+                    shaft, reported, h, lag_s) if ok and lag_s else shaft, mu)
                 if ok:                  # the tables' own integration, no references
                     self._tables_x += 0.5 * (self._v + step.velocity_mm_s) * h
         if ext.residual is not None and ok:

@@ -130,9 +130,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
-from ddh_vsensor.config import DATASHEET_TOLERANCES, Config, HydraulicsConfig
+from ddh_vsensor.config import DATASHEET_TOLERANCES, Config, HydraulicsConfig, MotorConfig
 from ddh_vsensor.estimator.estimator import ReferenceEvent, RunEstimate
 from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.estimator.timing import shaft_torque_nm, torque_at_speed_instants
 from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, Switch, accepted_edges,
                                               switches_from_config)
 from ddh_vsensor.measured import Run
@@ -280,6 +281,8 @@ class _Job:
     leak_tolerance_a: float
     leak_tolerance_b: float
     displacement_tolerance: float
+    motor: MotorConfig                  # the drive's reading of the shaft's torque
+    torque_offset_sd_nm: float          # what is known of its offset
 
 
 def _set_mass(plant: Plant, mass_kg: np.ndarray) -> None:
@@ -333,7 +336,9 @@ def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool =
         prepared.append(_Job(actuator, r, units[actuator],
                              switches_from_config(u) if references else (), x0, *bands,
                              settings.displacement_tolerance if u.displacement_tolerance
-                             is None else u.displacement_tolerance))
+                             is None else u.displacement_tolerance, u.motor,
+                             settings.torque_offset_nm if u.motor.torque_offset_tolerance_nm
+                             is None else u.motor.torque_offset_tolerance_nm))
     periods = [float(np.median(np.diff(j.run.time_s))) for j in prepared]
     period = periods[0]
     for j, p in zip(prepared, periods):
@@ -371,16 +376,21 @@ class _Bank:
         def pad(get) -> np.ndarray:
             out = np.empty((self.N, B))
             for b, j in enumerate(jobs):
-                col = np.asarray(get(j.run), dtype=float)
+                col = np.asarray(get(j), dtype=float)
                 out[:len(col), b] = col
                 out[len(col):, b] = col[-1]
             return out
-        self.speed = pad(lambda r: r.speed_rpm)
-        self.torque = pad(lambda r: r.torque_nm)
+        self.speed = pad(lambda j: j.run.speed_rpm)
+        # the shaft's torque from the drive's reading: less its offsets, its filter undone
+        # (:mod:`.timing`); its reporting lag (motor.torque_lag_s) stays within the torque's
+        # timing noise, the model's torque being its last substep's
+        self.torque = pad(lambda j: torque_at_speed_instants(
+            j.run.time_s, shaft_torque_nm(j.run.torque_nm, j.run.speed_rpm, j.motor),
+            j.motor.torque_filter_s, 2.0 * period_s))
         # the pumps' oil: the tank sensor's reading ahead by its configured lag
-        self.temp = pad(lambda r: pump_oil_temperature_c(r.time_s, r.oil_temp_c,
+        self.temp = pad(lambda j: pump_oil_temperature_c(j.run.time_s, j.run.oil_temp_c,
                                                          hydraulics.oil_temp_lag_s))
-        self.time = pad(lambda r: r.time_s)
+        self.time = pad(lambda j: j.run.time_s)
         col = lambda f: np.array([float(f(j)) for j in jobs])  # noqa: E731
         self.stroke = col(lambda j: j.unit.cylinder.stroke_m)
         self.inertia = col(lambda j: j.unit.motor.inertia_kg_m2)
@@ -472,7 +482,7 @@ class _Bank:
             p0[b, :N_BASE] = [(sx * 1e-3) ** 2, (s.velocity_mm_s * 1e-3) ** 2,
                               (s.pressure_bar * 1e5) ** 2, (s.pressure_bar * 1e5) ** 2, sf ** 2,
                               s.temp_sd_c ** 2, 1.0,
-                              s.torque_offset_nm ** 2, s.compliance_tolerance ** 2 / 3.0,
+                              j.torque_offset_sd_nm ** 2, s.compliance_tolerance ** 2 / 3.0,
                               j.displacement_tolerance ** 2 / 3.0, 0.0]
             # a switch mounted off is off by the same on every pass: uniform over its tolerance
             for sw in j.switches:

@@ -1,6 +1,11 @@
-"""The drive's torque at its speed's instants.
+"""The shaft's torque at the speed's instants, from the drive's reading of it.
 
-The rotor's inertia torque is J times the speed's change, and the pump torque is the reported
+The drive's torque is its estimate from the motor's currents: it reads ``motor.torque_offset_nm``
+more than the shaft's, ``motor.torque_speed_offset_nm`` more at the speed limit (the motor's
+own losses, in proportion to its speed), and trails the shaft's by a first-order filter of
+``motor.torque_filter_s``, undone to first order by carrying each sample that much further
+along its last change (a first-order lag delays a ramp by its time constant). The rotor's
+inertia torque is J times the speed's change, and the pump torque is the reported
 torque less it, so the two signals must describe the same instants: where the torque swings 30
 N·m per sample a millisecond between them is several N·m of pump torque, which the chamber
 model reads as pressure. A drive that reports its torque
@@ -12,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
+
+from ddh_vsensor.config import MotorConfig
 
 
 def torque_at_speed_instants(time_s: ArrayLike, torque_nm: ArrayLike, lag_s: float,
@@ -31,3 +38,21 @@ def torque_at_speed_instant(torque_nm: float, last_torque_nm: float, dt_s: float
     """One sample of :func:`torque_at_speed_instants` (``dt_s`` within the gap limit), with
     the same arithmetic."""
     return torque_nm + lag_s * (torque_nm - last_torque_nm) / dt_s
+
+
+def shaft_torques_nm(time_s: ArrayLike, torque_nm: ArrayLike, speed_rpm: ArrayLike,
+                     motor: MotorConfig, max_gap_s: float) -> np.ndarray:
+    """The shaft's torque at the speed's instants from the drive's reading (a copy, equal to
+    the reading where the motor's torque keys are at their defaults and the lag is 0)."""
+    per_rpm = motor.torque_speed_offset_nm / motor.speed_limit_rpm
+    shaft = (np.asarray(torque_nm, dtype=float) - motor.torque_offset_nm
+             - per_rpm * np.asarray(speed_rpm, dtype=float))
+    return torque_at_speed_instants(time_s, shaft, motor.torque_lag_s + motor.torque_filter_s,
+                                    max_gap_s)
+
+
+def shaft_torque_nm(torque_nm: float, speed_rpm: float, motor: MotorConfig) -> float:
+    """One reading less the drive's offsets (the same arithmetic as
+    :func:`shaft_torques_nm`); :func:`torque_at_speed_instant` then carries it."""
+    return (torque_nm - motor.torque_offset_nm
+            - motor.torque_speed_offset_nm / motor.speed_limit_rpm * speed_rpm)

@@ -63,6 +63,32 @@ def test_the_faces_agree_with_the_torque_carried_to_the_speeds_instants(
     assert np.max(np.abs(estimates[1] - estimates[0])) > 0.01
 
 
+@pytest.mark.parametrize("mode", ["full", "dynamic"])
+def test_the_faces_agree_on_the_shaft_torque_from_the_drives_reading(
+        cfg, boom, unit_tables, make_run, mode):
+    """The drive's offset, speed offset and filter (``motor.torque_offset_nm``,
+    ``torque_speed_offset_nm``, ``torque_filter_s``): a reading made by them, taken back
+    through them, gives the estimate of the shaft's torque read as it is, in both faces."""
+    motor = cfg.unit("boom").motor
+    drive = dataclasses.replace(cfg, units={name: dataclasses.replace(
+        u, motor=dataclasses.replace(u.motor, torque_offset_nm=1.5, torque_speed_offset_nm=2.0,
+                                     torque_filter_s=0.0))
+        for name, u in cfg.units.items()})
+    run = make_run(boom, seconds=20, unit_cfg=cfg.unit("boom"))
+    read = run.torque_nm + 1.5 + 2.0 * run.speed_rpm / motor.speed_limit_rpm
+    base = Estimator(cfg, "boom", unit_tables["boom"], mode=mode, references=False,
+                     initial_position_mm=22.0).run(run.time_s, run.speed_rpm, run.torque_nm,
+                                                   run.oil_temp_c)
+    off = Estimator(drive, "boom", unit_tables["boom"], mode=mode, references=False,
+                    initial_position_mm=22.0).run(run.time_s, run.speed_rpm, read,
+                                                  run.oil_temp_c)
+    on = Estimator(drive, "boom", unit_tables["boom"], mode=mode, references=False,
+                   initial_position_mm=22.0)
+    steps = _online(on, dataclasses.replace(run, torque_nm=read), refs=False)
+    assert np.max(np.abs(off.velocity_mm_s - base.velocity_mm_s)) < 1e-6
+    assert np.max(np.abs(np.array([s.velocity_mm_s for s in steps]) - off.velocity_mm_s)) < 1e-6
+
+
 def test_full_mode_tracks_the_truth_without_references(cfg, boom, unit_tables, make_run):
     run = make_run(boom, seconds=60, )
     est = Estimator(cfg, "boom", unit_tables["boom"], mode="full", references=False,
