@@ -13,6 +13,7 @@ import json
 from ddh_vsensor.atomic import output_dir
 from ddh_vsensor.cli.common import add_actuator_arg, add_config_arg, config_from
 from ddh_vsensor.cli.progress import ProgressBar
+from ddh_vsensor.errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,6 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--truth", choices=("auto", "position", "references"), default="auto",
                    help="what the estimate is compared with: the reference position, or the "
                         "Hall edges and holds (auto: references when no run has a position)")
+    p.add_argument("--baseline", metavar="FILE", default=None,
+                   help="the machine's baseline written by 'ddh-vsensor commission' "
+                        "(MACHINE.baseline.json): the model's own error is judged against it "
+                        "for this unit (default: the simulator's thresholds)")
     p.set_defaults(func=_run)
 
 
@@ -50,17 +55,24 @@ def _run(args: argparse.Namespace) -> int:
 
     cfg = config_from(args)
     mode = resolve_mode(cfg, args.mode)
+    own = None
+    if args.baseline is not None:
+        from ddh_vsensor.commission.baseline import for_analysis
+        own = for_analysis(args.baseline, cfg, args.actuator, mode)
     if args.truth != "position":
         from ddh_vsensor.cli.analyze_references import lacks_position, read_any, run_references
         raw = [read_any(path, args.actuator, cfg) for path in args.runs]
         if args.truth == "references" or lacks_position(raw):
             output_dir(args.report, "report directory")
-            return run_references(args, cfg, mode, raw)
+            return run_references(args, cfg, mode, raw, own)
     runs = [load_analysis_run(path, args.actuator, cfg) for path in args.runs]
+    if own is not None and own.position_rms_mm is None:
+        raise UserError(f"{args.baseline}: no position residuals of the {args.actuator} in "
+                        "the baseline: commission it with the draw-wire logged")
     prepare_report_dir(args.report)
     bar = ProgressBar("analyze")
     diag = diagnose(cfg, args.actuator, runs, mode,
-                    progress=lambda stage, f: bar.update(f, stage))
+                    progress=lambda stage, f: bar.update(f, stage), own=own)
     data = write_report(diag, args.report, cfg.physics_hash())
     # a none with causes the runs could not show is not "the machine is fine"
     said = ("none observable" if diag.cause == "none" and diag.not_observable
@@ -72,6 +84,7 @@ def _run(args: argparse.Namespace) -> int:
     b, e = data["baseline"], data["extended"]
     print(f"{args.actuator} ({mode} mode), {len(runs)} runs: cause {said}")
     print(f"  {diag.decision.reason}")
+    print(f"  {diag.thresholds.describe()}")
     for c in data["causes"]:
         params = ", ".join(f"{k}={v:.4g} (90 %: {lo:.4g}..{hi:.4g})"
                            for (k, v), (lo, hi) in zip(c["parameters"].items(),

@@ -7,6 +7,8 @@ import json
 from pathlib import Path
 
 from ddh_vsensor.config import Config
+from ddh_vsensor.diagnosis.selection import OwnError
+from ddh_vsensor.errors import UserError
 from ddh_vsensor.measured import Run
 from ddh_vsensor.io.csv import read_csv
 from ddh_vsensor.cli.progress import ProgressBar
@@ -26,15 +28,19 @@ def lacks_position(runs: list[Run]) -> bool:
 
 
 def run_references(args: argparse.Namespace, cfg: Config, mode: str,
-                   runs: list[Run]) -> int:
+                   runs: list[Run], own: OwnError | None = None) -> int:
     from ddh_vsensor.diagnosis.reference_fit import diagnose_references
     from ddh_vsensor.diagnosis.reference_report import write_reference_report
     from ddh_vsensor.diagnosis.references import reference_run
 
+    if own is not None and own.references_rms_mm is None and own.holds_rms_mm is None:
+        raise UserError(f"{args.baseline}: no reference or hold residuals of the "
+                        f"{args.actuator} in the baseline: commission it with runs that pass "
+                        "its Hall switches")
     rruns = [reference_run(cfg, args.actuator, r) for r in runs]
     bar = ProgressBar("analyze")
     diag = diagnose_references(cfg, args.actuator, rruns, mode,
-                               progress=lambda stage, f: bar.update(f, stage))
+                               progress=lambda stage, f: bar.update(f, stage), own=own)
     data = write_reference_report(diag, args.report, cfg.physics_hash())
     # a none with causes the runs could not show is not "the machine is fine"
     said = ("none observable" if diag.cause == "none" and diag.not_observable
@@ -47,6 +53,7 @@ def run_references(args: argparse.Namespace, cfg: Config, mode: str,
     print(f"{args.actuator} ({mode} mode), {len(runs)} runs, {data['references']} reference "
           f"increments, {data['holds']} holds: cause {said}")
     print(f"  {diag.decision.reason}")
+    print(f"  {diag.thresholds.describe()}")
     for item in data["causes"]:
         params = ", ".join(f"{k}={v:.4g}" for k, v in item["parameters"].items())
         ivs = ", ".join(f"[{lo:.4g}, {hi:.4g}]" for lo, hi in item["interval"].values())

@@ -1,5 +1,7 @@
 """``ddh-vsensor commission``: a machine's Hall switches and its pumps' flow model measured on
-its calibration runs (the draw-wire position still fitted), written into its configuration."""
+its calibration runs (the draw-wire position still fitted), written into its configuration,
+and the machine's baseline (the commissioned model's own error on runs held out of the fit)
+beside it."""
 
 from __future__ import annotations
 
@@ -10,6 +12,8 @@ import numpy as np
 
 from ddh_vsensor.atomic import output_dir, output_file
 from ddh_vsensor.cli.progress import ProgressBar
+from ddh_vsensor.commission.baseline import KINDS as BASELINE_KINDS
+from ddh_vsensor.commission.baseline import Baseline
 from ddh_vsensor.commission.flow import FlowFit
 from ddh_vsensor.commission.switches import (KIND_WORDS, KINDS, SPREAD_FACTOR, UnitCalibration,
                                              calibrate_unit)
@@ -33,7 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "the chambers' oil balance against the measured travel. Writes the "
                     "datasheet configuration with those keys set and commented with their "
                     "evidence; a value the runs do not measure keeps the "
-                    "datasheet's, with the run that would measure it.")
+                    "datasheet's, with the run that would measure it. Writes the machine's "
+                    "baseline beside it: the commissioned model's own error on each run file "
+                    "when commissioned on the others, per unit, for 'analyze --baseline'.")
     p.add_argument("runs", nargs="+", metavar="RUN",
                    help="calibration runs: CSV of the measured-data format with position_mm "
                         "(one unit each, its '# actuator:' line or --actuator), or CAN logs "
@@ -53,6 +59,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spread-factor", type=float, default=SPREAD_FACTOR, metavar="K",
                    help="the tolerance is the largest residual plus K standard deviations of "
                         "the edges (default %(default)g)")
+    p.add_argument("--baseline", metavar="FILE.json", default=None,
+                   help="the machine's baseline (default: beside --out, "
+                        "MACHINE.baseline.json); needs at least two run files")
+    p.add_argument("--no-baseline", action="store_true",
+                   help="do not measure the baseline (it commissions once more per run file)")
     p.set_defaults(func=_run)
 
 
@@ -121,9 +132,76 @@ def _flow_summary(fit: FlowFit) -> list[str]:
     return lines
 
 
-def _run(args: argparse.Namespace) -> int:
+def fit_machine(cfg: Config, runs: dict[str, list[Run]], spread_factor: float,
+                switches_only: bool) -> tuple[dict[str, UnitCalibration], dict[str, FlowFit],
+                                              dict[str, str]]:
+    """Each unit's switches and flow model from its runs: (calibrations, flow fits, why a
+    unit's flow model was not measured)."""
     from ddh_vsensor.commission.flow import fit_flows
-    from ddh_vsensor.commission.machine import write_config, write_report
+    cals = {a: calibrate_unit(a, cfg.unit(a), r, cfg.estimator.debounce_s, spread_factor)
+            for a, r in runs.items()}
+    flows: dict[str, FlowFit] = {}
+    flow_problems: dict[str, str] = {}
+    if not switches_only:
+        for a, unit_runs in runs.items():
+            try:
+                flows.update(fit_flows(cfg, {a: unit_runs}))
+            except UserError as exc:
+                flow_problems[a] = str(exc)
+    return cals, flows, flow_problems
+
+
+def _baseline_path(args: argparse.Namespace, out: Path) -> Path | None:
+    """Where the baseline goes (checked before the work), None with --no-baseline."""
+    if args.no_baseline:
+        if args.baseline is not None:
+            raise UserError("--baseline and --no-baseline: give one")
+        return None
+    return output_file(args.baseline or out.with_name(f"{out.stem}.baseline.json"),
+                       "baseline", (".json",))
+
+
+def _measure_baseline(cfg: Config, machine: Config, text: str, source: str,
+                      runs: dict[str, list[Run]], args: argparse.Namespace) -> Baseline:
+    """Leave one run file out at a time: commission on the others, score the one left out."""
+    from ddh_vsensor.commission.baseline import LEAVE_ONE_OUT, leave_one_out, measure
+    from ddh_vsensor.commission.machine import commissioned_config
+    from ddh_vsensor.diagnosis.workbench import resolve_mode
+
+    def fit(rest: dict[str, list[Run]]) -> Config:
+        cals, flows, _ = fit_machine(cfg, rest, args.spread_factor, args.switches_only)
+        return commissioned_config(text, source, cals, args.spread_factor, flows, cfg)
+
+    names = list(dict.fromkeys(r.source for rs in runs.values() for r in rs))
+    bar = ProgressBar("baseline")
+    done = [0]
+
+    def progress(what: str) -> None:
+        """One call per run file held out (after its fold's fit)."""
+        bar.update(done[0] / len(names), what)
+        done[0] += 1
+
+    base = measure(leave_one_out(runs, fit), machine.physics_hash(), LEAVE_ONE_OUT, names,
+                   resolve_mode(machine, None), progress=progress)
+    bar.close(f"{len(names)} run files held out")
+    return base
+
+
+def _baseline_summary(base: Baseline) -> list[str]:
+    lines = [f"baseline ({base.mode} mode, each run file held out):"]
+    for unit, b in base.units.items():
+        kinds = ", ".join(f"{k} {b.kinds[k].rms_mm:.2f} mm RMS (p95 {b.kinds[k].p95_mm:.2f}, "
+                          f"{b.kinds[k].count})" for k in BASELINE_KINDS if k in b.kinds)
+        line = b.pressures
+        if line is not None:
+            kinds += (f", pressures' line {line.gain:.3f} x {line.offset_nm:+.2f} N*m "
+                      f"(sd {100 * line.gain_sd:.1f} %, {line.offset_sd_nm:.2f} N*m)")
+        lines.append(f"  {unit}: {kinds or 'nothing held out'}")
+    return lines
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ddh_vsensor.commission.machine import read_datasheet, write_config, write_report
     if not (args.spread_factor >= 0.0 and np.isfinite(args.spread_factor)):
         raise UserError(f"--spread-factor must be a number >= 0, got {args.spread_factor:g}")
     datasheet, out = Path(args.config), output_file(args.out, "commissioned configuration",
@@ -131,27 +209,23 @@ def _run(args: argparse.Namespace) -> int:
     if out.exists() and datasheet.exists() and out.samefile(datasheet):
         raise UserError(f"{out}: the datasheet configuration itself: write the machine's "
                         "configuration beside it")
+    baseline = _baseline_path(args, out)
+    files = len(dict.fromkeys(args.runs))
+    if baseline is not None and files < 2 and args.baseline is not None:
+        raise UserError(f"{baseline}: a baseline needs at least two run files (each is held "
+                        f"out of the fit in turn), {files} given")
     report = output_dir(args.report, "report directory", create=False) if args.report else None
     cfg = load_config(datasheet)
     if args.actuator is not None:
         cfg.require_unit(args.actuator)
     runs = read_runs(args.runs, cfg, args.actuator)
-    cals = {a: calibrate_unit(a, cfg.unit(a), r, cfg.estimator.debounce_s, args.spread_factor)
-            for a, r in runs.items()}
-    flows: dict[str, FlowFit] = {}
-    flow_problems: dict[str, str] = {}
-    if not args.switches_only:
-        for a, unit_runs in runs.items():
-            try:
-                flows.update(fit_flows(cfg, {a: unit_runs}))
-            except UserError as exc:
-                flow_problems[a] = str(exc)
+    cals, flows, flow_problems = fit_machine(cfg, runs, args.spread_factor, args.switches_only)
     if not any(c.calibrated for c in cals.values()) and not any(
             f.measured for f in flows.values()):
         problems = [p for c in cals.values() for p in c.problems]
         raise UserError("no switch calibrated and no flow value measured: " + (
             "; ".join(problems) or "the runs hold no unit with its position"))
-    write_config(datasheet, out, cals, args.spread_factor, flows, cfg)
+    machine = write_config(datasheet, out, cals, args.spread_factor, flows, cfg)
     for a, cal in cals.items():
         print(f"{a}: {len(runs[a])} runs, {len(cal.calibrated)} of {len(cal.switches)} "
               "switches calibrated")
@@ -164,6 +238,14 @@ def _run(args: argparse.Namespace) -> int:
     if missing:
         print(f"not commissioned (no run with its position): {', '.join(missing)}")
     print(f"written: {out}")
+    if baseline is not None and files < 2:
+        print("baseline not written: one run file (each is held out of the fit in turn: "
+              "give at least two)")
+    elif baseline is not None:
+        base = _measure_baseline(cfg, machine, read_datasheet(datasheet), str(datasheet),
+                                 runs, args)
+        print("\n".join(_baseline_summary(base)))
+        print(f"written: {base.save(baseline)}")
     if report is not None:
         print(f"report: {write_report(output_dir(report, 'report directory'), cals, flows)}")
     return 0

@@ -18,7 +18,7 @@ from ddh_vsensor.commission.flow import (MACHINE_WIDE, Estimate, FlowFit, applie
                                          machine_wide)
 from ddh_vsensor.commission.switches import KIND_KEYS, UnitCalibration
 from ddh_vsensor.commission.yaml_text import Setting, set_values
-from ddh_vsensor.config import Config, load_config
+from ddh_vsensor.config import Config, load_config, parse_config, parse_yaml
 from ddh_vsensor.errors import UserError
 
 
@@ -161,15 +161,18 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
     return out
 
 
-def write_config(datasheet: Path, out: Path, cals: Mapping[str, UnitCalibration],
-                 spread_factor: float, flows: Mapping[str, FlowFit] | None = None,
-                 cfg: Config | None = None) -> Config:
-    """Write the commissioned file atomically, only once it loads as a configuration
-    (``cfg``: the datasheet file's, loaded; needed with ``flows``)."""
+def read_datasheet(datasheet: Path) -> str:
     try:
-        text = datasheet.read_text(encoding="utf-8")
+        return datasheet.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"{datasheet}: cannot read: {exc}") from None
+
+
+def commissioned_text(text: str, source: str, cals: Mapping[str, UnitCalibration],
+                      spread_factor: float, flows: Mapping[str, FlowFit] | None = None,
+                      cfg: Config | None = None) -> str:
+    """The datasheet file's ``text`` with the measured keys set (``cfg``: the datasheet's
+    configuration, needed with ``flows``)."""
     items = [s for cal in cals.values() for s in settings(cal, spread_factor)]
     if flows:
         if cfg is None:
@@ -178,7 +181,25 @@ def write_config(datasheet: Path, out: Path, cals: Mapping[str, UnitCalibration]
         hydraulics = list((data.get("hydraulics") or {}).keys())
         items += flow_settings(cfg, flows, hydraulics[-1] if hydraulics else "",
                                isinstance(data.get("tolerances"), dict))
-    new = set_values(text, str(datasheet), items)
+    return set_values(text, source, items)
+
+
+def commissioned_config(text: str, source: str, cals: Mapping[str, UnitCalibration],
+                        spread_factor: float, flows: Mapping[str, FlowFit] | None = None,
+                        cfg: Config | None = None) -> Config:
+    """The configuration :func:`write_config` would write, in memory (rounded as written):
+    what a baseline's fold is estimated with."""
+    new = commissioned_text(text, source, cals, spread_factor, flows, cfg)
+    return parse_config(parse_yaml(new, source), source)
+
+
+def write_config(datasheet: Path, out: Path, cals: Mapping[str, UnitCalibration],
+                 spread_factor: float, flows: Mapping[str, FlowFit] | None = None,
+                 cfg: Config | None = None) -> Config:
+    """Write the commissioned file atomically, only once it loads as a configuration
+    (``cfg``: the datasheet file's, loaded; needed with ``flows``)."""
+    new = commissioned_text(read_datasheet(datasheet), str(datasheet), cals, spread_factor,
+                            flows, cfg)
     with atomic_path(out) as tmp:
         tmp.write_text(new, encoding="utf-8")
         try:

@@ -20,13 +20,14 @@ from ddh_vsensor.diagnosis.observability import (Observability, observe_position
 from ddh_vsensor.diagnosis.pressures import TorqueEvidence, torque_evidence
 from ddh_vsensor.diagnosis.residual import ResidualFit, fit_residual
 from ddh_vsensor.diagnosis.runs import AnalysisRun
-from ddh_vsensor.diagnosis.selection import (AMBIGUITY_RATIO, GROWTH_FLOOR_RMS_MM, MAX_CAUSES, MAX_HETEROGENEITY,
-                        MIN_ADDED, MIN_SCORE, OWN_ERROR_RMS_MM, RESIDUAL_SHARE, Decision,
-                        bound, rms)
+from ddh_vsensor.diagnosis.selection import (MAX_CAUSES, MAX_HETEROGENEITY, MIN_ADDED,
+                                             MIN_SCORE, RESIDUAL_SHARE, Decision, OwnError,
+                                             Thresholds, alike, bound, rms)
 from ddh_vsensor.diagnosis.workbench import Workbench, resolve_mode
 
 Progress = Callable[[str, float], None]
-CANDIDATES_PER_STEP = (8, 2)   # exact fits tried: every other cause as the second, two as the third
+# exact fits tried: every other cause as the second, two as the third
+CANDIDATES_PER_STEP = (8, 2)
 # Causes fitted on both torques (a valve regime can hinge on a few N*m in a transient); the
 # others on the torque that suits the model without any cause.
 PRESSURE_CAUSES = ("torque_gain", "torque_offset", "displacement")   # what pressures measure
@@ -52,6 +53,7 @@ class Diagnosis:
     heldout: list[np.ndarray] = field(default_factory=list)   # the extension's, per run
     extension_inertia: bool | None = None   # the extension's motor_inertia (None: the set's)
     observability: list[Observability] = field(default_factory=list)   # per checked cause
+    thresholds: Thresholds = field(default_factory=lambda: Thresholds.positions(None))
 
     @property
     def cause(self) -> str:
@@ -111,11 +113,18 @@ def _sse(res: Sequence[np.ndarray], weights: Sequence[float]) -> float:
     return float(sum(w * np.dot(r, r) for r, w in zip(res, weights)))
 
 
+def _floor_sse(diag: Diagnosis, weights: Sequence[float]) -> float:
+    """The machine's own error as a held-out squared error over these runs' samples."""
+    n = [int(m.sum()) for m in diag.bench.masks]
+    return diag.thresholds.machine_rms_mm ** 2 * float(np.dot(weights, n))
+
+
 def diagnose(cfg: Config, actuator: str, runs: Sequence[AnalysisRun], mode: str | None = None,
-             progress: Progress | None = None) -> Diagnosis:
+             progress: Progress | None = None, own: OwnError | None = None) -> Diagnosis:
     """Fit every cause of the catalogue, grow a set jointly, fit the residual model, and
     decide (cross-validated one run out at a time throughout); in the configured estimator
-    mode unless ``mode`` says otherwise."""
+    mode unless ``mode`` says otherwise. ``own``: the machine's own error from its baseline
+    (else the thresholds are the simulator's)."""
     mode = resolve_mode(cfg, mode)
     if len(runs) < 2:
         raise UserError(f"{len(runs)} run given: the diagnosis needs at least two runs (the "
@@ -135,8 +144,12 @@ def diagnose(cfg: Config, actuator: str, runs: Sequence[AnalysisRun], mode: str 
         fits.append(_fit_either_torque(cause, bench, target, weights))
     fits.sort(key=lambda f: (-f.score, f.cause.name != "none"))
     evidence = torque_evidence(bench)
+    thresholds = Thresholds.positions(own)
+    if evidence is not None and thresholds.pressure_line is not None:
+        evidence = evidence.against(thresholds.pressure_line)
     diag = Diagnosis(actuator, mode, list(runs), bench, baseline, model, fits,
-                     Decision("none", "", 0.0, 0.0), evidence=evidence)
+                     Decision("none", "", 0.0, 0.0), evidence=evidence,
+                     thresholds=thresholds)
     _decide(diag, target, weights, total, report)
     if diag.extension_inertia is None:
         diag.extension_inertia = (bench.default_inertia if diag.chosen_set is None
@@ -160,7 +173,8 @@ def _grow(diag: Diagnosis, first: CauseFit, stepwise: bool, weights: list[float]
     ambiguous: list[tuple[str, str]] = []
     parametric = [f for f in diag.fits if f.cause.parameter is not None]
     for step, tries in enumerate(CANDIDATES_PER_STEP):
-        if len(s.causes) >= MAX_CAUSES or rms(s.heldout, weights) <= GROWTH_FLOOR_RMS_MM:
+        if len(s.causes) >= MAX_CAUSES or \
+                rms(s.heldout, weights) <= diag.thresholds.growth_floor_rms_mm:
             break       # (what is left is the model's own error: anything fits half of it)
         report(f"joint fits ({len(s.causes) + 1} causes)", 0.6 + 0.15 * step)
         bench.use(s.motor_inertia)
@@ -176,7 +190,7 @@ def _grow(diag: Diagnosis, first: CauseFit, stepwise: bool, weights: list[float]
             break
         grown.sort(key=lambda j: j.sse)
         for other in grown[1:]:
-            if other.sse <= AMBIGUITY_RATIO * grown[0].sse:
+            if alike(other.sse, grown[0].sse, _floor_sse(diag, weights)):
                 ambiguous.append((grown[0].names[-1], other.names[-1]))
         shares[grown[0].names[-1]] = (s.sse - grown[0].sse) / total if total else 0.0
         s = grown[0]
@@ -260,7 +274,7 @@ def _consistent(ev: TorqueEvidence | None, params: dict[str, float],
 
 def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], total: float,
             report: Progress) -> None:
-    bench, ev = diag.bench, diag.evidence
+    bench, ev, limits = diag.bench, diag.evidence, diag.thresholds
     before = rms(target, weights)
     best = diag.fits[0]
     if best.cause.name == "low_speed_leakage" and best.score >= MIN_SCORE:
@@ -298,7 +312,8 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
         s, shares, ambiguous = got, got_shares, got_amb
         if first in eligible and len(got.causes) == 1:
             rivals = [f for f in eligible if f is not first and f.score >= MIN_SCORE
-                      and (1.0 - f.explained) <= AMBIGUITY_RATIO * (1.0 - first.explained)]
+                      and alike((1.0 - f.explained) * total, (1.0 - first.explained) * total,
+                                _floor_sse(diag, weights))]
             ambiguous = [(first.cause.name, f.cause.name) for f in rivals] \
                 if got.names[0] == first.cause.name else got_amb
     # the residual model: on top of the set (its held-out error as the target), and alone
@@ -315,11 +330,15 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
         structured = on_set is not None and on_set.explained > s.explained and \
             _sse(on_set.heldout, weights) <= (1.0 - MIN_ADDED) * s.sse and \
             s.sse - _sse(on_set.heldout, weights) >= RESIDUAL_SHARE * total and \
-            rms(s.heldout, weights) > OWN_ERROR_RMS_MM
+            rms(s.heldout, weights) > limits.own_error_rms_mm
         het = s.heterogeneity
-        mixed = het > MAX_HETEROGENEITY and s.sse - s.own_sse >= RESIDUAL_SHARE * total
+        # runs wanting their own values shows a look-alike only beyond the machine's own
+        # error (an orifice share of the leakage makes each temperature want its factor)
+        mixed = het > MAX_HETEROGENEITY and s.sse - s.own_sse >= RESIDUAL_SHARE * total \
+            and rms(s.heldout, weights) > limits.mixed_floor_rms_mm
         if s.score >= MIN_SCORE and not mixed and not structured:
-            names = " + ".join(f"{c.name} ({', '.join(f'{k} = {v:.4g}' for k, v in s.params.items() if k == c.parameter)})"
+            names = " + ".join(f"{c.name} ({c.parameter} = {s.params[c.parameter]:.4g})"
+                               if c.parameter in s.params else f"{c.name} ()"
                                for c in s.causes)
             diag.heldout = s.heldout
             diag.extension_inertia = s.motor_inertia
@@ -364,7 +383,7 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
     # what the model's own error can mimic: the best fit within its resolution
     mimic = max([f.explained for f in diag.fits if f.cause.parameter is not None
                  and not f.cause.resolved(f.value)] + [0.0])
-    if before > OWN_ERROR_RMS_MM and use.explained >= MIN_SCORE \
+    if before > limits.own_error_rms_mm and use.explained >= MIN_SCORE \
             and (1.0 - use.explained) <= MIN_ADDED * (1.0 - mimic):
         diag.residual, diag.heldout = use, use.heldout
         diag.decision = Decision("unexplained", f"{gap}; a residual model explains "
@@ -377,7 +396,8 @@ def _decide(diag: Diagnosis, target: list[np.ndarray], weights: list[float], tot
     diag.extension_inertia = bench.default_inertia
     diag.heldout = target
     diag.shares = {}
-    if before <= OWN_ERROR_RMS_MM:
+    if before <= limits.own_error_rms_mm:
+        whose = "the simulator's" if limits.simulator else "this machine's baseline"
         gap += (f"; the model's held-out error, RMS {before:.2f} mm, is within its own "
-                f"({OWN_ERROR_RMS_MM:g} mm)")
+                f"({limits.own_error_rms_mm:.2g} mm, {whose})")
     diag.decision = Decision("none", gap, before, before)

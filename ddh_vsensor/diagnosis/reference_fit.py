@@ -8,8 +8,9 @@ so the same search, the same quadratic stencil and the same held-out score apply
 a 90 % interval per parameter (jackknife over the leave-one-run-out fits) and the answer
 ``unexplained`` when no cause is named although the references err far beyond what the
 nominal model does on its own (:data:`UNEXPLAINED_RMS_MM`), or when the named cause leaves
-them erring far beyond that (:data:`LEFT_RMS_MM`, :data:`LEFT_SHARE`). Each cause is also
-checked for whether these references and holds could show it at all (:mod:`.observability`).
+them erring far beyond that (:data:`LEFT_RMS_MM`, :data:`LEFT_SHARE`); with a machine's
+baseline, beyond its own error (:func:`reference_thresholds`). Each cause is also checked for
+whether these references and holds could show it at all (:mod:`.observability`).
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ from ddh_vsensor.diagnosis.fit import CauseFit, fit_cause, rescore
 from ddh_vsensor.diagnosis.observability import (Observability, observe_references,
                                                  with_observability)
 from ddh_vsensor.diagnosis.references import ReferenceRun
-from ddh_vsensor.diagnosis.selection import Decision, decide_single
+from ddh_vsensor.diagnosis.selection import (OWN_SPREAD, SIMULATOR, Decision, OwnError,
+                                             Thresholds, decide_single)
 from ddh_vsensor.diagnosis.workbench import Workbench, resolve_mode
 
 Progress = Callable[[str, float], None]
@@ -42,6 +44,9 @@ UNEXPLAINED_RMS_MM = 2.5
 # unexplained, not the look-alike.
 LEFT_RMS_MM = 0.2
 LEFT_SHARE = 0.25
+# With a machine's baseline: unexplained beyond this many times the machine's own error, as
+# the simulator's UNEXPLAINED_RMS_MM stands to its nominal increments' ~1 mm.
+UNEXPLAINED_OVER_OWN = 2.5
 INTERVAL = 0.90
 # Causes that live in the position sensor the references replace: without it they change
 # nothing the machine does, so there is nothing here to fit them to (a scale fitted to the
@@ -82,6 +87,8 @@ class ReferenceDiagnosis:
     decision: Decision
     intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
     observability: list[Observability] = field(default_factory=list)   # per checked cause
+    # what the decision took for the model's own error (set by diagnose_references)
+    thresholds: Thresholds = field(default_factory=lambda: Thresholds("references", SIMULATOR))
 
     @property
     def cause(self) -> str:
@@ -134,17 +141,44 @@ def _fit(cause: Cause, bench: Workbench, rruns: Sequence[ReferenceRun],
     return best
 
 
-def _left_rms_mm(rruns: Sequence[ReferenceRun]) -> float:
-    """What a named cause may leave: :data:`LEFT_RMS_MM` with the edges' own sampling."""
-    sampling_mm2 = float(np.mean(np.concatenate([rr.increment_var_mm2() for rr in rruns])))
-    return float(np.hypot(LEFT_RMS_MM, np.sqrt(sampling_mm2)))
+def _sampling_mm(rruns: Sequence[ReferenceRun]) -> float:
+    """The edges' own sampling error, RMS over the increments (0 where the changes are
+    timed)."""
+    return float(np.sqrt(np.mean(np.concatenate([rr.increment_var_mm2() for rr in rruns]))))
+
+
+def reference_thresholds(rruns: Sequence[ReferenceRun], own: OwnError | None) -> Thresholds:
+    """What a named cause may leave (with the edges' own sampling) and beyond what the
+    references are unexplained: the simulator's constants, or each raised to the machine's
+    own error for these runs' evidence (its baseline's RMS of the increments and of the holds'
+    creep, weighted by how many of each these runs have; a kind it lacks taken at the
+    other's) x :data:`.selection.OWN_SPREAD`."""
+    sampling = _sampling_mm(rruns)
+    if own is None:
+        return Thresholds("references", SIMULATOR, 0.0, left_rms_mm=float(np.hypot(
+            LEFT_RMS_MM, sampling)), unexplained_rms_mm=UNEXPLAINED_RMS_MM)
+    ref, hold = own.references_rms_mm, own.holds_rms_mm
+    if ref is None and hold is None:
+        raise ValueError("the baseline has no reference or hold residuals")
+    ref, hold = (ref if ref is not None else hold), (hold if hold is not None else ref)
+    n_inc = sum(rr.n_increments for rr in rruns)
+    n_hold = sum(len(rr.holds) for rr in rruns)
+    mean_mm2 = (n_inc * ref ** 2 + n_hold * hold ** 2) / max(n_inc + n_hold, 1)
+    machine = float(np.sqrt(mean_mm2))
+    return Thresholds("references", own.source, machine,
+                      left_rms_mm=float(np.hypot(max(LEFT_RMS_MM, OWN_SPREAD * machine),
+                                                 sampling)),
+                      unexplained_rms_mm=max(UNEXPLAINED_RMS_MM,
+                                             UNEXPLAINED_OVER_OWN * OWN_SPREAD * machine))
 
 
 def diagnose_references(cfg: Config, actuator: str, rruns: Sequence[ReferenceRun],
                         mode: str | None = None, progress: Progress | None = None,
-                        causes: Mapping[str, Cause] | None = None) -> ReferenceDiagnosis:
+                        causes: Mapping[str, Cause] | None = None,
+                        own: OwnError | None = None) -> ReferenceDiagnosis:
     """Fit every cause to the references and holds, held out one run at a time; decide (in
-    the configured estimator mode unless ``mode`` says otherwise)."""
+    the configured estimator mode unless ``mode`` says otherwise). ``own``: the machine's own
+    error from its baseline (else the thresholds are the simulator's)."""
     mode = resolve_mode(cfg, mode)
     if len(rruns) < 2:
         raise UserError(f"{len(rruns)} run given: the diagnosis needs at least two runs (the "
@@ -164,23 +198,25 @@ def diagnose_references(cfg: Config, actuator: str, rruns: Sequence[ReferenceRun
             fits.append(_fit(cause, bench, rruns, model, weights))
     report("decision", 1.0)
     fits.sort(key=lambda f: (-f.score, f.cause.name != "none"))
-    decision = decide_single(fits, model, weights)
+    limits = reference_thresholds(rruns, own)
+    decision = decide_single(fits, model, weights, limits.machine_rms_mm)
     named = decision.cause not in ("none", "ambiguous")
     before, after = decision.rms_before_mm, decision.rms_after_mm
-    if named and after > LEFT_SHARE * before and after > _left_rms_mm(rruns):
+    whose = "the simulator's" if limits.simulator else "this machine's baseline"
+    if named and after > LEFT_SHARE * before and after > limits.left_rms_mm:
         decision = Decision("unexplained", f"{decision.cause} explains part of the references' "
                             f"error (RMS {before:.2f} -> {after:.2f} mm held out) but leaves "
                             f"{after / before:.0%} of it, beyond what the nominal model errs on "
-                            "its own: a cause the catalogue does not have, or more than one",
-                            before, before)
-    elif decision.cause == "none" and decision.rms_before_mm > UNEXPLAINED_RMS_MM:
+                            f"its own ({limits.left_rms_mm:.2f} mm, {whose}): a cause the "
+                            "catalogue does not have, or more than one", before, before)
+    elif decision.cause == "none" and decision.rms_before_mm > limits.unexplained_rms_mm:
         decision = Decision("unexplained", f"the references err by {decision.rms_before_mm:.2f}"
                             f" mm RMS from edge to edge, beyond the nominal model's own error "
-                            f"({UNEXPLAINED_RMS_MM:g} mm), and no catalogued cause explains "
-                            f"it: {decision.reason}", decision.rms_before_mm,
+                            f"({limits.unexplained_rms_mm:.2g} mm, {whose}), and no catalogued "
+                            f"cause explains it: {decision.reason}", decision.rms_before_mm,
                             decision.rms_after_mm)
     checks = observe_references(cfg, bench, rruns, catalogue, decision.rms_after_mm)
     decision = with_observability(decision, checks)
     intervals = {f.cause.name: iv for f in fits if (iv := interval(f)) is not None}
     return ReferenceDiagnosis(actuator, mode, list(rruns), bench, baseline, model, fits,
-                              decision, intervals, checks)
+                              decision, intervals, checks, limits)

@@ -1,7 +1,7 @@
 """The report of a diagnosis from references and holds: ``report.json`` (the position-truth
 report's nine keys, the errors taken at the references, plus ``truth``, ``causes``,
-``unexplained``, ``not_observable`` and ``observability``), ``extension.json`` and a
-self-contained ``report.html``."""
+``unexplained``, ``not_observable``, ``observability`` and ``thresholds``),
+``extension.json`` and a self-contained ``report.html``."""
 
 from __future__ import annotations
 
@@ -70,6 +70,7 @@ def report_data(diag: ReferenceDiagnosis, extension_file: Path) -> dict[str, Any
         "holds": sum(len(r.holds) for r in diag.rruns),
         "not_observable": not_observable_of(diag.not_observable),
         "observability": [o.as_dict() for o in diag.observability],
+        "thresholds": diag.thresholds.as_dict(),
     }
 
 
@@ -90,6 +91,7 @@ def _html(diag: ReferenceDiagnosis, data: dict[str, Any]) -> str:
         "reference_diagnosis.html.j2",
         title=f"ddh-vsensor diagnosis from references: {diag.actuator}",
         actuator=diag.actuator, cause=diag.cause, reason=diag.decision.reason,
+        thresholds=diag.thresholds.describe(),
         summary=ALL_CAUSES[diag.cause].summary if named else None,
         not_observable=diag.not_observable,
         extension_file=data["extension_file"],

@@ -19,7 +19,8 @@ from ddh_vsensor.diagnosis.analyze import Diagnosis
 from ddh_vsensor.diagnosis.breakdown import breakdown
 from ddh_vsensor.diagnosis.causes import ALL_CAUSES
 from ddh_vsensor.estimator.extension import Extension
-from ddh_vsensor.diagnosis.figures import breakdown_figure, errors_per_run, ranking_figure, signature_figure
+from ddh_vsensor.diagnosis.figures import (breakdown_figure, errors_per_run, ranking_figure,
+                                            signature_figure)
 from ddh_vsensor.diagnosis.selection import MIN_SCORE, separation
 from ddh_vsensor.diagnosis.fit import PENALTY_PER_PARAMETER
 from ddh_vsensor.diagnosis.signatures import signature, signature_errors
@@ -86,7 +87,8 @@ def not_observable_of(items: Sequence[tuple[str, str, str]]) -> list[dict[str, s
 
 def report_data(diag: Diagnosis, extension_file: Path) -> dict[str, Any]:
     """The content of report.json: the issue's nine keys, ``causes``, ``ambiguous``,
-    ``not_observable`` and ``observability`` (every checked cause's numbers)."""
+    ``not_observable``, ``observability`` (every checked cause's numbers) and ``thresholds``
+    (the simulator's or the machine's baseline)."""
     return {
         "actuator": diag.actuator,
         "mode": diag.mode,
@@ -103,6 +105,7 @@ def report_data(diag: Diagnosis, extension_file: Path) -> dict[str, Any]:
         "ambiguous": [list(p) for p in diag.ambiguous],
         "not_observable": not_observable_of(diag.not_observable),
         "observability": [o.as_dict() for o in diag.observability],
+        "thresholds": diag.thresholds.as_dict(),
     }
 
 
@@ -201,7 +204,8 @@ def _html(diag: Diagnosis, data: dict[str, Any], stats) -> str:
         "diagnosis.html.j2",
         title=f"ddh-vsensor diagnosis: {diag.actuator}",
         actuator=diag.actuator, mode=diag.mode, cause=diag.cause,
-        reason=diag.decision.reason, causes=causes, extension_file=data["extension_file"],
+        reason=diag.decision.reason, thresholds=diag.thresholds.describe(), causes=causes,
+        extension_file=data["extension_file"],
         ambiguous=[(a, b, separation(a, b)) for a, b in diag.ambiguous],
         not_observable=diag.not_observable,
         evidence=None if diag.evidence is None else diag.evidence.describe(),

@@ -31,8 +31,9 @@ single catalogued effects (numbers in diagnosis/README.md), never from the open-
    The residual model removes ~75 % of the own error itself, so a small effect, named
    right, left only that and was called unexplained).
 4. Two candidates are *ambiguous* when the second leaves at most :data:`AMBIGUITY_RATIO`
-   times the held-out error of the first; if the largest contributor is ambiguous the
-   answer is ``ambiguous``, never one of the two.
+   times the held-out error of the first (counted at no less than the machine's own error,
+   where a baseline gives it: :class:`Thresholds`); if the largest contributor is ambiguous
+   the answer is ``ambiguous``, never one of the two.
 5. Otherwise ``unexplained`` if the model's held-out error is more than its own
    (:data:`OWN_ERROR_RMS_MM`: a flexible model finds structure in any own error; without an
    effect, the boom on random cycles, 0.38 mm at most, was answered ``unexplained``), the
@@ -44,6 +45,10 @@ single catalogued effects (numbers in diagnosis/README.md), never from the open-
 6. A ``none`` holds only for the causes the runs could show: each cause at its catalogue's
    reference size is checked against the evidence (:mod:`.observability`), and those it
    could not show are listed with the answer (``Decision.not_observable``).
+
+The own-error constants are our simulator's, where the nominal model is nearly exact; with a
+machine's baseline (``commission``, ``analyze --baseline``) each is judged against that
+machine's own error instead (:class:`Thresholds`).
 """
 
 from __future__ import annotations
@@ -52,6 +57,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from ddh_vsensor.diagnosis.pressures import OwnLine
 
 MIN_SCORE = 0.6
 MIN_ADDED = 0.5
@@ -66,6 +73,11 @@ MAX_CAUSES = 3
 # analyses (seeds 29000 and 33000, paper and random cycles). A set that leaves no more has
 # nothing left for a further cause to explain (what fits half of it is noise).
 GROWTH_FLOOR_RMS_MM = 0.1
+# With a machine's baseline (``commission``), its own error replaces these: an analysis of
+# the machine's effect-free runs errs by up to OWN_SPREAD x the baseline's RMS (run-to-run
+# spread: other cycles, loads and temperatures than the baseline's runs; docs/diagnosis.md).
+OWN_SPREAD = 2.0
+SIMULATOR = "the simulator's"
 
 # What would tell two look-alikes apart (order-free pairs); the default names the signatures.
 SEPARATE: dict[frozenset[str], str] = {
@@ -113,6 +125,99 @@ class Decision:
     not_observable: list[tuple[str, str, str]] = field(default_factory=list)
 
 
+@dataclass(frozen=True)
+class OwnError:
+    """A machine's own error per kind of evidence (RMS, mm; None: its baseline has none),
+    measured by ``commission`` on runs its model was not fitted to."""
+
+    position_rms_mm: float | None
+    references_rms_mm: float | None
+    holds_rms_mm: float | None
+    source: str                     # the baseline file and its date, for the answer
+    pressure_line: OwnLine | None = None    # the drive's torque against the pressures'
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """What the decision takes for the model's own error: the simulator's constants, or
+    each raised to the machine's (:data:`OWN_SPREAD` x its baseline's RMS, never below the
+    simulator's: there the model is its own plant, so no machine errs less).
+
+    With a baseline two further rules use the machine's own error: a best candidate's
+    held-out error counts at no less than it when a rival is judged ambiguous (rule 4), and
+    a set leaving no more than OWN_SPREAD x it cannot show that it only mimics (rule 3's
+    heterogeneity)."""
+
+    evidence: str                   # "positions" or "references"
+    source: str                     # SIMULATOR, or the baseline file
+    # the machine's own error, its baseline's RMS for this evidence (0 for the simulator's:
+    # its model is nearly exact)
+    machine_rms_mm: float = 0.0
+    own_error_rms_mm: float = OWN_ERROR_RMS_MM          # positions: OWN_ERROR_RMS_MM
+    growth_floor_rms_mm: float = GROWTH_FLOOR_RMS_MM    # positions: GROWTH_FLOOR_RMS_MM
+    left_rms_mm: float = 0.0                            # references: LEFT_RMS_MM
+    unexplained_rms_mm: float = 0.0                     # references: UNEXPLAINED_RMS_MM
+    # positions with pressures: the machine's line (None: the physics', within the
+    # pressures' GAIN_TOLERANCE and OFFSET_TOLERANCE_NM)
+    pressure_line: OwnLine | None = None
+
+    @property
+    def simulator(self) -> bool:
+        return self.source == SIMULATOR
+
+    @classmethod
+    def positions(cls, own: OwnError | None) -> Thresholds:
+        """The position analysis's: own error and growth floor, each the larger of the
+        simulator's constant and the machine's position RMS x :data:`OWN_SPREAD`."""
+        if own is None:
+            return cls("positions", SIMULATOR)
+        if own.position_rms_mm is None:
+            raise ValueError("the baseline has no position residuals")
+        machine = own.position_rms_mm
+        return cls("positions", own.source, machine, max(OWN_ERROR_RMS_MM, OWN_SPREAD * machine),
+                   max(GROWTH_FLOOR_RMS_MM, OWN_SPREAD * machine),
+                   pressure_line=own.pressure_line)
+
+    @property
+    def mixed_floor_rms_mm(self) -> float:
+        """What a set may leave and still be judged by its runs' heterogeneity."""
+        return OWN_SPREAD * self.machine_rms_mm
+
+    def as_dict(self) -> dict[str, object]:
+        values = {"own_error_rms_mm": self.own_error_rms_mm,
+                  "growth_floor_rms_mm": self.growth_floor_rms_mm} \
+            if self.evidence == "positions" else \
+            {"left_rms_mm": self.left_rms_mm, "unexplained_rms_mm": self.unexplained_rms_mm}
+        line = self.pressure_line
+        return {"source": "simulator" if self.simulator else "baseline",
+                "baseline": None if self.simulator else self.source,
+                "machine_rms_mm": round(self.machine_rms_mm, 4),
+                **{k: round(v, 4) for k, v in values.items()},
+                "pressure_line": None if line is None else {
+                    "gain": round(line.gain, 4), "offset_nm": round(line.offset_nm, 3),
+                    "gain_tolerance": round(line.gain_tolerance, 4),
+                    "offset_tolerance_nm": round(line.offset_tolerance_nm, 3)}}
+
+    def describe(self) -> str:
+        """One line for the answer: whose thresholds, and what they are."""
+        values = (f"own error {self.own_error_rms_mm:.2f} mm RMS, growth floor "
+                  f"{self.growth_floor_rms_mm:.2f} mm" if self.evidence == "positions" else
+                  f"a named cause may leave {self.left_rms_mm:.2f} mm RMS, unexplained beyond "
+                  f"{self.unexplained_rms_mm:.2f} mm")
+        if self.simulator:
+            return (f"thresholds: the simulator's, where the nominal model is nearly exact "
+                    f"({values}); --baseline FILE (from commission) judges them against "
+                    "this machine's own error")
+        line = self.pressure_line
+        if line is not None:
+            values += (f"; the pressures against its own line {line.gain:.3f} x "
+                       f"{line.offset_nm:+.2f} N*m within {100 * line.gain_tolerance:.1f} % "
+                       f"and {line.offset_tolerance_nm:.2f} N*m")
+        return (f"thresholds: the machine's baseline {self.source}, its own error "
+                f"{self.machine_rms_mm:.2f} mm RMS (thresholds {OWN_SPREAD:g} x it, at least "
+                f"the simulator's: {values})")
+
+
 def rms(residuals: Sequence[np.ndarray], weights: Sequence[float]) -> float:
     num = sum(w * float(np.dot(r, r)) for r, w in zip(residuals, weights))
     den = sum(w * len(r) for r, w in zip(residuals, weights))
@@ -126,11 +231,20 @@ def bound(cause) -> str:
     return f"{cause.resolution:g} {cause.unit} from {cause.neutral:g}"
 
 
+def alike(rival_sse: float, best_sse: float, floor_sse: float = 0.0) -> bool:
+    """Rule 4: a rival leaves at most :data:`AMBIGUITY_RATIO` times what the best leaves,
+    counted at no less than the machine's own error (``floor_sse``: its squared own error
+    over the samples; 0 for the simulator's, where the model is nearly exact)."""
+    return rival_sse <= AMBIGUITY_RATIO * max(best_sse, floor_sse)
+
+
 def decide_single(fits: Sequence, target: Sequence[np.ndarray],
-                  weights: Sequence[float]) -> Decision:
+                  weights: Sequence[float], machine_rms_mm: float = 0.0) -> Decision:
     """The one-cause decision on ``fits`` (best first) for the baseline residual ``target``:
     the best cause is named only beyond MIN_SCORE and beyond what the model's own error can
-    mimic. Used where the data cannot carry joint fits (references and holds only)."""
+    mimic. Used where the data cannot carry joint fits (references and holds only).
+    ``machine_rms_mm``: the machine's own error (its baseline), below which two candidates'
+    held-out errors do not tell them apart."""
     best = fits[0]
     before, after = rms(target, weights), rms(best.heldout, weights)
     share = f"{100 * best.score:.0f} %"
@@ -147,7 +261,7 @@ def decide_single(fits: Sequence, target: Sequence[np.ndarray],
     # rule 4, as the position analysis has it: a rival that leaves nearly as little
     rivals = [f for f in fits[1:] if f.cause.name != "none" and f.score >= MIN_SCORE
               and f.cause.resolved(f.value)
-              and rms(f.heldout, weights) ** 2 <= AMBIGUITY_RATIO * after ** 2]
+              and alike(rms(f.heldout, weights) ** 2, after ** 2, machine_rms_mm ** 2)]
     if rivals:
         first, second = best.cause.name, rivals[0].cause.name
         return Decision("ambiguous", f"{first} and {second} explain the held-out error alike "

@@ -58,6 +58,10 @@ SLOTS: dict[tuple[str, str], tuple[str, list[str]]] = {
                                   "OUT/rep"]),
     ("analyze", "--config"): ("yaml", ["analyze", "RUN", "RUN", "--config", "SLOT",
                                        "--actuator", "boom", "--report", "OUT/rep"]),
+    ("analyze", "--baseline"): ("baseline", ["analyze", "RUN", "RUN", "--actuator", "boom",
+                                             "--report", "OUT/rep", "--baseline", "SLOT"]),
+    ("commission", "--baseline"): ("out-file", ["commission", "RUN", "--config", "YAML", "--out",
+                                                "OUT/c.yaml", "--baseline", "SLOT"]),
     ("analyze", "--report"): ("out-dir", ["analyze", "RUN", "RUN", "--actuator", "boom",
                                           "--report", "SLOT"]),
     ("run", "--config"): ("yaml", ["run", *BUS, "--no-state", "--config", "SLOT"]),
@@ -123,9 +127,11 @@ def _bad_inputs(kind: str, tmp: Path, good: dict[str, Path]) -> dict[str, Path]:
     directory = tmp / "a_directory.d"
     directory.mkdir(exist_ok=True)
     binary = tmp / "binary"
-    if kind in ("yaml", "run", "log", "fleet-log", "extension", "extensions", "profile"):
+    if kind in ("yaml", "run", "log", "fleet-log", "extension", "extensions", "profile",
+                "baseline"):
         suffix = {"yaml": ".yaml", "run": ".csv", "log": ".blf", "fleet-log": ".blf",
-                  "extension": ".json", "extensions": ".json", "profile": ".csv"}[kind]
+                  "extension": ".json", "extensions": ".json", "profile": ".csv",
+                  "baseline": ".json"}[kind]
         out["missing"] = tmp / f"missing{suffix}"
         out["empty"] = tmp / f"empty{suffix}"
         out["empty"].write_bytes(b"")
@@ -136,7 +142,8 @@ def _bad_inputs(kind: str, tmp: Path, good: dict[str, Path]) -> dict[str, Path]:
             out["directory"].mkdir(exist_ok=True)
         source = {"yaml": good["yaml"], "run": good["run"], "log": good["log"],
                   "fleet-log": good["log"], "extension": good["extension"],
-                  "extensions": good["extension"], "profile": good["profile"]}[kind]
+                  "extensions": good["extension"], "profile": good["profile"],
+                  "baseline": good["extension"]}[kind]
         raw = source.read_bytes()
         out["truncated"] = tmp / f"truncated{suffix}"
         # cut a few bytes into a line past the middle: a file cut off, not a shorter whole one
@@ -150,6 +157,8 @@ def _bad_inputs(kind: str, tmp: Path, good: dict[str, Path]) -> dict[str, Path]:
             wrong = good["bucket_run"]
         elif kind == "extension":
             wrong = good["bucket_extension"]
+        elif kind == "baseline":
+            wrong = good["extension"]                 # a JSON, not a baseline
         elif kind == "profile":
             wrong.write_text("time_s,arm_mm\n0,10\n1,20\n")
         else:
@@ -224,6 +233,8 @@ CASES = [(slot, bad) for slot, (kind, _) in SLOTS.items()
                      "fleet-log": ("missing",),
                      "extension": ("missing", "empty", "truncated", "wrong", "directory",
                                    "binary"),
+                     "baseline": ("missing", "empty", "truncated", "wrong", "directory",
+                                  "binary"),
                      # one file per actuator: the bucket's is right for these commands
                      "extensions": ("missing", "empty", "truncated", "directory", "binary"),
                      "profile": ("missing", "empty", "truncated", "wrong", "directory",

@@ -15,6 +15,7 @@ other magnitudes and conditions; each campaign prints what it hides.
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import os
 from pathlib import Path
@@ -91,3 +92,20 @@ class Campaigns:
 @pytest.fixture(scope="session")
 def campaigns(cfg, tmp_path_factory) -> Campaigns:
     return Campaigns(cfg, tmp_path_factory.mktemp("campaigns"))
+
+
+# two minutes of a fleet machine's work, two hours apart (times on the wall clock)
+FLEET_DAY = dt.datetime(2026, 3, 2, tzinfo=dt.timezone.utc).timestamp()
+FLEET_SESSIONS_H = (7.0, 9.5)
+
+
+@pytest.fixture(scope="session")
+def fleet_sessions(cfg) -> list[dict]:
+    from ddh_vsensor.sim.fleet import day_spec, plan_fleet
+    from ddh_vsensor.sim.run import simulate_campaign
+    plan = plan_fleet(cfg, 1, 3, seed=5, log_s=60.0)
+    runs = simulate_campaign(cfg, [day_spec(cfg, plan, plan.machines[0], d) for d in (0, 1)])
+    for per_unit, hours in zip(runs, FLEET_SESSIONS_H):
+        for run in per_unit.values():
+            run.shift_time(FLEET_DAY + 3600.0 * hours)
+    return runs

@@ -19,7 +19,8 @@ from ddh_vsensor.diagnosis.trials import draw_trial, simulate_trial
 from .conftest import BASE_SEED, hidden
 
 KEYS = {"actuator", "mode", "runs", "cause", "ranking", "baseline", "extended", "holdout_runs",
-        "extension_file", "causes", "ambiguous", "not_observable", "observability"}
+        "extension_file", "causes", "ambiguous", "not_observable", "observability",
+        "thresholds"}
 
 
 def _where(trial) -> str:
@@ -58,6 +59,9 @@ def test_no_effect_is_none(campaigns):
         f"{report['ranking'][:3]}"
     assert report["causes"] == [] and report["ambiguous"] == []
     assert sorted(report["holdout_runs"]) == sorted(map(str, paths["boom"]))
+    # no --baseline: the answer says whose thresholds it judged by
+    assert report["thresholds"]["source"] == "simulator"
+    assert report["thresholds"]["baseline"] is None
 
 
 def test_names_a_faulty_sensor(campaigns):

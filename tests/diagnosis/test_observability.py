@@ -76,7 +76,8 @@ def test_a_travel_error_the_middle_switch_cancels_is_not_observable(cfg, mid_onl
     paths = []
     for i, run in enumerate(mid_only):
         paths.append(tmp_path / f"run{i}.csv")
-        write_csv(paths[-1], dataclasses.replace(run, position_mm=np.full(len(run.time_s), np.nan)))
+        write_csv(paths[-1],
+                  dataclasses.replace(run, position_mm=np.full(len(run.time_s), np.nan)))
     out = tmp_path / "report"
     assert main(["analyze", *map(str, paths), "--actuator", "bucket", "--report", str(out)]) == 0
     printed = capsys.readouterr().out
@@ -98,6 +99,9 @@ def test_a_travel_error_the_middle_switch_cancels_is_not_observable(cfg, mid_onl
     assert "a run crossing two switches in one stroke would show it)" in line
     html = (out / "report.html").read_text()
     assert "Cause: no observable cause" in html and "Not observable from these runs" in html
+    # no --baseline: the answer says whose thresholds it judged by
+    assert report["thresholds"]["source"] == "simulator"
+    assert "thresholds: the simulator's" in printed and "thresholds: the simulator" in html
 
 
 def test_positions_make_the_same_travel_error_observable(cfg, mid_only):

@@ -67,14 +67,14 @@ def _diagnosis_context(s: str) -> dict:
                 unexplained={"follows": s, "breakdown": [(s, rows)]}, candidates=rows,
                 ranking_png=PNG, penalty_per_parameter=0.01, min_score=0.1, shown=s,
                 signature_png=PNG, errors_png=PNG, runs=rows, breakdown_png=PNG,
-                breakdown=[(s, rows), (s, rows)], not_observable=[(s, s, s)])
+                breakdown=[(s, rows), (s, rows)], not_observable=[(s, s, s)], thresholds=s)
 
 
 def _reference_context(s: str) -> dict:
     rows = [[s, 1.0, 2, 3, float("nan")]]
     return dict(title=s, actuator=s, cause=s, reason=s, summary=s, extension_file=s,
                 errors=rows, candidates=rows, ranking_png=PNG, runs=rows,
-                not_observable=[(s, s, s)])
+                not_observable=[(s, s, s)], thresholds=s)
 
 
 def _fleet_context(s: str) -> dict:
