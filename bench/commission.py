@@ -44,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import publish  # noqa: E402
 
 from ddh_vsensor.cli.config import datasheet_text  # noqa: E402
+from ddh_vsensor.commission.drive import fit_drive  # noqa: E402
 from ddh_vsensor.commission.flow import fit_flows  # noqa: E402
 from ddh_vsensor.commission.machine import write_config  # noqa: E402
 from ddh_vsensor.commission.programme import calibration_cycle  # noqa: E402
@@ -116,15 +117,17 @@ def _rounded(value):
 
 def commission(datasheet_path: Path, cfg: Config, runs: list[dict], out: Path,
                pressures: bool) -> tuple[Config, dict]:
-    """What ``ddh-vsensor commission`` does with these runs: switches and flow model
-    (``pressures``: the chambers' pressures logged, else read from the torque)."""
+    """What ``ddh-vsensor commission`` does with these runs: switches, flow model and the
+    drive's reading (``pressures``: the chambers' pressures logged, else read from the
+    torque, and the drive's reading then not measured)."""
     per_unit = {a: [r[a] if pressures else dataclasses.replace(r[a], p_a_bar=None,
                                                                 p_b_bar=None) for r in runs]
                 for a in cfg.unit_names}
     cals = {a: calibrate_unit(a, cfg.unit(a), rs, cfg.estimator.debounce_s)
             for a, rs in per_unit.items()}
     flows = fit_flows(cfg, per_unit)
-    return write_config(datasheet_path, out, cals, 2.0, flows, cfg), flows
+    drives = {a: fit_drive(cfg, a, rs) for a, rs in per_unit.items()}
+    return write_config(datasheet_path, out, cals, 2.0, flows, cfg, drives), flows
 
 
 def judge(cfg: Config, runs: list[dict], temps: list[float], references: bool) -> dict:

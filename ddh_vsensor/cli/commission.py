@@ -14,6 +14,7 @@ from ddh_vsensor.atomic import output_dir, output_file
 from ddh_vsensor.cli.progress import ProgressBar
 from ddh_vsensor.commission.baseline import KINDS as BASELINE_KINDS
 from ddh_vsensor.commission.baseline import Baseline
+from ddh_vsensor.commission.drive import DriveFit
 from ddh_vsensor.commission.flow import FlowFit
 from ddh_vsensor.commission.switches import (KIND_WORDS, KINDS, SPREAD_FACTOR, UnitCalibration,
                                              calibrate_unit)
@@ -119,6 +120,14 @@ def _summary(cal: UnitCalibration) -> list[str]:
     return lines
 
 
+def _drive_summary(fit: DriveFit) -> str:
+    if not fit.measured:
+        return f"drive's torque reading not measured: {fit.why_not}"
+    return (f"drive's torque reading: offset {fit.offset_nm:+.2f} +- {fit.offset_sigma_nm:.2f} "
+            f"N*m, {fit.speed_offset_nm:+.2f} N*m more at the speed limit, filter "
+            f"{fit.filter_s * 1e3:.1f} ms")
+
+
 def _flow_summary(fit: FlowFit) -> list[str]:
     lines = [f"  flow model (pressures {fit.pressures}; windows A {fit.windows['a']}, "
              f"B {fit.windows['b']}; loaded A {fit.loaded_windows['a']}, "
@@ -133,22 +142,26 @@ def _flow_summary(fit: FlowFit) -> list[str]:
 
 
 def fit_machine(cfg: Config, runs: dict[str, list[Run]], spread_factor: float,
-                switches_only: bool) -> tuple[dict[str, UnitCalibration], dict[str, FlowFit],
-                                              dict[str, str]]:
-    """Each unit's switches and flow model from its runs: (calibrations, flow fits, why a
-    unit's flow model was not measured)."""
+                switches_only: bool
+                ) -> tuple[dict[str, UnitCalibration], dict[str, FlowFit], dict[str, str],
+                           dict[str, DriveFit]]:
+    """Each unit's switches, flow model and drive reading from its runs: (calibrations, flow
+    fits, why a unit's flow model was not measured, drive fits)."""
+    from ddh_vsensor.commission.drive import fit_drive
     from ddh_vsensor.commission.flow import fit_flows
     cals = {a: calibrate_unit(a, cfg.unit(a), r, cfg.estimator.debounce_s, spread_factor)
             for a, r in runs.items()}
     flows: dict[str, FlowFit] = {}
     flow_problems: dict[str, str] = {}
+    drives: dict[str, DriveFit] = {}
     if not switches_only:
         for a, unit_runs in runs.items():
             try:
                 flows.update(fit_flows(cfg, {a: unit_runs}))
             except UserError as exc:
                 flow_problems[a] = str(exc)
-    return cals, flows, flow_problems
+            drives[a] = fit_drive(cfg, a, unit_runs)
+    return cals, flows, flow_problems, drives
 
 
 def _baseline_path(args: argparse.Namespace, out: Path) -> Path | None:
@@ -169,8 +182,9 @@ def _measure_baseline(cfg: Config, machine: Config, text: str, source: str,
     from ddh_vsensor.diagnosis.workbench import resolve_mode
 
     def fit(rest: dict[str, list[Run]]) -> Config:
-        cals, flows, _ = fit_machine(cfg, rest, args.spread_factor, args.switches_only)
-        return commissioned_config(text, source, cals, args.spread_factor, flows, cfg)
+        cals, flows, _, drives = fit_machine(cfg, rest, args.spread_factor,
+                                             args.switches_only)
+        return commissioned_config(text, source, cals, args.spread_factor, flows, cfg, drives)
 
     names = list(dict.fromkeys(r.source for rs in runs.values() for r in rs))
     bar = ProgressBar("baseline")
@@ -219,13 +233,14 @@ def _run(args: argparse.Namespace) -> int:
     if args.actuator is not None:
         cfg.require_unit(args.actuator)
     runs = read_runs(args.runs, cfg, args.actuator)
-    cals, flows, flow_problems = fit_machine(cfg, runs, args.spread_factor, args.switches_only)
+    cals, flows, flow_problems, drives = fit_machine(cfg, runs, args.spread_factor,
+                                                     args.switches_only)
     if not any(c.calibrated for c in cals.values()) and not any(
             f.measured for f in flows.values()):
         problems = [p for c in cals.values() for p in c.problems]
         raise UserError("no switch calibrated and no flow value measured: " + (
             "; ".join(problems) or "the runs hold no unit with its position"))
-    machine = write_config(datasheet, out, cals, args.spread_factor, flows, cfg)
+    machine = write_config(datasheet, out, cals, args.spread_factor, flows, cfg, drives)
     for a, cal in cals.items():
         print(f"{a}: {len(runs[a])} runs, {len(cal.calibrated)} of {len(cal.switches)} "
               "switches calibrated")
@@ -234,6 +249,8 @@ def _run(args: argparse.Namespace) -> int:
             print("\n".join(_flow_summary(flows[a])))
         elif a in flow_problems:
             print(f"  flow model not measured: {flow_problems[a]}")
+        if a in drives:
+            print(f"  {_drive_summary(drives[a])}")
     missing = [a for a in cfg.unit_names if a not in cals and args.actuator is None]
     if missing:
         print(f"not commissioned (no run with its position): {', '.join(missing)}")

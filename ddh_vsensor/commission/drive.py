@@ -13,8 +13,7 @@ o its offset and s its speed-proportional part at the speed limit (``motor.torqu
 carried that far along its change (and by the configured reporting lag ``torque_lag_s``),
 less the shaft's torque is regressed on [1, n / n_limit]; the T_f of the smallest residual
 wins. Samples count only where the motor turns (|n| above :data:`MIN_SPEED_RPM`: standing,
-its torque is anywhere in the pumps' friction band) and the chambers are between their valves
-(a relief or anti-cavitation valve open bends the torque's gain). The sigmas are the
+its torque is anywhere in the pumps' friction band). The sigmas are the
 regression's, over blocks of :data:`BLOCK_S` (a torque error persists over a move: samples
 within one are not independent). Without logged pressures a pressure read from the torque
 would carry the very offset sought, so nothing is measured and the answer says what run
@@ -71,13 +70,6 @@ def shaft_torque_from_pressures(unit: DDHUnit, run: Run, dp_a_pa: np.ndarray,
     return unit.motor_torque_nm(dp_a_pa, dp_b_pa, n) + inertia
 
 
-def _between_valves(unit: DDHUnit, dp_a: np.ndarray, dp_b: np.ndarray) -> np.ndarray:
-    ok = np.ones(len(dp_a), dtype=bool)
-    for side, dp in zip(unit.sides, (dp_a, dp_b)):
-        ok &= (dp > side.anticav.cracking_pa) & (dp < side.relief.setting_pa)
-    return ok
-
-
 def fit_drive(cfg: Config, actuator: str, runs: Sequence[Run]) -> DriveFit:
     """The drive's filter, offset and speed offset from the runs with logged pressures."""
     unit = DDHUnit.from_config(cfg, actuator)
@@ -89,7 +81,7 @@ def fit_drive(cfg: Config, actuator: str, runs: Sequence[Run]) -> DriveFit:
             continue
         dp_a, dp_b = pressures
         n = np.asarray(run.speed_rpm, dtype=float)
-        keep = (np.abs(n) > MIN_SPEED_RPM) & _between_valves(unit, dp_a, dp_b)
+        keep = np.abs(n) > MIN_SPEED_RPM
         keep[:1] = False
         block = np.floor((run.time_s - run.time_s[0]) / BLOCK_S).astype(int)
         rows.append((run, shaft_torque_from_pressures(unit, run, dp_a, dp_b), n, keep, block))
@@ -108,9 +100,9 @@ def fit_drive(cfg: Config, actuator: str, runs: Sequence[Run]) -> DriveFit:
         yv, xv, bv = np.concatenate(y), np.concatenate(x), np.concatenate(blocks)
         ids = np.unique(bv)
         if len(ids) < MIN_BLOCKS:
-            return DriveFit(why_not=f"{len(ids)} s of turning with logged pressures between "
-                                    f"the valves, {MIN_BLOCKS} needed: run the calibration "
-                                    "programme with the pressures logged")
+            return DriveFit(why_not=f"{len(ids)} s of turning with logged pressures, "
+                                    f"{MIN_BLOCKS} needed: run the calibration programme "
+                                    "with the pressures logged")
         design = np.column_stack([np.ones_like(xv), xv])
         coef, *_ = np.linalg.lstsq(design, yv, rcond=None)
         resid = yv - design @ coef

@@ -16,6 +16,7 @@ import yaml
 from ddh_vsensor.atomic import atomic_path, atomic_write
 from ddh_vsensor.commission.flow import (MACHINE_WIDE, Estimate, FlowFit, applied,
                                          machine_wide)
+from ddh_vsensor.commission.drive import DriveFit
 from ddh_vsensor.commission.switches import KIND_KEYS, UnitCalibration
 from ddh_vsensor.commission.yaml_text import Setting, set_values
 from ddh_vsensor.config import Config, load_config, parse_config, parse_yaml
@@ -161,6 +162,42 @@ def flow_settings(cfg: Config, fits: Mapping[str, FlowFit], last_hydraulics_key:
     return out
 
 
+# a pressure transducer's accuracy (bar): what a drive offset measured through it is known to
+TRANSDUCER_BAR = 1.0
+
+
+def drive_settings(cfg: Config, drives: Mapping[str, DriveFit]) -> list[Setting]:
+    """The drive's reading of the shaft's torque where the runs measured it: its offset (and
+    the band now known of it: 3 sigma, at least what a transducer's accuracy puts through the
+    larger pump's gain), speed offset and filter. Where they did not, the keys stay as they
+    are (the command says why)."""
+    out = []
+    for unit, fit in drives.items():
+        if not fit.measured:
+            continue
+        base = ("units", unit, "motor")
+        evidence = (f"{fit.blocks} s of turning with logged pressures, residual "
+                    f"{fit.residual_rms_nm:.3f} N*m RMS")
+        u = cfg.unit(unit)
+        gain = max(p.displacement_cm3_rev * 1e-6 * p.speed_ratio / (2.0 * math.pi)
+                   for p in (u.pump_a, u.pump_b))
+        band = max(COVERAGE * fit.offset_sigma_nm, gain * TRANSDUCER_BAR * 1e5)
+        # each missing key goes after the motor's last required one, so listed last first
+        out += [Setting((*base, "torque_offset_tolerance_nm"), f"{band:.3f}",
+                        f"commissioned: {COVERAGE:g} sigma, at least a transducer's "
+                        f"{TRANSDUCER_BAR:g} bar through the pumps", after="speed_limit_rpm"),
+                Setting((*base, "torque_filter_s"), f"{fit.filter_s:.4f}",
+                        "commissioned: the filter time that left the least residual",
+                        after="speed_limit_rpm"),
+                Setting((*base, "torque_speed_offset_nm"), f"{fit.speed_offset_nm:.3f}",
+                        f"commissioned: +-{fit.speed_offset_sigma_nm:.3f} (1 sigma) at the "
+                        "speed limit", after="speed_limit_rpm"),
+                Setting((*base, "torque_offset_nm"), f"{fit.offset_nm:.3f}",
+                        f"commissioned: +-{fit.offset_sigma_nm:.3f} (1 sigma), {evidence}",
+                        after="speed_limit_rpm")]
+    return out
+
+
 def read_datasheet(datasheet: Path) -> str:
     try:
         return datasheet.read_text(encoding="utf-8")
@@ -170,10 +207,15 @@ def read_datasheet(datasheet: Path) -> str:
 
 def commissioned_text(text: str, source: str, cals: Mapping[str, UnitCalibration],
                       spread_factor: float, flows: Mapping[str, FlowFit] | None = None,
-                      cfg: Config | None = None) -> str:
+                      cfg: Config | None = None,
+                      drives: Mapping[str, DriveFit] | None = None) -> str:
     """The datasheet file's ``text`` with the measured keys set (``cfg``: the datasheet's
-    configuration, needed with ``flows``)."""
+    configuration, needed with ``flows`` or ``drives``)."""
     items = [s for cal in cals.values() for s in settings(cal, spread_factor)]
+    if drives:
+        if cfg is None:
+            raise ValueError("the drive settings need the datasheet's configuration")
+        items += drive_settings(cfg, drives)
     if flows:
         if cfg is None:
             raise ValueError("the flow settings need the datasheet's configuration")
@@ -186,20 +228,22 @@ def commissioned_text(text: str, source: str, cals: Mapping[str, UnitCalibration
 
 def commissioned_config(text: str, source: str, cals: Mapping[str, UnitCalibration],
                         spread_factor: float, flows: Mapping[str, FlowFit] | None = None,
-                        cfg: Config | None = None) -> Config:
+                        cfg: Config | None = None,
+                        drives: Mapping[str, DriveFit] | None = None) -> Config:
     """The configuration :func:`write_config` would write, in memory (rounded as written):
     what a baseline's fold is estimated with."""
-    new = commissioned_text(text, source, cals, spread_factor, flows, cfg)
+    new = commissioned_text(text, source, cals, spread_factor, flows, cfg, drives)
     return parse_config(parse_yaml(new, source), source)
 
 
 def write_config(datasheet: Path, out: Path, cals: Mapping[str, UnitCalibration],
                  spread_factor: float, flows: Mapping[str, FlowFit] | None = None,
-                 cfg: Config | None = None) -> Config:
+                 cfg: Config | None = None,
+                 drives: Mapping[str, DriveFit] | None = None) -> Config:
     """Write the commissioned file atomically, only once it loads as a configuration
-    (``cfg``: the datasheet file's, loaded; needed with ``flows``)."""
+    (``cfg``: the datasheet file's, loaded; needed with ``flows`` or ``drives``)."""
     new = commissioned_text(read_datasheet(datasheet), str(datasheet), cals, spread_factor,
-                            flows, cfg)
+                            flows, cfg, drives)
     with atomic_path(out) as tmp:
         tmp.write_text(new, encoding="utf-8")
         try:

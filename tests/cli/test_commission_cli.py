@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import pytest
 
 from ddh_vsensor.cli.main import main
 from ddh_vsensor.cli.config import datasheet_text
-from ddh_vsensor.commission.machine import FLOORS
+from ddh_vsensor.commission.machine import FLOORS, TRANSDUCER_BAR
 from ddh_vsensor.commission.programme import calibration_profile
 from ddh_vsensor.config import Config, load_config
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign, write_run_dir
@@ -195,6 +196,14 @@ def test_the_measured_flow_model_is_written_with_its_evidence(
     assert machine.pump_b.leakage_tolerance is None
     assert load_config(out).tolerances == datasheet_cfg.tolerances
     assert machine.displacement_tolerance == pytest.approx(FLOORS["logged"]["displacement"])
+    # the drive reads the shaft's torque (no drive effect): measured as such, known to what a
+    # transducer's bar puts through the pumps
+    assert "drive's torque reading: offset" in printed
+    assert abs(machine.motor.torque_offset_nm) < 0.05
+    assert abs(machine.motor.torque_speed_offset_nm) < 0.05
+    assert machine.motor.torque_offset_tolerance_nm == pytest.approx(max(
+        p.displacement_cm3_rev * 1e-6 * p.speed_ratio / (2.0 * math.pi) * TRANSDUCER_BAR * 1e5
+        for p in (datasheet.pump_a, datasheet.pump_b)), abs=1e-3)
 
 
 def test_a_fit_never_widens_a_band(leaky_csvs: list[Path], tmp_path: Path) -> None:
