@@ -209,9 +209,10 @@ class KalmanSettings:
     load_walk_share: float = 0.02       # of the start's |F_load| per sqrt(s): geometry, friction
     force_noise_n: float = 200.0        # white force (friction not modelled) per sqrt(s)
     flow_noise_share: float = 0.02      # white flow, share of a pump's rated leakage, per sqrt(s)
-    # the drive's torque offset drifts with its temperature (current sensors, flux model):
-    # ~0.3 N*m an hour, a calibration's band over a shift
-    torque_offset_walk_nm: float = 0.005
+    # the drive's torque offset, and with it what of the drive's reading the model lacks (a
+    # speed-proportional loss, its filter, unless configured): a walk that follows those
+    # between moves
+    torque_offset_walk_nm: float = 0.05
     # a motor stuck in its pumps' friction band: its torque is one value within the band
     # (the stuck torque state), moved across it by the drive's controller within about this
     # time (a position loop's integral action winding while the rod stands)
