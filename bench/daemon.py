@@ -40,6 +40,11 @@ the machine's traffic pushed through the service's own receive, routing, estimat
 path synchronously (no event loop, frame times from a virtual clock), once to count CPU time
 per frame and once under cProfile for each stage's share; results in ``daemon_profile.json``.
 The event loop's own cost is what the socket mode's CPU share adds to this.
+
+``--summaries``: the socket mode's nominal load without and with the day summary (the
+service process's CPU share: the per-frame sample feed and the blocks handed over), then
+the summary worker's own cost (:func:`summary_worker_cost`); results in
+``daemon_summaries.json``.
 """
 
 from __future__ import annotations
@@ -56,10 +61,12 @@ import multiprocessing
 import os
 import select
 import signal
+import shutil
 import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
@@ -588,7 +595,8 @@ def _machine_process(cfg, socks: dict[str, socket.socket], other_hz: float, inpu
 
 async def run_socket(cfg, tables, seconds: float, other_hz: float,
                      input_hz: float = INPUT_HZ,
-                     raw: dict[str, list[float]] | None = None) -> dict[str, float]:
+                     raw: dict[str, list[float]] | None = None,
+                     summaries: bool = False) -> dict[str, float]:
     ctx = multiprocessing.get_context("fork")      # before the service starts any thread
     bus_names = [DEFAULT_BUS, *(b for b in cfg.buses if cfg.units_on_bus(b))]
     pairs = {name: socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -610,9 +618,12 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float,
     buses = {name: SocketPairBus(mine) for name, (mine, _) in pairs.items()}
     extra = {"buses": {name: {"interface": "socketpair", "channel": name}
                        for name in bus_names[1:]}} if len(bus_names) > 1 else {}
+    state = tempfile.mkdtemp(prefix="ddh-bench-state-") if summaries else None
     service = Service(cfg, tables, {"interface": "socketpair", "channel": DEFAULT_BUS},
                       ServiceOptions(record_latency=True, fd_reader=True,
-                                     coalesce_s=COALESCE_S),
+                                     coalesce_s=COALESCE_S,
+                                     state_dir=None if state is None else Path(state),
+                                     machine="bench" if summaries else None),
                       opener=lambda settings, filters: buses[settings["channel"]], **extra)
     sends: list[float] = []
     first = next(iter(cfg.can.units))
@@ -651,6 +662,8 @@ async def run_socket(cfg, tables, seconds: float, other_hz: float,
     result = parent_conn.recv()
     child.join(10)
     await service.shutdown()
+    if state is not None:
+        shutil.rmtree(state, ignore_errors=True)
     codec = FrameCodec(cfg)
     frames = [can.Message(timestamp=t, arbitration_id=codec.ids[message_name("sevcon", a)],
                           data=b"", is_extended_id=False)
@@ -893,6 +906,70 @@ def _feed_slot(feeder: Feeder, k: int) -> None:
                          feeder.bus_of[a])
 
 
+def summary_worker_cost(cfg, minutes: int = 10) -> dict[str, object]:
+    """The day summary's worker, measured as it runs: ``minutes`` of a fleet machine's work
+    (1-minute sessions of the simulated fleet, 100 Hz as the daemon keeps them) through
+    the worker's own code in 10 s blocks, CPU time per minute of a unit's work (lean
+    tables); the worker process's start-up (imports) to its first answer, and its peak
+    memory after the work; the day file's size."""
+    import resource
+
+    from ddh_vsensor.diagnosis.day_summary import DaySummaries
+    from ddh_vsensor.estimator.day_samples import SampleFeed, run_samples
+    from ddh_vsensor.service.summary import Worker
+    from ddh_vsensor.sim.fleet import plan_fleet, session_spec, session_start_s
+    from ddh_vsensor.sim.run import simulate_campaign
+    plan = plan_fleet(cfg, 1, 2, seed=31, log_s=60.0, work_s=60.0 * minutes)
+    m = plan.machines[0]
+    sessions = simulate_campaign(cfg, [session_spec(cfg, plan, m, 0, k) for k in range(minutes)])
+    blocks = []
+    feeds = {a: SampleFeed(list(cfg.unit(a).references_mm)) for a in cfg.can.units}
+    for k, per_unit in enumerate(sessions):
+        for a, run in per_unit.items():
+            run.shift_time(session_start_s(plan, 0, k))
+            for t, n, q, c, h, e in run_samples(feeds[a].switches, run):
+                feeds[a].add_bits(t, n, q, c, h, e, t)
+                if feeds[a].pending_s() >= 10.0:
+                    blocks.append((a, feeds[a].take()))
+            blocks.append((a, feeds[a].take()))
+    work_s = sum(float(r.time_s[-1] - r.time_s[0]) for s in sessions for r in s.values())
+    # the loop's part, per integrated Sevcon frame at 1 kHz (one kept in ten)
+    feed, refs, n = SampleFeed(["bottom", "mid", "top"]), {"mid": True}, 200_000
+    cpu0 = time.process_time()
+    for i in range(n):
+        feed.add(i * 1e-3, 100.0, 5.0, 30.0, refs, math.nan, 1e9 + i * 1e-3)
+    feed_us = 1e6 * (time.process_time() - cpu0) / n
+    out = Path(tempfile.mkdtemp(prefix="ddh-bench-summary-"))
+    days = DaySummaries(cfg, "bench", out, lean=True, resume=False)
+    cpu0 = time.process_time()
+    for a, block in blocks:
+        days.feed(a, block)
+    days.close()
+    cpu = time.process_time() - cpu0
+    size = days.written[0].stat().st_size
+    started = time.perf_counter()
+    worker = Worker(("start", cfg, "bench", str(out / "w"), 300.0))
+    worker.send(("feed", blocks[0][0], blocks[0][1]))
+    while worker.queued:
+        worker.collect()
+        time.sleep(0.01)
+    start_s = time.perf_counter() - started
+    for a, block in blocks[1:]:
+        worker.send(("feed", a, block))
+    worker.close(300.0)
+    rss_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    shutil.rmtree(out, ignore_errors=True)
+    stretches = sum(u.stretches for d in days.days.values() for u in d.units.values())
+    return {"summary_feed_us_per_sevcon_frame": round(feed_us, 2),
+            "summary_work_minutes_per_unit": round(work_s / 60.0 / len(cfg.can.units), 1),
+            "summary_stretches": stretches,
+            "summary_worker_cpu_s_per_unit_minute": round(cpu / (work_s / 60.0), 3),
+            "summary_worker_cpu_pct_of_a_core_per_unit": round(100 * cpu / work_s, 2),
+            "summary_worker_start_s": round(start_s, 2),
+            "summary_worker_peak_rss_mb": round(rss_mb),
+            "summary_bytes_per_machine_day": size}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=20.0, help="nominal measurement")
@@ -927,6 +1004,10 @@ def main() -> None:
                         help="with --units: N runs, the controllers' slots at N phases spread "
                              "over one input period after the service's tick (unsynchronised "
                              "controllers take any phase): latency per phase and pooled")
+    parser.add_argument("--summaries", action="store_true",
+                        help="socket mode, nominal load, without and with the day summary "
+                             "(the service process's CPU), and the summary worker's own cost: "
+                             "results in daemon_summaries.json")
     parser.add_argument("--profile", type=int, metavar="MS", default=None,
                         help="only profile MS milliseconds of traffic through the service's "
                              "path (no event loop): results in daemon_profile.json")
@@ -960,6 +1041,20 @@ def main() -> None:
         figures["diag_timer_ms"] = args.diag_ms or cfg.can.event_timer_ms
         publish("daemon_profile" + ("" if args.diag_ms is None else f"_diag{args.diag_ms}ms"),
                 figures)
+        return
+    if args.summaries:
+        for label, on in (("off", False), ("on", True)):
+            result = asyncio.run(run_socket(cfg, tables, args.seconds, 0.0, input_hz,
+                                            summaries=on))
+            figures.update({f"socket_nominal_summaries_{label}_{k}": result[k] for k in (
+                "cpu_share_pct", "cpu_us_per_sevcon_frame", "latency_p99_ms",
+                "jitter_p99_ms", "sevcon_frames_lost")})
+        figures["service_cpu_added_by_summaries_pct"] = round(
+            figures["socket_nominal_summaries_on_cpu_share_pct"]
+            - figures["socket_nominal_summaries_off_cpu_share_pct"], 1)
+        figures.update(summary_worker_cost(cfg))
+        figures["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
+        publish("daemon_summaries", figures)
         return
     if args.units is not None:
         figures.update({"units": len(cfg.unit_names), "input_hz_per_unit": input_hz,

@@ -7,11 +7,18 @@ and scores the alarms against truth.json: every wearing machine flagged with the
 the days of warning before its error crosses the tolerance, false alarms per machine-month.
 
     python bench/fleet.py [--machines 20] [--days 30] [--seed 2026] [--logs DIR] [--work DIR]
+
+``--work-s S``: each machine-day also simulated for S seconds of work and summarised by the
+daemon's code (``simulate fleet``'s day summaries, beside the logs); the summaries' size and
+ingestion throughput (machine-days per wall second, 1 and 2 workers) are measured too, and
+the analysis takes the summaries where a machine-day has one: results in
+``fleet_summaries.json``.
 """
 
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 import os
 import shutil
@@ -24,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _results import publish  # noqa: E402
 
 from ddh_vsensor.config import load_config  # noqa: E402
+from ddh_vsensor.diagnosis.day_summary import summarise_runs  # noqa: E402
 from ddh_vsensor.fleet.analysis import analyse_machine  # noqa: E402
 from ddh_vsensor.fleet.cluster import dask_client, run_batched, run_tasks  # noqa: E402
 from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, ingest_batch  # noqa: E402
@@ -56,10 +64,12 @@ def ingest(logs: list[Path], store: Path, workers: int) -> dict:
         wall = time.perf_counter() - started
         cpu = sum(client.run(_worker_cpu_s).values()) - cpu0
     frames = sum(r["frames"] for r in results)
-    hours = sum(r["duration_s"] for r in results) / 3600
+    hours = sum(r["duration_s"] for r in results if r.get("kind") != "summary") / 3600
+    days = sum(r.get("kind") == "summary" for r in results)
     return {"workers": workers, "logs": len(logs), "wall_s": round(wall, 2),
             "frames": frames, "frames_per_s": round(frames / wall),
             "log_hours_per_s": round(hours / wall, 4),
+            "summaries": days, "machine_days_per_s": round(days / wall, 1),
             "workers_cpu_s": round(cpu, 2), "cores_the_workers_got": round(cpu / wall, 2),
             "frames_per_worker_cpu_s": round(frames / cpu),
             "load_average_1min": [round(load0, 1), round(os.getloadavg()[0], 1)],
@@ -155,6 +165,8 @@ def main() -> None:
     ap.add_argument("--days", type=int, default=30)
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--log-s", type=float, default=30.0, help="work logged per day (s)")
+    ap.add_argument("--work-s", type=float, default=0.0,
+                    help="a day's work the daemon's summaries see (s; 0: logs only)")
     ap.add_argument("--part", type=int, nargs=2, default=None, metavar=("I", "N"),
                     help="only simulate every N-th missing day from the I-th, then stop")
     ap.add_argument("--logs", default="/tmp/ddh_fleet_bench/logs")
@@ -169,18 +181,30 @@ def main() -> None:
                          "(keeps the other figures of bench/results/fleet.json)")
     args = ap.parse_args()
     cfg = load_config(None)
-    plan = plan_fleet(cfg, args.machines, args.days, args.seed, args.log_s)
+    plan = plan_fleet(cfg, args.machines, args.days, args.seed, args.log_s,
+                      work_s=args.work_s)
     logs_dir, work = Path(args.logs), Path(args.work)
     present = {p.name for p in logs_dir.glob("*.blf")} if logs_dir.is_dir() else set()
     hours = {m.name: 1000.0 * (int(m.name[1:]) % 3) for m in plan.machines}
-    missing = [d for d in range(args.days) if any(
-        log_name(m.name, d, hours[m.name] + 7.5 * d) not in present for m in plan.machines)]
+
+    def done(m, d: int) -> bool:
+        name = log_name(m.name, d, hours[m.name] + 7.5 * d)
+        day = "_".join(name.split("_")[:2])
+        return name in present and (not args.work_s
+                                    or (logs_dir / f"{day}.summary.json").is_file())
+
+    missing = [d for d in range(args.days) if not all(done(m, d) for m in plan.machines)]
     if args.part:
         missing = missing[args.part[0]::args.part[1]]
     if missing and not args.no_simulate:
         started = time.perf_counter()
+        summarise = None
+        if args.work_s:
+            def summarise(machine: str, _day: int, sessions: list) -> None:
+                summarise_runs(cfg, machine, sessions, logs_dir)
         simulate_fleet(cfg, plan, logs_dir, days=missing, days_per_batch=5,
-                       progress=lambda f: print(f"simulate {100 * f:.0f} %", flush=True))
+                       progress=lambda f: print(f"simulate {100 * f:.0f} %", flush=True),
+                       summarise=summarise)
         print(f"simulated {len(missing)} days in {time.perf_counter() - started:.0f} s")
     if args.part:
         return
@@ -214,6 +238,20 @@ def main() -> None:
     runs = [ingest(logs, work / f"store{w}", w) for w in (1, 2)]
     figures["ingestion"] = runs
     figures["scaling 1 -> 2 workers"] = round(runs[0]["wall_s"] / runs[1]["wall_s"], 2)
+    name = "fleet"
+    if args.work_s:
+        name = "fleet_summaries"
+        summaries = sorted(logs_dir.glob("*.summary.json"))
+        sizes = [p.stat().st_size for p in summaries]
+        figures["summaries"] = f"{len(summaries)} machine-days of {plan.sessions} x " \
+            f"{plan.log_s:g} s of work"
+        figures["summary bytes per machine-day (median, max)"] = [
+            int(sorted(sizes)[len(sizes) // 2]), max(sizes)]
+        figures["summary bytes per machine-day gzipped (median)"] = sorted(
+            len(gzip.compress(p.read_bytes())) for p in summaries)[len(summaries) // 2]
+        figures["ingestion of summaries"] = [ingest(summaries, work / f"summaries{w}", w)
+                                             for w in (1, 2)]
+        ingest_into(summaries, work / "store2")   # the analysis': the logs and summaries
     store = Store(work / "store2")
     machines = sorted(store.machine_logs())
     with dask_client(None, 2) as client:
@@ -221,7 +259,14 @@ def main() -> None:
         run_tasks(client, analyse_machine, [(str(store.root), m, None) for m in machines])
         figures["analysis on 2 workers (s)"] = round(time.perf_counter() - started, 1)
     figures.update(alarms(cfg, store, truth, args.machines, days, work))
-    publish("fleet", figures)
+    publish(name, figures)
+
+
+def ingest_into(files: list[Path], store: Path) -> None:
+    """``files`` into an existing store (what is there already stays)."""
+    jobs = [IngestJob(str(p), str(store), None, DEFAULT_NAME_PATTERN) for p in files]
+    with dask_client(None, 2) as client:
+        run_batched(client, ingest_batch, jobs)
 
 
 def alarms(cfg, store: Store, truth: dict, n_machines: int, days: int, work: Path) -> dict:
@@ -231,8 +276,7 @@ def alarms(cfg, store: Store, truth: dict, n_machines: int, days: int, work: Pat
     rows = store.query("SELECT * FROM fits").to_pylist()
     trends = [unit_trend(m, a, [r for r in rows if r["machine"] == m and r["actuator"] == a],
                          TOLERANCE_MM, HORIZON_DAYS) for m in machines for a in cfg.can.units]
-    meta = store.query("SELECT count(*) AS logs, count(DISTINCT machine) AS machines, "
-                       "sum(duration_s) / 3600 AS log_hours FROM meta").to_pylist()[0]
+    meta = store.counts()
     meta["rejected"] = len(store.rejected())
     write_report(trends, work / "report.html", TOLERANCE_MM, HORIZON_DAYS, cfg, meta)
     s = score(trends, truth, days)

@@ -1,5 +1,6 @@
-"""``ddh-vsensor fleet ingest|report`` and ``ddh-vsensor simulate fleet``: CAN logs of many
-machines into a Parquet store, analysed per machine on Dask, trends and alarms in HTML.
+"""``ddh-vsensor fleet ingest|report`` and ``ddh-vsensor simulate fleet``: CAN logs and the
+daemons' day summaries of many machines into a Parquet store, analysed per machine on Dask,
+trends and alarms in HTML.
 
 Needs the ``fleet`` extra (dask[distributed], pyarrow, duckdb).
 """
@@ -18,6 +19,7 @@ from ddh_vsensor.cli.progress import ProgressBar
 DEFAULT_WORKER_TIMEOUT_S = 30.0
 
 LOG_SUFFIXES = (".blf", ".asc", ".log", ".trc", ".csv")
+SUMMARY_SUFFIX = ".summary.json"          # a daemon's day (estimator.day_samples.SUFFIX)
 FLEET_EXTRA = ("dask.distributed", "pyarrow", "duckdb")
 
 
@@ -49,14 +51,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "columnar store; per-machine diagnosis from the Hall "
                                    "references and holds; trends and alarms.")
     fs = p.add_subparsers(dest="fleet_command", required=True, metavar="ACTION")
-    i = fs.add_parser("ingest", help="extract machine, time, hours, references, holds into "
-                                     "the store (idempotent, resumable)")
-    i.add_argument("logs", nargs="+", metavar="LOG", help="CAN logs (BLF) or directories")
+    i = fs.add_parser("ingest", help="extract machine, time, hours, references, holds of logs "
+                                     "and the daemons' day summaries into the store "
+                                     "(idempotent, resumable)")
+    i.add_argument("logs", nargs="+", metavar="FILE",
+                   help="CAN logs (BLF), day summaries (*.summary.json) or directories")
     i.add_argument("--store", required=True, metavar="DIR")
     i.add_argument("--name-pattern", default=None, metavar="REGEX",
-                   help="regular expression on the file name with a group (?P<machine>...) "
-                        "and optionally (?P<hours>...) and (?P<date>YYYY-MM-DD); default: "
-                        "MACHINE_YYYY-MM-DD_HOURSh.blf")
+                   help="regular expression on a log's file name with a group "
+                        "(?P<machine>...) and optionally (?P<hours>...) and "
+                        "(?P<date>YYYY-MM-DD); default: MACHINE_YYYY-MM-DD_HOURSh.blf (a "
+                        "summary names its machine itself)")
     add_config_arg(i)
     _cluster_args(i)
     i.set_defaults(func=_ingest)
@@ -71,17 +76,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     _cluster_args(r)
     r.set_defaults(func=_report)
 
-    s = sub.add_parser("simulate-fleet", help="simulated fleet of daily CAN logs (also: "
-                                              "'simulate fleet')",
+    s = sub.add_parser("simulate-fleet", help="simulated fleet of daily CAN logs and day "
+                                              "summaries (also: 'simulate fleet')",
                        description="Per machine one BLF per day of varied work, without "
-                                   "position frames; some machines wear; truth.json holds "
-                                   "the truth (the analysis never reads it).")
+                                   "position frames, and the day summary its daemon would "
+                                   "write over the day's whole work; some machines wear; "
+                                   "truth.json holds the truth (the analysis never reads "
+                                   "it).")
     s.add_argument("--machines", type=int, required=True)
     s.add_argument("--days", type=int, required=True)
     s.add_argument("--out", required=True, metavar="DIR")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--log-s", type=float, default=None, metavar="SECONDS",
                    help="work logged per day (default 60)")
+    s.add_argument("--work-s", type=float, default=None, metavar="SECONDS",
+                   help="a day's work the summaries see: sessions of --log-s spread over "
+                        "the working day, the first the logged one (default 600; 0: no "
+                        "summaries)")
     add_config_arg(s)
     s.set_defaults(func=_simulate)
 
@@ -91,14 +102,15 @@ def _expand(items: list[str]) -> list[str]:
     for item in items:
         p = Path(item)
         if p.is_dir():
-            out += sorted(str(f) for f in p.iterdir() if f.suffix.lower() in LOG_SUFFIXES)
+            out += sorted(str(f) for f in p.iterdir() if f.suffix.lower() in LOG_SUFFIXES
+                          or f.name.lower().endswith(SUMMARY_SUFFIX))
         elif p.exists():
             out.append(item)
         else:
             raise UserError(f"{item}: no such file or directory")
     if not out:
         raise UserError(f"no logs in {', '.join(items)} (looked for "
-                        f"{'/'.join(LOG_SUFFIXES)} files)")
+                        f"{'/'.join(LOG_SUFFIXES)}/{SUMMARY_SUFFIX} files)")
     return out
 
 
@@ -106,7 +118,8 @@ def _ingest(args: argparse.Namespace) -> int:
     require_fleet_extra()
     from ddh_vsensor.config import load_config
     from ddh_vsensor.fleet.cluster import dask_client, run_batched
-    from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, compile_pattern, ingest_batch
+    from ddh_vsensor.fleet.ingest import (DEFAULT_NAME_PATTERN, IngestJob, compile_pattern,
+                                          ingest_batch)
     from ddh_vsensor.fleet.store import Store
     pattern = args.name_pattern or DEFAULT_NAME_PATTERN
     compile_pattern(pattern)
@@ -125,18 +138,21 @@ def _ingest(args: argparse.Namespace) -> int:
     wall = time.monotonic() - started
     counts = {s: sum(r["status"] == s for r in results)
               for s in ("ingested", "present", "rejected")}
-    frames = sum(r["frames"] for r in results if r["status"] == "ingested")
-    hours = sum(r["duration_s"] for r in results if r["status"] == "ingested") / 3600.0
+    new = [r for r in results if r["status"] == "ingested"]
+    frames = sum(r["frames"] for r in new)
+    hours = sum(r["duration_s"] for r in new if r["kind"] == "log") / 3600.0
+    days = sum(r["kind"] == "summary" for r in new)
     bar.close(f"{counts['ingested']} ingested, {counts['present']} already present, "
               f"{counts['rejected']} rejected")
     for r in results:
         if r["status"] == "rejected":
             print(f"rejected: {r['problem']}")
-    print(f"{frames} frames, {hours:.3f} log-hours in {wall:.1f} s: "
-          f"{frames / max(wall, 1e-9):.0f} frames/s, {hours * 3600 / max(wall, 1e-9):.1f} "
-          "log-seconds/s")
+    rate = 1.0 / max(wall, 1e-9)
+    print(f"{frames} frames, {hours:.3f} log-hours, {days} summaries (machine-days) in "
+          f"{wall:.1f} s: {frames * rate:.0f} frames/s, {hours * 3600 * rate:.1f} "
+          f"log-seconds/s, {days * rate:.1f} machine-days/s")
     if not counts["ingested"] and not counts["present"]:
-        raise UserError(f"nothing ingested: {counts['rejected']} log(s) given, every one "
+        raise UserError(f"nothing ingested: {counts['rejected']} file(s) given, every one "
                         "rejected")
     return 0
 
@@ -170,8 +186,7 @@ def _report(args: argparse.Namespace) -> int:
             mine = [r for r in rows if r["machine"] == m and r["actuator"] == a]
             if mine:
                 trends.append(unit_trend(m, a, mine, args.tolerance_mm, args.horizon_days))
-    meta = store.query("SELECT count(*) AS logs, count(DISTINCT machine) AS machines, "
-                       "sum(duration_s) / 3600 AS log_hours FROM meta").to_pylist()[0]
+    meta = store.counts()
     meta["rejected"] = len(store.rejected())
     data = write_report(trends, out, args.tolerance_mm, args.horizon_days, cfg, meta)
     alarms = [u for u in data["units"] if u["alarm"]]
@@ -185,12 +200,23 @@ def _report(args: argparse.Namespace) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
     from ddh_vsensor.config import load_config
-    from ddh_vsensor.sim.fleet import LOG_S, plan_fleet, simulate_fleet
+    from ddh_vsensor.sim.fleet import LOG_S, WORK_S, plan_fleet, simulate_fleet
     cfg = load_config(args.config)
     output_dir(args.out, create=False)       # made when written, the other inputs checked
-    plan = plan_fleet(cfg, args.machines, args.days, args.seed, args.log_s or LOG_S)
+    plan = plan_fleet(cfg, args.machines, args.days, args.seed, args.log_s or LOG_S,
+                      work_s=WORK_S if args.work_s is None else args.work_s)
+    summaries: list[Path] = []
+    summarise = None
+    if plan.work_s:
+        from ddh_vsensor.diagnosis.day_summary import summarise_runs
+
+        def summarise(machine: str, _day: int, sessions: list) -> None:
+            summaries.extend(summarise_runs(cfg, machine, sessions, Path(args.out)))
+
     bar = ProgressBar("simulate fleet")
-    written = simulate_fleet(cfg, plan, args.out, progress=bar.update)
-    bar.close(f"{len(written)} logs")
-    print(f"{len(written)} logs and truth.json in {args.out}")
+    written = simulate_fleet(cfg, plan, args.out, progress=bar.update, summarise=summarise)
+    bar.close(f"{len(written)} logs, {len(summaries)} summaries")
+    what = f" and {len(summaries)} day summaries ({plan.sessions} x {plan.log_s:g} s of work " \
+        "each)" if plan.work_s else ""
+    print(f"{len(written)} logs{what} and truth.json in {args.out}")
     return 0

@@ -69,6 +69,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "(default: $STATE_DIRECTORY, else $XDG_STATE_HOME/ddh-vsensor)")
     add_extension_arg(p)
     p.add_argument("--no-state", action="store_true", help="neither restore nor save estimates")
+    p.add_argument("--machine", metavar="NAME", default=None,
+                   help="the machine's name in its day summaries (STATE_DIR/summaries/"
+                        "NAME_YYYY-MM-DD.summary.json; default: the host's name)")
+    p.add_argument("--no-summaries", action="store_true",
+                   help="write no day summaries (they need the state directory)")
     p.add_argument("--heartbeat-timeout", type=float, default=None, metavar="S",
                    help="Sevcon heartbeat consumer time (default: faults.heartbeat_timeout_s)")
     p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
@@ -78,12 +83,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     from ddh_vsensor.service import ServiceOptions
     setup_logging(args.log_level)
+    machine = None
+    if not args.no_summaries and not args.no_state:
+        from ddh_vsensor.service.summary import check_machine, default_machine
+        machine = check_machine(args.machine or default_machine())
     cfg = config_from(args)
     bus = bus_from_args(args, cfg)
     tables = {a: load_tables_for(args, cfg, a) for a in cfg.can.units}
     state_dir = None if args.no_state else \
         output_dir(args.state_dir or default_state_dir(), "state directory")
-    options = ServiceOptions(state_dir=state_dir, extensions=extensions_from(args, cfg))
+    options = ServiceOptions(state_dir=state_dir, extensions=extensions_from(args, cfg),
+                             machine=machine)
     if args.heartbeat_timeout is not None:
         if not 0.01 <= args.heartbeat_timeout <= 600:
             raise UserError(f"--heartbeat-timeout {args.heartbeat_timeout}: outside 0.01..600 s")

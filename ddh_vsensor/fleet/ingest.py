@@ -1,13 +1,17 @@
-"""Ingesting CAN logs into the store: per log the machine, time, operating hours, the
-samples, the reference events and the holds with their features.
+"""Ingesting CAN logs and daemons' day summaries into the store: per log the machine, time,
+operating hours, the samples, the reference events and the holds with their features; per
+summary (:mod:`ddh_vsensor.diagnosis.day_summary`, ``*.summary.json``) its machine, day,
+the analysis' rows it holds (``evidence``: the daemon computed them) and the day's context.
 
 Runs as one task per batch of logs (on Dask workers, :mod:`.cluster`): a log's features are
 its own, only the holds' modelled speeds are computed for the batch at once (vectorised,
 row by row: the same numbers) and the batch's files reach the disk with one sync. A log
 that cannot be read, or whose name says no machine, is recorded as rejected with the reason
-and never stops the others. The machine and the operating hours come from the file name
-through a regular expression with the groups ``machine`` (required) and ``hours``
-(optional); the time from the log's own timestamps (the BLF header), else a ``date`` group.
+and never stops the others; so is a summary that is corrupt or was computed under another
+configuration (physics hash) or for other units. A log's machine and operating hours come
+from the file name through a regular expression with the groups ``machine`` (required) and
+``hours`` (optional); its time from the log's own timestamps (the BLF header), else a
+``date`` group. A summary says its machine and day itself (the name pattern is not used).
 """
 
 from __future__ import annotations
@@ -23,12 +27,15 @@ import numpy as np
 import pyarrow as pa
 
 from ddh_vsensor.config import Config, load_config
+from ddh_vsensor.diagnosis.day_summary import SummaryError, read_summary, summary_rows
 from ddh_vsensor.diagnosis.holds import model_holding_speeds_rpm
+from ddh_vsensor.estimator.day_samples import SUFFIX as SUMMARY_SUFFIX, day_of
 from ddh_vsensor.estimator.estimator import Estimator
 from ddh_vsensor.measured import MeasuredDataError, Run
 from ddh_vsensor.fleet.store import Store, log_id_of
 
-DEFAULT_NAME_PATTERN = r"^(?P<machine>[A-Za-z0-9-]+)_(?P<date>\d{4}-\d{2}-\d{2})_(?P<hours>[0-9.]+)h"
+DEFAULT_NAME_PATTERN = (r"^(?P<machine>[A-Za-z0-9-]+)_(?P<date>\d{4}-\d{2}-\d{2})"
+                        r"_(?P<hours>[0-9.]+)h")
 _EPOCH_1990_S = 631152000.0
 
 
@@ -132,12 +139,73 @@ def _features(cfg: Config, machine: str, log_id: str, actuator: str, run: Run,
 
 @dataclass
 class _Extracted:
-    """One log read and its features, before the batch's holding speeds and the store."""
+    """One log read and its features, before the batch's holding speeds and the store (or
+    a summary's tables)."""
     result: dict
     log_id: str
     tables: dict[str, pa.Table]
-    holds: dict[str, dict[str, np.ndarray]]          # actuator -> columns
+    holds: dict[str, dict[str, np.ndarray]] | None   # actuator -> columns; None: a summary
     machine: str
+
+
+def is_summary(path: str) -> bool:
+    return path.lower().endswith(SUMMARY_SUFFIX)
+
+
+_CONTEXT = ("work_s", "analysed_s", "stretches", "unused_stretches", "increments", "holds",
+            "n_obs", "max_increment_day_mm")
+
+
+def _summary_tables(doc: dict, log_id: str, name: str, path: str) -> dict[str, pa.Table]:
+    """A summary's meta (its day's first time, the longest unit's work), the analysis rows
+    it holds (``evidence``) and each unit's day (``context``)."""
+    machine, units = doc["machine"], doc["units"]
+    rows = summary_rows(doc)
+    evidence = pa.Table.from_pylist(
+        [{"machine": machine, "log_id": log_id, **r} for r in rows], schema=_EVIDENCE_SCHEMA)
+    context = pa.Table.from_pylist([{
+        "machine": machine, "log_id": log_id, "actuator": a, "day": doc["day"],
+        **{k: u[k] for k in _CONTEXT},
+        **{f"{what}_{k}": (u[what] or {}).get(k, float("nan"))
+           for what in ("oil_c", "hold_torque_nm") for k in ("min", "mean", "max")}}
+        for a, u in units.items()])
+    meta = pa.table({"log_id": [log_id], "machine": [machine], "file": [name],
+                     "path": [str(Path(path).resolve())],
+                     "start_time_s": [float(doc["first_s"])],
+                     "duration_s": [max((float(u["work_s"]) for u in units.values()),
+                                        default=0.0)],
+                     "operating_hours": [float("nan")], "frames": [0],
+                     "events": [sum(int(u["increments"]) for u in units.values())],
+                     "holds": [sum(int(u["holds"]) for u in units.values())],
+                     "kind": ["summary"], "day": [doc["day"]],
+                     "last_s": [float(doc["last_s"])], "complete": [bool(doc["complete"])]})
+    return {"meta": meta, "evidence": evidence, "context": context}
+
+
+_EVIDENCE_SCHEMA = pa.schema([("machine", pa.string()), ("log_id", pa.string()),
+                              ("actuator", pa.string()), ("cause", pa.string()),
+                              ("grid", pa.list_(pa.float64())),
+                              ("loss", pa.list_(pa.float64())),
+                              ("emax_mm", pa.list_(pa.float64())), ("n_obs", pa.int64()),
+                              ("n_increments", pa.int64()), ("loss_nominal", pa.float64()),
+                              ("max_increment_mm", pa.float64())])
+
+
+def _extract_summary(job: IngestJob, data: bytes, log_id: str, base: dict,
+                     started: float) -> dict | _Extracted:
+    """A day summary's tables, or its rejection."""
+    name = Path(job.path).name
+    try:
+        doc = read_summary(data, name, config_of(job.config))
+    except SummaryError as exc:
+        Store(job.store).reject(log_id, job.path, str(exc))
+        return {**base, "status": "rejected", "problem": str(exc), "kind": "summary",
+                "seconds": time.perf_counter() - started}
+    tables = _summary_tables(doc, log_id, name, job.path)
+    return _Extracted({**base, "status": "ingested", "machine": doc["machine"],
+                       "kind": "summary", "duration_s": tables["meta"]["duration_s"][0].as_py(),
+                       "seconds": time.perf_counter() - started},
+                      log_id, tables, None, doc["machine"])
 
 
 def _extract(job: IngestJob) -> dict | _Extracted:
@@ -151,9 +219,12 @@ def _extract(job: IngestJob) -> dict | _Extracted:
         return {"path": job.path, "status": "rejected", "problem": f"cannot read: {exc}",
                 "frames": 0, "duration_s": 0.0, "seconds": time.perf_counter() - started}
     log_id = log_id_of(data)
-    base = {"path": job.path, "log_id": log_id, "frames": 0, "duration_s": 0.0}
+    kind = "summary" if is_summary(job.path) else "log"
+    base = {"path": job.path, "log_id": log_id, "frames": 0, "duration_s": 0.0, "kind": kind}
     if store.has(log_id):
         return {**base, "status": "present", "seconds": time.perf_counter() - started}
+    if kind == "summary":
+        return _extract_summary(job, data, log_id, base, started)
     try:
         m = re.search(job.name_pattern, name)
         if m is None:
@@ -199,7 +270,8 @@ def _extract(job: IngestJob) -> dict | _Extracted:
                          "path": [str(Path(job.path).resolve())],
                          "start_time_s": [start_time_s], "duration_s": [duration],
                          "operating_hours": [hours], "frames": [n_frames],
-                         "events": [n_events], "holds": [n_holds]})
+                         "events": [n_events], "holds": [n_holds], "kind": ["log"],
+                         "day": [day_of(start_time_s)]})
         return _Extracted({**base, "status": "ingested", "machine": machine,
                            "frames": n_frames, "duration_s": duration,
                            "seconds": time.perf_counter() - started}, log_id,
@@ -241,9 +313,13 @@ def ingest_batch(jobs: list[IngestJob]) -> list[dict]:
     synced to disk at once, before each log's directory is renamed into the store."""
     out: list[dict | _Extracted] = [_extract(job) for job in jobs]
     done = [(job, x) for job, x in zip(jobs, out) if isinstance(x, _Extracted)]
-    _fill_model_speeds([config_of(job.config) for job, _ in done], [x for _, x in done])
+    logs = [(job, x) for job, x in done if x.holds is not None]
+    _fill_model_speeds([config_of(job.config) for job, _ in logs], [x for _, x in logs])
     by_store: dict[str, list[tuple[str, dict[str, pa.Table]]]] = {}
     for job, x in done:
+        if x.holds is None:                       # a summary: its tables as they are
+            by_store.setdefault(job.store, []).append((x.log_id, x.tables))
+            continue
         holds = pa.concat_tables([_column_table(
             {"machine": x.machine, "log_id": x.log_id, "actuator": a, **cols},
             len(cols["time_s"]), _HOLD_SCHEMA) for a, cols in x.holds.items()]) \

@@ -1,13 +1,15 @@
 """The fleet store: one directory of Parquet files, queried with DuckDB.
 
     DIR/logs/<log_id>/{meta,samples,events,holds}.parquet   one ingested log
-    DIR/rejected/<log_id>.json                               a log that could not be read
+    DIR/logs/<log_id>/{meta,evidence,context}.parquet       one ingested day summary
+    DIR/rejected/<log_id>.json                               a file that could not be read
     DIR/fits/<machine>.parquet                               the per-machine analysis
 
-``log_id`` is a hash of the log's bytes, so ingesting a log twice (under any name) finds it
-present. A log's files are written into a temporary directory and renamed into ``logs/`` in
-one step: after a crash a log is either complete or absent (the temporary directory is
-removed on the next run), so ingestion resumes where it stopped.
+``log_id`` is a hash of the file's bytes, so ingesting a file twice (under any name) finds it
+present. A file's tables are written into a temporary directory and renamed into ``logs/``
+in one step: after a crash it is either complete or absent (the temporary directory is
+removed on the next run), so ingestion resumes where it stopped. ``meta.kind`` says which
+it is ("log", "summary"; none in stores from before summaries: logs).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import pyarrow.parquet as pq
 from ddh_vsensor.atomic import output_dir
 from ddh_vsensor.errors import UserError
 
-TABLES = ("meta", "samples", "events", "holds")
+TABLES = ("meta", "samples", "events", "holds", "evidence", "context")
 # The samples are read back whole, log by log: no dictionaries or statistics to build
 # (a third less CPU per log, and half the bytes once zstd has them)
 _PLAIN = {"use_dictionary": False, "write_statistics": False}
@@ -130,8 +132,8 @@ class Store:
         return str(self.root / "logs" / "*" / f"{table}.parquet")
 
     def query(self, sql: str) -> pa.Table:
-        """DuckDB over the store: ``meta``, ``samples``, ``events``, ``holds`` and ``fits``
-        are views of every log's (every machine's) Parquet files."""
+        """DuckDB over the store: ``meta``, ``samples``, ``events``, ``holds``, ``evidence``,
+        ``context`` and ``fits`` are views of every file's (every machine's) Parquet files."""
         con = duckdb.connect()
         try:
             for t in TABLES:
@@ -146,7 +148,7 @@ class Store:
             con.close()
 
     def machine_logs(self) -> dict[str, list[str]]:
-        """machine -> its log ids in time order."""
+        """machine -> the ids of its logs and summaries, in time order."""
         if not any((self.root / "logs").glob("*/meta.parquet")):
             return {}
         rows = self.query("SELECT machine, log_id FROM meta ORDER BY machine, start_time_s, "
@@ -155,6 +157,16 @@ class Store:
         for r in rows:
             out.setdefault(r["machine"], []).append(r["log_id"])
         return out
+
+    def counts(self) -> dict[str, float]:
+        """machines, logs, log_hours (the logs' length) and summaries (machine-days) stored."""
+        kind = "coalesce(kind, 'log')" if "kind" in self.query(
+            "SELECT * FROM meta LIMIT 0").column_names else "'log'"
+        return self.query(
+            f"SELECT count(*) FILTER (WHERE {kind} = 'log') AS logs, count(DISTINCT machine) "
+            f"AS machines, coalesce(sum(duration_s) FILTER (WHERE {kind} = 'log'), 0) / 3600 "
+            f"AS log_hours, count(*) FILTER (WHERE {kind} = 'summary') AS summaries FROM meta"
+        ).to_pylist()[0]
 
     def read(self, log_id: str, table: str) -> pa.Table:
         return pq.read_table(self.root / "logs" / log_id / f"{table}.parquet")

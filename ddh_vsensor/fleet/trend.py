@@ -2,10 +2,11 @@
 interval, the cause that explains the references across days, the expected position error
 now and where the parameter's trend takes it.
 
-Per log and cause (rows of :mod:`.analysis`): the parameter minimising the loss of the
-observations (squared error, linear beyond :data:`.analysis.ROBUST_MM`; a parabola through
-the best grid point and its neighbours, on a log scale for factors) and a 90 % profile
-interval (loss within F(1, n-1)/(n-1) of the best).
+Per log and cause (rows of :mod:`.analysis`, or of a day's summary): the parameter
+minimising the loss of the observations (squared error, linear beyond
+:data:`diagnosis.evidence.ROBUST_MM`; a parabola through the best grid point and its
+neighbours, on a log scale for factors) and a 90 % profile interval (loss within
+F(1, n-1)/(n-1) of the best).
 Across the last :data:`WINDOW` logs the cause is judged held out, day by day: each log's
 parameter is predicted by the linear trend fitted to the *other* logs, and the score is the
 share of the references' loss that prediction removes (minus a penalty per trend

@@ -12,13 +12,14 @@ One asyncio loop:
   (slow input: 500 Hz) sends right after its next frame instead, at most a period later;
 - the housekeeping tick, fixed at ``faults.housekeeping_tick_ms`` whatever the event timers:
   heartbeats, the systemd watchdog (while the integration keeps up), READY once every bus is
-  open, the systemd status, and the estimates saved every ``state_save_interval_s`` (in a
-  worker thread, atomically: :mod:`.persistence`);
+  open, the systemd status, the estimates saved every ``state_save_interval_s`` (in a
+  worker thread, atomically: :mod:`.persistence`), and with ``options.machine`` the day
+  summary's samples handed to its worker process (:mod:`.summary`);
 - both ticks run straight from the loop's wake on the same deadlines (one wake where their
   periods meet), and the bus links read on the publishing tick's grid (:mod:`.bus`): the
   loop's wake-ups, not the per-frame work, were most of the service's CPU;
 - stop (SIGTERM/SIGINT via :meth:`Service.request_stop`): STOPPING=1, state saved as a clean
-  stop, buses closed, exit code 0.
+  stop, the day summary's last samples summarised, buses closed, exit code 0.
 
 What each unit publishes, and why (gaps, staleness, presets): :mod:`.units`. The time between
 the start and the first Sevcon frame is not counted as a gap: a controller that has sent
@@ -58,6 +59,7 @@ from ddh_vsensor.device.objects import Published
 from ddh_vsensor.service.persistence import StateStore, write_states, write_switch_records
 from ddh_vsensor.service.scheduler import Tick, Ticker
 from ddh_vsensor.service.sdnotify import SystemdNotifier
+from ddh_vsensor.service.summary import SummaryRecorder
 from ddh_vsensor.service.unit_state import STALE_PERIODS, Unit
 
 log = logging.getLogger(__name__)
@@ -84,6 +86,7 @@ class ServiceOptions:
     fd_reader: bool | None = None            # None: event-loop fd reader on socketcan only
     coalesce_s: float | None = None          # fd reader pause after a wake (None: see below)
     extensions: dict[str, Extension] = field(default_factory=dict)   # actuator -> from analyze
+    machine: str | None = None               # day summaries under state_dir (None: none)
 
 
 class Service:
@@ -126,6 +129,11 @@ class Service:
             assert unit.node is not None
             self._bus_nodes[cfg.can.units[actuator].bus].append(unit.node)
         self.states = StateStore(cfg, self.options.state_dir)
+        self.summaries: SummaryRecorder | None = None
+        if self.options.machine is not None and self.options.state_dir is not None:
+            self.summaries = SummaryRecorder(cfg, self.options.machine, self.options.state_dir)
+            for actuator, feed in self.summaries.feeds.items():
+                self.units[actuator].summary_feed = feed
         self.states.restore(self.units)
         for unit in self.units.values():
             unit.cap_uncertainty_at_stroke()
@@ -341,6 +349,8 @@ class Service:
         if self._save_task is not None:
             await asyncio.gather(self._save_task, return_exceptions=True)
         self.save_states(clean=True)
+        if self.summaries is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.summaries.close)
         self._end_hold()
         self.ticker.close()
         self.housekeeper.close()
@@ -506,6 +516,8 @@ class Service:
         if now >= self._next_save_s:
             self._next_save_s = now + self.cfg.estimator.state_save_interval_s
             self._save_in_background()
+        if self.summaries is not None:
+            self.summaries.ship()
 
     # --- health and status -------------------------------------------------------------------
 

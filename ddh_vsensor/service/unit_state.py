@@ -39,6 +39,7 @@ import can
 from canopen.sdo import SdoAbortedError
 
 from ddh_vsensor.config import Config
+from ddh_vsensor.estimator.day_samples import SampleFeed
 from ddh_vsensor.estimator.estimator import Estimator, Step
 from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.switch_drift import Change, SwitchDrift
@@ -147,6 +148,7 @@ class Unit:
     late_lo_s: float = 0.0                   # the window's least and largest lag
     late_hi_s: float = 0.0
     clock: Callable[[], float] = time.monotonic  # the service's monotonic time (a test's own)
+    summary_feed: SampleFeed | None = None   # the day summary's samples (:mod:`.summary`)
 
     def __post_init__(self) -> None:
         self.max_speed_mm_s = self.cfg.max_speed_mm_s(self.actuator)
@@ -229,6 +231,12 @@ class Unit:
         step = est.step(sample.t_s, sample.speed_rpm, sample.torque_nm, oil, refs,
                         self.inputs.refs_since_s, self.inputs.io_sends_on_change)
         self.last_step = step
+        feed = self.summary_feed
+        if feed is not None:
+            since = self.inputs.refs_since_s
+            feed.add(sample.t_s, sample.speed_rpm, sample.torque_nm, oil, refs,
+                     since if since is not None and self.inputs.io_sends_on_change
+                     else math.nan, wall_s)
         if step.events:
             for change in self.switch_drift.edges(step.events, sample.t_s):
                 self.report_drift(change)

@@ -20,6 +20,15 @@ Hall switches (the ends and the middle), a payload of the day, oil from a mornin
 temperature warming through the log. The truth (every machine's effects per day) goes to
 ``truth.json`` beside the logs; the analysis never reads it. File names carry the machine,
 the date and the operating hours: ``M03_2026-01-05_0123.4h.blf``.
+
+A day's work, as the daemon sees it (``work_s``, default :data:`WORK_S`): sessions of
+``log_s`` spread evenly over the working day (:data:`HOURS_PER_DAY`), the first the logged
+one, each with its own moves and payload, the oil warming from the morning's towards
+:data:`WORKING_OIL_C` over the first sessions. What stands for the whole day is those
+minutes (a real day has ~45 times more). Given a ``summarise`` callback,
+:func:`simulate_fleet` hands it every machine-day's sessions (the daemon's summary code,
+``simulate fleet``: ``<machine>_<date>.summary.json`` beside the logs); the logs are those
+of the first sessions, whatever ``work_s``.
 """
 
 from __future__ import annotations
@@ -35,6 +44,7 @@ import numpy as np
 from ddh_vsensor.atomic import output_dir
 from ddh_vsensor.config import Config
 from ddh_vsensor.errors import UserError
+from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.steady import holding_speed, steady_state, steady_state_at_torque
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.sim.cycles import Profile, Trajectory, work_unit
@@ -43,6 +53,9 @@ from ddh_vsensor.sim.run import RunSpec, simulate_campaign
 from ddh_vsensor.sim.sensors import SensorSettings, hall_switch
 
 LOG_S = 60.0
+WORK_S = 600.0                  # a day's work the daemon's summary sees: 10 sessions of LOG_S
+WORKING_OIL_C = 50.0            # the oil a day's later sessions warm towards
+WARMUP_SESSIONS = 3.0           # ... by 1 - exp(-session / this)
 STEP_S = 2.0e-3                 # plant step: within 0.1 mm of 1 ms on these cycles, 1.4x faster
 START_DATE = dt.datetime(2026, 1, 5, 7, 0, tzinfo=dt.timezone.utc)
 HOURS_PER_DAY = 7.5             # operating hours a working day adds
@@ -54,6 +67,7 @@ MORNING_OIL_C = (22.0, 34.0)
 OIL_WARMING_C_PER_S = 0.1
 SAMPLE_S = 0.01                 # sampling of a day's setpoints for its Hall edges
 Progress = Callable[[float], None]
+Summarise = Callable[[str, int, list[dict[str, Run]]], object]   # machine, day, sessions
 
 
 @dataclass(frozen=True)
@@ -92,11 +106,17 @@ class FleetPlan:
     days: int
     seed: int
     log_s: float = LOG_S
+    work_s: float = 0.0         # a day's work for the summaries (0: the log's only)
+
+    @property
+    def sessions(self) -> int:
+        """Sessions of a day's work (the first is the logged one)."""
+        return max(1, round(self.work_s / self.log_s))
 
 
 def plan_fleet(cfg: Config, machines: int, days: int, seed: int = 0,
                log_s: float = LOG_S, wear_share: float = WEAR_SHARE,
-               cross_mm: float = CROSS_MM) -> FleetPlan:
+               cross_mm: float = CROSS_MM, work_s: float = 0.0) -> FleetPlan:
     """Draw every machine's deviations and (for some) its wear: the unit, the effect, the
     onset day and the weeks until the expected error crosses ``cross_mm``; the rate follows
     from the unit's sensitivity on the machine's own days (see the module's docstring)."""
@@ -106,6 +126,9 @@ def plan_fleet(cfg: Config, machines: int, days: int, seed: int = 0,
         raise UserError(f"--days {days}: 2..3650")
     if not 20.0 <= log_s <= 3600.0:
         raise UserError(f"log length {log_s:g} s: 20..3600 s")
+    if work_s and not log_s <= work_s <= 3600.0 * HOURS_PER_DAY:
+        raise UserError(f"a day's work {work_s:g} s: 0 (no summaries) or {log_s:g} (the log) "
+                        f"..{3600.0 * HOURS_PER_DAY:g} s")
     units = cfg.unit_names
     rng = np.random.default_rng([seed, 7])
     n_wear = int(round(wear_share * machines))
@@ -126,7 +149,7 @@ def plan_fleet(cfg: Config, machines: int, days: int, seed: int = 0,
         if drawn is not None:
             plan = replace(plan, wear=_wear_crossing(cfg, seed, plan, *drawn, log_s, cross_mm))
         plans.append(plan)
-    return FleetPlan(plans, days, seed, log_s)
+    return FleetPlan(plans, days, seed, log_s, work_s)
 
 
 def _wear_crossing(cfg: Config, seed: int, plan: MachinePlan, actuator: str, effect: str,
@@ -240,6 +263,27 @@ def day_spec(cfg: Config, plan: FleetPlan, machine: MachinePlan, day: int) -> Ru
                    step_s=STEP_S)
 
 
+def session_spec(cfg: Config, plan: FleetPlan, machine: MachinePlan, day: int,
+                 session: int) -> RunSpec:
+    """A day's session of work: the first is the logged one (:func:`day_spec`), each later
+    its own moves and payload, its oil warmer (see the module's docstring)."""
+    spec = day_spec(cfg, plan, machine, day)
+    if session == 0:
+        return spec
+    rng = np.random.default_rng([plan.seed, machine.seed, day, session])
+    oil_c = spec.oil_temp_c + (WORKING_OIL_C - spec.oil_temp_c) * (
+        1.0 - np.exp(-session / WARMUP_SESSIONS))
+    return replace(spec, cycle=work_profile(cfg, rng, plan.log_s),
+                   payload_kg=float(rng.choice(PAYLOADS_KG)), oil_temp_c=float(oil_c),
+                   seed=int(rng.integers(2 ** 31)))
+
+
+def session_start_s(plan: FleetPlan, day: int, session: int) -> float:
+    """A session's wall-clock start: the sessions spread evenly over the working day."""
+    spacing_s = 3600.0 * HOURS_PER_DAY / plan.sessions
+    return (START_DATE + dt.timedelta(days=day)).timestamp() + session * spacing_s
+
+
 def log_name(machine: str, day: int, hours: float) -> str:
     date = (START_DATE + dt.timedelta(days=day)).date().isoformat()
     return f"{machine}_{date}_{hours:06.1f}h.blf"
@@ -247,6 +291,7 @@ def log_name(machine: str, day: int, hours: float) -> str:
 
 def truth_of(plan: FleetPlan) -> dict:
     return {"seed": plan.seed, "days": plan.days, "log_s": plan.log_s,
+            "work_s": plan.work_s, "sessions": plan.sessions if plan.work_s else 1,
             "machines": {m.name: {
                 "base": m.base, "wear": asdict(m.wear) if m.wear else None,
                 "effects_per_day": [{a: e.non_neutral() for a, e in m.effects(d).items()}
@@ -255,31 +300,41 @@ def truth_of(plan: FleetPlan) -> dict:
 
 def simulate_fleet(cfg: Config, plan: FleetPlan, out_dir: str | Path,
                    progress: Progress | None = None, days: range | list[int] | None = None,
-                   days_per_batch: int = 10) -> list[Path]:
-    """Write every machine's daily logs and ``truth.json``. Several days go into one
-    vectorised campaign: the plant's cost is mostly per step, not per machine."""
+                   days_per_batch: int = 10, summarise: Summarise | None = None
+                   ) -> list[Path]:
+    """Write every machine's daily logs and ``truth.json``; with ``summarise``, simulate
+    every day's sessions and hand them to it, machine-day by machine-day. Several days go
+    into one vectorised campaign (the plant's cost is mostly per step, not per machine), at
+    most ``days_per_batch`` days' logs' worth of runs."""
     from ddh_vsensor.io.blf import write_blf_inputs
     out = output_dir(out_dir)
     (out / "truth.json").write_text(json.dumps(truth_of(plan), indent=1) + "\n")
     written = []
+    sessions = plan.sessions if summarise is not None else 1
     todo = list(days if days is not None else range(plan.days))
-    batches = [todo[i:i + days_per_batch] for i in range(0, len(todo), days_per_batch)]
+    per_batch = max(1, days_per_batch // sessions)
+    batches = [todo[i:i + per_batch] for i in range(0, len(todo), per_batch)]
     for k, batch in enumerate(batches):
-        specs = [(day, m) for day in batch for m in plan.machines]
+        specs = [(day, m, j) for day in batch for m in plan.machines for j in range(sessions)]
 
         def part(f: float, k: int = k) -> None:
             if progress is not None:
-                progress((k + 0.9 * f) / len(batches))
+                progress((k + (0.9 if summarise is None else 0.5) * f) / len(batches))
 
-        runs = simulate_campaign(cfg, [day_spec(cfg, plan, m, day) for day, m in specs], part)
-        for (day, m), per_unit in zip(specs, runs):
-            start = (START_DATE + dt.timedelta(days=day)).timestamp()
-            hours = 1000.0 * (int(m.name[1:]) % 3) + HOURS_PER_DAY * day
+        runs = simulate_campaign(cfg, [session_spec(cfg, plan, m, day, j)
+                                       for day, m, j in specs], part)
+        for i, ((day, m, j), per_unit) in enumerate(zip(specs, runs)):
             for run in per_unit.values():
-                run.shift_time(start)
-            path = out / log_name(m.name, day, hours)
-            write_blf_inputs(path, per_unit, cfg)            # no position frames
-            written.append(path)
+                run.shift_time(session_start_s(plan, day, j))
+            if j == 0:
+                hours = 1000.0 * (int(m.name[1:]) % 3) + HOURS_PER_DAY * day
+                path = out / log_name(m.name, day, hours)
+                write_blf_inputs(path, per_unit, cfg)            # no position frames
+                written.append(path)
+            if summarise is not None and j == sessions - 1:
+                summarise(m.name, day, runs[i - sessions + 1:i + 1])
+                if progress is not None:
+                    progress((k + 0.5 + 0.5 * (i + 1) / len(specs)) / len(batches))
         if progress is not None:
             progress((k + 1) / len(batches))
     return written

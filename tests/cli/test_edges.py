@@ -214,7 +214,7 @@ def test_fleet_ingest_with_every_log_rejected_exits_2(threads_cluster, tmp_path:
     captured = capsys.readouterr()
     assert "rejected: " in captured.out and "the file is empty" in captured.out
     error = [line for line in captured.err.splitlines() if "error:" in line]
-    assert error == ["ddh-vsensor fleet: error: nothing ingested: 1 log(s) given, every one "
+    assert error == ["ddh-vsensor fleet: error: nothing ingested: 1 file(s) given, every one "
                      "rejected"], captured.err
 
 

@@ -50,7 +50,7 @@ def test_one_observation_no_cause_makes_does_not_carry_a_logs_fit(local_store, c
     where that one observation wants; the log's robust loss keeps the fit of the others."""
     from ddh_vsensor.diagnosis.holds import Hold
     from ddh_vsensor.diagnosis.references import reference_run
-    from ddh_vsensor.fleet import analysis
+    from ddh_vsensor.diagnosis import evidence as analysis
     from ddh_vsensor.fleet.ingest import run_of
     from ddh_vsensor.fleet.trend import from_u, log_fit
 

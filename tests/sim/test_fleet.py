@@ -67,3 +67,50 @@ def test_the_plan_is_seeded(cfg):
     assert plan_fleet(cfg, 10, 20, 6, 30.0) != a
     with pytest.raises(ValueError):
         _day_sensitivity_mm(cfg, cfg.unit_names[0], "belt_slip", 1, 2, 0, 30.0)
+
+
+def test_a_days_sessions_start_with_the_logged_one_and_the_log_stays_as_it_was(cfg, tmp_path):
+    """The summaries' day: the logged session first (its log the same bytes as without
+    summaries), the others later in the working day, each its own work, the oil warmer."""
+    from ddh_vsensor.sim.fleet import HOURS_PER_DAY, START_DATE, simulate_fleet
+    plan = plan_fleet(cfg, 1, 2, seed=4, log_s=20.0, work_s=60.0)
+    assert plan.sessions == 3
+    got: list = []
+    with_days = simulate_fleet(cfg, plan, tmp_path / "a", days=[1],
+                               summarise=lambda m, d, sessions: got.append((m, d, sessions)))
+    alone = simulate_fleet(cfg, plan_fleet(cfg, 1, 2, seed=4, log_s=20.0), tmp_path / "b",
+                           days=[1])
+    assert with_days[0].read_bytes() == alone[0].read_bytes()
+    (machine, day, sessions), = got
+    assert (machine, day, len(sessions)) == ("M00", 1, 3)
+    starts = [s["boom"].time_s[0] for s in sessions]
+    day_start = START_DATE.timestamp() + 86400.0
+    assert starts[0] == pytest.approx(day_start, abs=0.1)
+    assert np.diff(starts) == pytest.approx([3600.0 * HOURS_PER_DAY / 3] * 2, abs=0.1)
+    oil = [s["boom"].oil_temp_c[0] for s in sessions]
+    assert oil[0] < oil[1] < oil[2]
+    moves = [s["bucket"].speed_rpm[:500] for s in sessions]
+    assert not np.array_equal(moves[0], moves[1])
+
+
+def test_simulate_fleet_writes_each_machine_days_summary_beside_its_log(tmp_path, capsys):
+    import json
+
+    from ddh_vsensor.cli.main import main
+    out = tmp_path / "fleet"
+    assert main(["simulate", "fleet", "--machines", "1", "--days", "2", "--log-s", "30",
+                 "--work-s", "90", "--seed", "4", "--out", str(out)]) == 0
+    assert "2 logs and 2 day summaries (3 x 30 s of work each)" in capsys.readouterr().out
+    days = sorted(out.glob("M00_*.summary.json"))
+    assert [p.name for p in days] == ["M00_2026-01-05.summary.json",
+                                      "M00_2026-01-06.summary.json"]
+    for p in days:
+        d = json.loads(p.read_text())
+        assert all(90.0 <= u["work_s"] <= 110.0 for u in d["units"].values())
+        assert sum(u["stretches"] for u in d["units"].values()) >= 3     # some sessions
+        assert sum(u["n_obs"] for u in d["units"].values()) > 20         # pass few switches
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["work_s"] == 90.0 and truth["sessions"] == 3
+    assert main(["simulate", "fleet", "--machines", "1", "--days", "2", "--log-s", "20",
+                 "--work-s", "10", "--out", str(tmp_path / "x")]) == 2
+    assert "a day's work 10 s" in capsys.readouterr().err
