@@ -147,8 +147,7 @@ def simulator_baseline(cfg: Config, tmp_path_factory: pytest.TempPathFactory) ->
         tmp_path_factory.mktemp("simulator") / "loader.baseline.json")
 
 
-@pytest.mark.parametrize("kind,actuator", [("sensor", "bucket"), ("pair", None),
-                                           ("open", "boom")])
+@pytest.mark.parametrize("kind,actuator", [("open", "boom")])
 def test_our_simulators_baseline_changes_no_decision(campaigns, simulator_baseline,
                                                      kind: str, actuator: str | None):
     """The hidden-effect campaigns of test_hidden_effects, analysed again with it: the same
@@ -165,7 +164,9 @@ def test_our_simulators_baseline_changes_no_decision(campaigns, simulator_baseli
     assert after["not_observable"] == before["not_observable"]
 
 
-@pytest.mark.parametrize("effect,actuator,seed", CASES)
+# a named cause and none: the two answers a raised threshold could change
+@pytest.mark.parametrize("effect,actuator,seed", [c for c in CASES
+                                                  if c[0] in ("pump_leakage", "none")])
 def test_our_simulators_baseline_changes_no_decision_from_references(cfg, simulator_baseline,
                                                                      effect, actuator, seed):
     runs = simulate_trial(cfg, draw_trial(seed, effect))
