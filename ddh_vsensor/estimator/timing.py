@@ -15,6 +15,8 @@ sample carried forward along its last change; the first sample after a gap has n
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -44,15 +46,14 @@ def shaft_torques_nm(time_s: ArrayLike, torque_nm: ArrayLike, speed_rpm: ArrayLi
                      motor: MotorConfig, max_gap_s: float) -> np.ndarray:
     """The shaft's torque at the speed's instants from the drive's reading (a copy, equal to
     the reading where the motor's torque keys are at their defaults and the lag is 0)."""
-    per_rpm = motor.torque_speed_offset_nm / motor.speed_limit_rpm
-    shaft = (np.asarray(torque_nm, dtype=float) - motor.torque_offset_nm
-             - per_rpm * np.asarray(speed_rpm, dtype=float))
+    shaft = shaft_torque_nm(np.asarray(torque_nm, dtype=float),
+                            np.asarray(speed_rpm, dtype=float), motor)
     return torque_at_speed_instants(time_s, shaft, motor.torque_lag_s + motor.torque_filter_s,
                                     max_gap_s)
 
 
-def shaft_torque_nm(torque_nm: float, speed_rpm: float, motor: MotorConfig) -> float:
-    """One reading less the drive's offsets (the same arithmetic as
-    :func:`shaft_torques_nm`); :func:`torque_at_speed_instant` then carries it."""
+def shaft_torque_nm(torque_nm: ArrayLike, speed_rpm: ArrayLike, motor: MotorConfig) -> Any:
+    """A reading (or an array of them) less the drive's offsets; :func:`torque_at_speed_instant`
+    then carries it."""
     return (torque_nm - motor.torque_offset_nm
             - motor.torque_speed_offset_nm / motor.speed_limit_rpm * speed_rpm)
