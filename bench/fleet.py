@@ -37,7 +37,7 @@ from ddh_vsensor.fleet.cluster import dask_client, run_batched, run_tasks  # noq
 from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, ingest_batch  # noqa: E402
 from ddh_vsensor.fleet.report import write_report  # noqa: E402
 from ddh_vsensor.fleet.store import Store  # noqa: E402
-from ddh_vsensor.fleet.trend import DAY_S, expected_error_mm, to_u, unit_trend  # noqa: E402
+from ddh_vsensor.diagnosis.trend import DAY_S, expected_error_mm, to_u, unit_trend  # noqa: E402
 from ddh_vsensor.sim.fleet import START_DATE, log_name, plan_fleet, simulate_fleet  # noqa: E402
 
 TOLERANCE_MM, HORIZON_DAYS = 3.0, 14.0

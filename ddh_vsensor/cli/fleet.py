@@ -164,7 +164,7 @@ def _report(args: argparse.Namespace) -> int:
     from ddh_vsensor.fleet.cluster import dask_client, run_tasks
     from ddh_vsensor.fleet.report import write_report
     from ddh_vsensor.fleet.store import Store
-    from ddh_vsensor.fleet.trend import unit_trend
+    from ddh_vsensor.diagnosis.trend import unit_trend
     if not args.tolerance_mm > 0 or not args.horizon_days > 0:
         raise UserError("--tolerance-mm and --horizon-days must be positive")
     out = output_file(args.out, "report")

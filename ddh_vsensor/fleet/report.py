@@ -16,7 +16,7 @@ from ddh_vsensor.config import Config
 from ddh_vsensor.diagnosis.causes import ALL_CAUSES
 from ddh_vsensor.diagnosis.report import render_page
 from ddh_vsensor.estimator.extension import Extension
-from ddh_vsensor.fleet.trend import DAY_S, UnitTrend, from_u
+from ddh_vsensor.diagnosis.trend import DAY_S, UnitTrend, from_u
 
 
 def _date(t: float) -> str:

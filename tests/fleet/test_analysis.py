@@ -52,7 +52,7 @@ def test_one_observation_no_cause_makes_does_not_carry_a_logs_fit(local_store, c
     from ddh_vsensor.diagnosis.references import reference_run
     from ddh_vsensor.diagnosis import evidence as analysis
     from ddh_vsensor.fleet.ingest import run_of
-    from ddh_vsensor.fleet.trend import from_u, log_fit
+    from ddh_vsensor.diagnosis.trend import from_u, log_fit
 
     store = Store(local_store[0])
     machine, logs = sorted(store.machine_logs().items())[0]

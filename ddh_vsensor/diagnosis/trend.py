@@ -2,7 +2,7 @@
 interval, the cause that explains the references across days, the expected position error
 now and where the parameter's trend takes it.
 
-Per log and cause (rows of :mod:`.analysis`, or of a day's summary): the parameter
+Per log and cause (rows of the fleet analysis, or of a day's summary): the parameter
 minimising the loss of the observations (squared error, linear beyond
 :data:`diagnosis.evidence.ROBUST_MM`; a parabola through the best grid point and its
 neighbours, on a log scale for factors) and a 90 % profile interval (loss within

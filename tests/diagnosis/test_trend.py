@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ddh_vsensor.fleet.analysis import GRIDS
-from ddh_vsensor.fleet.trend import DAY_S, unit_trend
+from ddh_vsensor.diagnosis.evidence import GRIDS
+from ddh_vsensor.diagnosis.trend import DAY_S, unit_trend
 
 T0 = 1.767e9
 
@@ -76,7 +76,7 @@ def test_beyond_its_days_a_trend_goes_on_at_its_slopes_conservative_bound():
     trend goes on at its slope, beyond them at the slope less EXTRAPOLATION_SE standard
     errors. A steady drift crossing 3 mm (8 mm per u) on day 18.75 is alarmed as soon as a
     week of logs allows, and the projection to the horizon is the damped one."""
-    from ddh_vsensor.fleet.trend import EXTRAPOLATION_SE, _trend
+    from ddh_vsensor.diagnosis.trend import EXTRAPOLATION_SE, _trend
     u = 0.02 * np.arange(30.0)
     tr = unit_trend("M4", "boom", rows(u, cause="time_offset",
                                        others=("pump_leakage", "displacement"), noise=0.02),
@@ -109,7 +109,7 @@ def test_one_tight_log_off_the_trend_does_not_carry_it():
     """A log's interval says how well its own references fix the parameter, not how far one
     day's work takes the fit from the next: a confident log far off (a fleet's leakage fit
     x4 for x1.1) must not pull the line through itself."""
-    from ddh_vsensor.fleet.trend import _line
+    from ddh_vsensor.diagnosis.trend import _line
     t = np.arange(10.0)
     u = 0.01 * t + np.random.default_rng(5).normal(0.0, 0.005, 10)
     var = np.full(10, 0.005 ** 2)
@@ -141,7 +141,7 @@ def test_a_fit_at_a_grid_end_has_no_place_on_the_line():
     """A log whose best is the grid's end says the parameter is there or beyond, not where:
     it is left off the trend (a leakage read x0.40 on a wearing bucket held its alarm
     back ten days); the end of a parameter's range (no slip) is a value like any other."""
-    from ddh_vsensor.fleet.trend import _line, _variances, log_fit
+    from ddh_vsensor.diagnosis.trend import _line, _variances, log_fit
     r = rows(np.log(np.full(3, 0.3)))               # below the leakage grid's x0.4
     leak = log_fit("pump_leakage", next(x for x in r if x["cause"] == "pump_leakage"))
     assert leak.censored and np.isinf(_variances([leak])[0])
