@@ -68,10 +68,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = fs.add_parser("report", help="per-machine analysis, trends, alarms: HTML report")
     r.add_argument("--store", required=True, metavar="DIR")
     r.add_argument("--out", required=True, metavar="FILE.html")
-    r.add_argument("--tolerance-mm", type=float, default=3.0,
-                   help="position error that must not be exceeded (default 3)")
-    r.add_argument("--horizon-days", type=float, default=14.0,
-                   help="alarm when a trend crosses the tolerance within this (default 14)")
+    r.add_argument("--tolerance-mm", type=float,
+                   help="position error that must not be exceeded (default: the "
+                   "configuration's health.tolerance_mm, 3 mm unless set)")
+    r.add_argument("--horizon-days", type=float,
+                   help="alarm when a trend crosses the tolerance within this (default: the "
+                   "configuration's health.horizon_days, 14 unless set)")
     add_config_arg(r)
     _cluster_args(r)
     r.set_defaults(func=_report)
@@ -165,10 +167,15 @@ def _report(args: argparse.Namespace) -> int:
     from ddh_vsensor.fleet.report import write_report
     from ddh_vsensor.fleet.store import Store
     from ddh_vsensor.diagnosis.trend import unit_trend
-    if not args.tolerance_mm > 0 or not args.horizon_days > 0:
-        raise UserError("--tolerance-mm and --horizon-days must be positive")
+    for given in (args.tolerance_mm, args.horizon_days):
+        if given is not None and not given > 0:
+            raise UserError("--tolerance-mm and --horizon-days must be positive")
     out = output_file(args.out, "report")
     cfg = load_config(args.config)
+    if args.tolerance_mm is None:
+        args.tolerance_mm = cfg.health.tolerance_mm
+    if args.horizon_days is None:
+        args.horizon_days = cfg.health.horizon_days
     store = Store(args.store)
     machines = sorted(store.machine_logs())
     if not machines:
@@ -188,7 +195,8 @@ def _report(args: argparse.Namespace) -> int:
                 trends.append(unit_trend(m, a, mine, args.tolerance_mm, args.horizon_days))
     meta = store.counts()
     meta["rejected"] = len(store.rejected())
-    data = write_report(trends, out, args.tolerance_mm, args.horizon_days, cfg, meta)
+    data = write_report(trends, out, args.tolerance_mm, args.horizon_days, cfg, meta,
+                        sources={r["log_id"]: r.get("source", "") for r in rows})
     alarms = [u for u in data["units"] if u["alarm"]]
     for u in alarms:
         print(f"ALARM {u['machine']} {u['actuator']}: {u['cause']} {u.get('parameter')}, "

@@ -523,6 +523,18 @@ class FaultsConfig:
 
 
 @dataclass(frozen=True)
+class HealthConfig:
+    """The daemon's own health (docs: operations, Health): from its day summaries, each
+    unit's slow parameters, their trend, and when the position error they cause at the
+    references will pass the tolerance. The fleet report's defaults."""
+
+    # the position error at the references (mm) a maintenance engineer wants to hear of
+    tolerance_mm: float = field(default=3.0, metadata={"gt": 0.0, "le": 1000.0})
+    # a crossing expected within this many days raises the EMCY warning
+    horizon_days: float = field(default=14.0, metadata={"gt": 0.0, "le": 365.0})
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole machine configuration."""
 
@@ -537,6 +549,7 @@ class Config:
     buses: dict[str, dict[str, Any]] = field(default_factory=dict)
     faults: FaultsConfig = field(default_factory=FaultsConfig)
     tolerances: TolerancesConfig = field(default_factory=TolerancesConfig)
+    health: HealthConfig = field(default_factory=HealthConfig)
     # the simulator's work cycles (absent: random work only, speeds from the motor limits)
     work_cycle: WorkCycleConfig | None = None
     source: str = field(default="<memory>", compare=False, metadata={"internal": True})
@@ -622,8 +635,8 @@ class Config:
 
     def _hash_physics(self) -> str:
         data = dataclasses.asdict(self)
-        for key in ("bus", "buses", "can", "estimator", "faults", "tolerances", "work_cycle",
-                    "source"):
+        for key in ("bus", "buses", "can", "estimator", "faults", "tolerances", "health",
+                    "work_cycle", "source"):
             data.pop(key)
         for unit in data["units"].values():
             for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm",

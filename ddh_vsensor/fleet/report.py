@@ -1,12 +1,16 @@
-"""The fleet report: per machine and unit the fitted parameters over time with their
-intervals, the expected position error now and projected, alarms naming the cause, and the
-extension file to load; HTML (figures embedded, readable from disk) plus a JSON summary."""
+"""The fleet report: per machine and unit what was found, in words (:mod:`.finding`: the
+cause and its figure, the expected position error now and projected, the days and date until
+it passes the tolerance, the action and the extension file to load; or nothing found; or too
+few days for a trend yet), the fitted parameters over time with their intervals where they
+say something (a unit with a named cause or an alarm), and what each parameter means; HTML
+(figures embedded, readable from disk) plus a JSON summary."""
 
 from __future__ import annotations
 
 import datetime as dt
 import io
 import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -14,9 +18,15 @@ import numpy as np
 
 from ddh_vsensor.config import Config
 from ddh_vsensor.diagnosis.causes import ALL_CAUSES
+from ddh_vsensor.diagnosis.finding import (Finding, label, parameter_meanings,
+                                            unit_finding)
 from ddh_vsensor.diagnosis.report import render_page
 from ddh_vsensor.estimator.extension import Extension
-from ddh_vsensor.diagnosis.trend import DAY_S, UnitTrend, from_u
+from ddh_vsensor.diagnosis.trend import DAY_S, MIN_LOGS, UnitTrend, from_u
+
+
+STATE_WORDS = {"alarm": "ALARM", "cause": "named, within tolerance", "none": "nothing found",
+               "too_few_days": "too few days for a trend", "no_evidence": "no evidence"}
 
 
 def _date(t: float) -> str:
@@ -62,9 +72,19 @@ def _figure(tr: UnitTrend, tolerance_mm: float) -> bytes:
     return buf.getvalue()
 
 
-def summary(trends: list[UnitTrend], tolerance_mm: float, horizon_days: float,
-            ext_dir: Path, cfg: Config) -> list[dict[str, Any]]:
-    """One entry per machine and unit (the JSON summary); writes the alarms' extensions."""
+def plotted(tr: UnitTrend) -> bool:
+    """Whether a unit's trend figure says something: a cause was named or an alarm raised
+    on some day (otherwise its sentence says all there is)."""
+    return any(n != "none" for n in tr.named) or tr.first_alarm is not None
+
+
+def _entries(trends: list[UnitTrend], tolerance_mm: float, horizon_days: float,
+             ext_dir: Path, cfg: Config,
+             sources: Mapping[str, str] | None) -> list[tuple[UnitTrend, dict, Finding]]:
+    """(trend, JSON entry, finding) of each unit with evidence; writes the alarms'
+    extensions first, so that the finding names the file to load. The entry's ``logs``
+    counts the days' logs and summaries the trend took (as before), ``days_of_evidence``
+    the days they cover."""
     out = []
     for tr in trends:
         if not tr.times_s:
@@ -73,12 +93,16 @@ def summary(trends: list[UnitTrend], tolerance_mm: float, horizon_days: float,
         alarm = tr.alarms[-1]
         entry: dict[str, Any] = {
             "machine": tr.machine, "actuator": tr.actuator, "logs": len(tr.times_s),
+            "days_of_evidence": len({_date(t) for t in tr.times_s}),
             "last_log": _date(tr.times_s[-1]), "cause": cause,
             "reference_error_mm": round(tr.reference_error_mm[-1], 3),
             "expected_error_mm": None if cause == "none" else round(tr.error_now_mm[-1], 3),
             "projected_error_mm": None if cause == "none" else round(
                 tr.error_projected_mm[-1], 3),
             "alarm": alarm is not None, "first_alarm": None, "extension_file": None}
+        if sources is not None:
+            kinds = [sources.get(f.log_id, "") for f in next(iter(tr.series.values()))]
+            entry["evidence"] = {"summaries": kinds.count("summary"), "logs": kinds.count("log")}
         if cause != "none":
             f = tr.series[cause][-1]
             entry["parameter"] = {ALL_CAUSES[cause].parameter: round(from_u(cause, f.u), 5)}
@@ -100,8 +124,24 @@ def summary(trends: list[UnitTrend], tolerance_mm: float, horizon_days: float,
                                             f"{horizon_days:g} days"})
             path = ext.save(ext_dir / f"{tr.machine}_{tr.actuator}.json")
             entry["extension_file"] = str(path.resolve())
-        out.append(entry)
+        finding = unit_finding(tr, tolerance_mm, horizon_days, entry["extension_file"],
+                               sources)
+        entry.update(state=finding.state, finding=finding.text, figure=plotted(tr),
+                     days_left=None if finding.days_left is None else round(
+                         finding.days_left, 1),
+                     action=finding.action or None)
+        out.append((tr, entry, finding))
     return out
+
+
+def summary(trends: list[UnitTrend], tolerance_mm: float, horizon_days: float,
+            ext_dir: Path, cfg: Config,
+            sources: Mapping[str, str] | None = None) -> list[dict[str, Any]]:
+    """One entry per machine and unit (the JSON summary) with its finding in words; writes
+    the alarms' extensions. ``sources``: log id -> "summary" or "log" (the analysis' rows),
+    to say what the days of evidence are."""
+    return [e for _, e, _ in _entries(trends, tolerance_mm, horizon_days, ext_dir, cfg,
+                                      sources)]
 
 
 def _parameter(entry: dict[str, Any]) -> str:
@@ -109,25 +149,36 @@ def _parameter(entry: dict[str, Any]) -> str:
 
 
 def write_report(trends: list[UnitTrend], out: Path, tolerance_mm: float,
-                 horizon_days: float, cfg: Config, store_summary: dict[str, Any]) -> dict:
-    """report.html, report.json and the alarms' extension files (``<stem>_extensions/``)."""
+                 horizon_days: float, cfg: Config, store_summary: dict[str, Any],
+                 sources: Mapping[str, str] | None = None) -> dict:
+    """report.html, report.json and the alarms' extension files (``<stem>_extensions/``).
+    ``sources`` (log id -> "summary" or "log") words each unit's evidence as day summaries
+    and logs; without it, as days."""
     ext_dir = out.parent / f"{out.stem}_extensions"
-    entries = summary(trends, tolerance_mm, horizon_days, ext_dir, cfg)
-    alarms = [e for e in entries if e["alarm"]]
+    done = _entries(trends, tolerance_mm, horizon_days, ext_dir, cfg, sources)
+    entries = [e for _, e, _ in done]
+    alarms = [(e, f) for _, e, f in done if e["alarm"]]
     out.write_text(render_page(
         "fleet.html.j2", title="ddh-vsensor fleet report", store=store_summary,
-        tolerance_mm=tolerance_mm, horizon_days=horizon_days,
-        alarms=[[e["machine"], e["actuator"], e["cause"], _parameter(e),
-                 e["expected_error_mm"], e["projected_error_mm"], e.get("crossing"),
-                 (e["first_alarm"] or {}).get("date"), e["extension_file"]]
-                for e in alarms],
-        machines=[[e["machine"], e["actuator"], e["logs"], e["last_log"], e["cause"],
-                   _parameter(e), " .. ".join(f"{v:.4g}" for v in e.get("interval", [])),
+        summaries=store_summary.get("summaries", 0),
+        tolerance_mm=tolerance_mm, horizon_days=horizon_days, min_days=MIN_LOGS,
+        alarms=[[e["machine"], e["actuator"], f"{label(e['cause'])} ({e['cause']})", f.what,
+                 e["expected_error_mm"], e["projected_error_mm"], f.time_left,
+                 (e["first_alarm"] or {}).get("date"), f.action, e["extension_file"]]
+                for e, f in alarms],
+        machines=[[e["machine"], e["actuator"], e["days_of_evidence"], e["last_log"],
+                   e["cause"], _parameter(e),
+                   " .. ".join(f"{v:.4g}" for v in e.get("interval", [])),
                    e["reference_error_mm"], e["expected_error_mm"], e["projected_error_mm"],
-                   "ALARM" if e["alarm"] else ""]
+                   STATE_WORDS[e["state"]]]
                   for e in entries],
-        trends=[{"machine": tr.machine, "actuator": tr.actuator,
-                 "png": _figure(tr, tolerance_mm)} for tr in trends if tr.times_s]),
+        too_few=[f"{f.machine} {f.actuator}" for _, _, f in done
+                 if f.state == "too_few_days"],
+        units=[{"machine": tr.machine, "actuator": tr.actuator, "state": f.state,
+                "text": f.text, "png": _figure(tr, tolerance_mm) if e["figure"] else None}
+               for tr, e, f in done],
+        parameters=[[c + (" (pressure scale)" if label(c) == "pressure scale" else ""),
+                     p, u, m, a] for c, p, u, m, a in parameter_meanings()]),
         encoding="utf-8")
     data = {"tolerance_mm": tolerance_mm, "horizon_days": horizon_days, **store_summary,
             "units": entries}

@@ -79,9 +79,12 @@ def _reference_context(s: str) -> dict:
 
 def _fleet_context(s: str) -> dict:
     return dict(title=s, store={"machines": 3, "logs": 9, "log_hours": 0.075, "rejected": 0},
-                tolerance_mm=2.0, horizon_days=30.0, alarms=[[s, s, None, 1.5]],
-                machines=[[s, s, 3, s, float("inf")]],
-                trends=[{"machine": s, "actuator": s, "png": PNG}])
+                summaries=4, tolerance_mm=2.0, horizon_days=30.0, min_days=7,
+                alarms=[[s, s, s, s, None, 1.5, s, s, s, s]],
+                machines=[[s, s, 3, s, float("inf")]], too_few=[s, s],
+                units=[{"machine": s, "actuator": s, "state": s, "text": s, "png": PNG},
+                       {"machine": s, "actuator": s, "state": s, "text": s, "png": None}],
+                parameters=[[s, s, s, s, s]])
 
 
 CONTEXTS = {"diagnosis.html.j2": _diagnosis_context,
@@ -108,7 +111,8 @@ def test_cells_show_numbers_and_leave_non_finite_ones_empty() -> None:
     page = Page(render_page("diagnosis.html.j2", **_diagnosis_context("x")))
     assert page.tables[0][1] == ["x", "1.000", "", "0.001", "x"]
     page = Page(render_page("fleet.html.j2", **_fleet_context("x")))
-    assert page.tables[0][1] == ["x", "x", "", "1.500"]     # None and inf: empty
+    assert page.tables[0][1] == ["x"] * 4 + ["", "1.500"] + ["x"] * 4     # None: empty
+    assert page.tables[1][1] == ["x", "x", "3", "x", ""]                   # inf: empty
 
 
 def test_a_missing_value_is_an_error_not_an_empty_page() -> None:
