@@ -1,12 +1,15 @@
 """The machine's CAN frames as a cantools database, generated from the configuration.
 
 Every frame ID is a CANopen function code plus a configured node ID (0x080 EMCY, 0x180 TPDO1,
-0x280 TPDO2, 0x580/0x600 SDO, 0x700 heartbeat), message and node names come from the unit
-names (``POSITION_<UNIT>_TPDO1``), the I/O module frame is as long as the configured Hall bits
-need, with one bit signal per configured switch. The status byte of a position frame, the flags
-byte of a diagnostic frame and the active faults of an EMCY are one bit signal per
-:class:`~ddh_vsensor.estimator.flags.Flags` member, with value tables for tools. Cycle times of
-the sensor's frames are its configured event timer and the template EDS's defaults.
+0x280 TPDO2, 0x380 TPDO3, 0x580/0x600 SDO, 0x700 heartbeat), message and node names come from
+the unit names (``POSITION_<UNIT>_TPDO1``), the I/O module frame is as long as the configured
+Hall bits need, with one bit signal per configured switch. The status byte of a position
+frame, the flags byte of a diagnostic frame and the active faults of an EMCY are one bit
+signal per :class:`~ddh_vsensor.estimator.flags.Flags` member, with value tables for tools.
+Cycle times of the sensor's frames are its configured event timer and the template EDS's
+defaults. The health frame's cause codes get a value table from the names the caller passes
+(``machine_database(cfg, cause_names)``: the diagnosis catalogue's, which this layer does not
+import).
 
 Send types are the attribute definitions of Vector's interaction layer (the CANoe IL DBC
 template), so an IL or a restbus simulation sends the frames as the machine does: every
@@ -46,6 +49,7 @@ _PER_UNIT = {
     "heartbeat": ("SEVCON_{}_HEARTBEAT", 0x700, "sevcon"),
     "position": ("POSITION_{}_TPDO1", 0x180, "sensor"),
     "diag": ("DIAG_{}_TPDO2", 0x280, "sensor"),
+    "health": ("HEALTH_{}_TPDO3", 0x380, "sensor"),
     "sensor_heartbeat": ("SENSOR_{}_HEARTBEAT", 0x700, "sensor"),
     "emcy": ("SENSOR_{}_EMCY", 0x080, "sensor"),
     "sdo_tx": ("SENSOR_{}_SDO_TX", 0x580, "sensor"),
@@ -85,6 +89,8 @@ EMCY_CODES = {Flags.STALE_INPUT: (0x8100, "InputStale"),
               Flags.NOT_REFERENCED: (0xFF02, "NotReferenced"),
               Flags.TABLE_CLAMPED: (0xFF10, "TableClamped"),
               Flags.PRESET_UNCONFIRMED: (0xFF20, "PresetUnconfirmed")}
+# The unit's health alarm (no flag): a warning, maintenance due (0x2010 sub 2 bit 0).
+MAINTENANCE_EMCY = (0xFF30, "MaintenanceDue")
 SDO_ABORTS = {0x05030000: "ToggleBitNotAlternated", 0x05040001: "CommandSpecifierInvalid",
               0x06010000: "UnsupportedAccess", 0x06010002: "ReadOnly",
               0x06020000: "ObjectDoesNotExist", 0x06040041: "NotMappable",
@@ -112,7 +118,7 @@ _ERROR_REGISTER = (("Generic", "generic error (any fault)"), ("Current", "curren
                    ("Communication", "communication (inputs stale, controller heartbeat)"),
                    ("Profile", "device profile specific"), ("Reserved", "reserved, 0"),
                    ("Manufacturer", "manufacturer specific (not referenced, table clamped, "
-                                    "preset unconfirmed)"))
+                                    "preset unconfirmed, maintenance due)"))
 _SDO_FIELDS = (("Command", 0, 8, "SDO command specifier byte (CiA 301)."),
                ("Index", 8, 16, "Object index (initiate and abort frames)."),
                ("SubIndex", 24, 8, "Object sub-index (initiate and abort frames)."),
@@ -270,9 +276,45 @@ def _unit_input_messages(cfg: Config, unit: str, ids: _Ids) -> tuple[Message, Me
     return tpdo, heartbeat
 
 
-def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int]
-                     ) -> Iterator[Message]:
-    """The frames of ``unit``'s emulated CiA 406 sensor: TPDO1, TPDO2, heartbeat, EMCY, SDO."""
+def _health_message(cfg: Config, unit: str, frame_id: int, node_id: int, timer_ms: int,
+                    cause_names: Sequence[str]) -> Message:
+    """TPDO3: the unit's health, 0x2010 sub 1..5 (the template EDS's mapping)."""
+    status = (("Alarm", "the expected error passes the tolerance within the horizon "
+               "(EMCY FF30 while it lasts)", ("NoAlarm", "MaintenanceDue")),
+              ("FewDays", "too few days of evidence for a trend", ("Enough", "TooFewDays")),
+              ("NotYet", "no health computed yet", ("Computed", "NotYet")))
+    unknown = {0xFFFF: "Unknown"}
+    return _message(
+        frame_id, message_name("health", unit), 8,
+        [_signal("CauseCode", 0, 8, "The cause the unit's recent days point to, manufacturer "
+                 "object 0x2010 sub 1, UNSIGNED8: 0 none, else its number in the diagnosis "
+                 "catalogue (value table).",
+                 choices={code: camel(name) for code, name in enumerate(cause_names)} or None),
+         *[_signal(f"Health{name}", 8 + bit, 1, f"Health status 0x2010 sub 2 bit {bit}: "
+                   f"{text}.", choices=dict(enumerate(names)))
+           for bit, (name, text, names) in enumerate(status)],
+         _signal("HealthReserved", 11, 5, "Health status 0x2010 sub 2 bits 3..7: reserved, 0."),
+         _signal("ErrorNow", 16, 16, "Expected position error at the references now, "
+                 "manufacturer object 0x2010 sub 3, UNSIGNED16, 0.01 mm; 0xFFFF unknown.",
+                 scale=0.01, unit="mm", choices=unknown),
+         _signal("ErrorAtHorizon", 32, 16, "Expected position error at the references at the "
+                 f"horizon (health.horizon_days, {cfg.health.horizon_days:g} days), "
+                 "manufacturer object 0x2010 sub 4, UNSIGNED16, 0.01 mm; 0xFFFF unknown.",
+                 scale=0.01, unit="mm", choices=unknown),
+         _signal("DaysToTolerance", 48, 16, "Days until the expected error passes the "
+                 f"tolerance (health.tolerance_mm, {cfg.health.tolerance_mm:g} mm), "
+                 "manufacturer object 0x2010 sub 5, UNSIGNED16, 0.1 day; 0xFFFF not within the "
+                 "horizon.", scale=0.1, unit="d", choices={0xFFFF: "NotWithinHorizon"})],
+        f"Health of the {unit} unit from the daemon's day summaries, TPDO3 (0x380 + node "
+        f"{node_id}), event timer 0x1802 sub 5 ({timer_ms} ms), sent in the tick of a TPDO1. "
+        f"0x2010 sub 6..9 (days of evidence, the cause's parameter and its interval) are read "
+        f"over SDO. No RTR.", DAEMON, "Cyclic", timer_ms)
+
+
+def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int],
+                     cause_names: Sequence[str]) -> Iterator[Message]:
+    """The frames of ``unit``'s emulated CiA 406 sensor: TPDO1, TPDO2, TPDO3, heartbeat, EMCY,
+    SDO."""
     node_id = cfg.can.units[unit].sensor_node_id
     key = f"can.units.{unit}.sensor_node_id"
 
@@ -305,6 +347,8 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
         f"Diagnostics of the emulated {unit} sensor, TPDO2 (0x280 + node {node_id}), event "
         f"timer 0x1801 sub 5 ({timers_ms['diag']} ms), sent in the tick of a TPDO1. No RTR.",
         DAEMON, "Cyclic", timers_ms["diag"])
+    yield _health_message(cfg, unit, frame_id("health"), node_id, timers_ms["health"],
+                          cause_names)
     yield _message(
         frame_id("sensor_heartbeat"), message_name("sensor_heartbeat", unit), 1,
         [_nmt_state("NMT state of the sensor node (CiA 301 heartbeat byte).")],
@@ -323,18 +367,23 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
         frame_id("emcy"), message_name("emcy", unit), 8,
         [_signal("ErrorCode", 0, 16, "CiA 301 emergency error code; 0 = error reset (one fault "
                  "cleared, the register shows what remains). 8130 with FlagConcerned 0: the "
-                 "node's life guarding event (guard requests stopped for 0x100C x 0x100D ms).",
-                 choices={0: "ErrorReset", **dict(EMCY_CODES.values())}),
+                 "node's life guarding event (guard requests stopped for 0x100C x 0x100D ms). "
+                 "FF30 (FlagConcerned 0): maintenance due, the unit's health alarm (HEALTH "
+                 "frame HealthAlarm), a warning.",
+                 choices={0: "ErrorReset", **dict(EMCY_CODES.values()),
+                          MAINTENANCE_EMCY[0]: MAINTENANCE_EMCY[1]}),
          *register,
          _signal("FlagConcerned", 24, 8, "The status flag (0x2002 bit) that was set or cleared; "
                  "0 in an error reset that only brings the register up to date (a fault came "
-                 "and went within the inhibit time).",
+                 "and went within the inhibit time), and for the life guarding event and "
+                 "maintenance due.",
                  choices={int(f): camel(f.name or "") for f in EMCY_CODES}),
          *active,
          _signal("Reserved", 40, 24, "Manufacturer-specific error field bytes 5..7, 0.")],
         f"EMCY of the emulated {unit} sensor (0x1014: 0x80 + node {node_id}), sent when a fault "
-        f"flag is set (its error code) or cleared (error reset), at most one per inhibit time "
-        f"0x1015 ({timers_ms['inhibit']} ms), not in STOPPED.", DAEMON, "NoMsgSendType")
+        f"flag is set (its error code) or cleared (error reset), and so for the life guarding "
+        f"event and maintenance due, at most one per inhibit time 0x1015 "
+        f"({timers_ms['inhibit']} ms), not in STOPPED.", DAEMON, "NoMsgSendType")
     for kind, sender, receivers, text in (
             ("sdo_tx", DAEMON, (), f"SDO server response of the emulated {unit} sensor (0x580 + "
              f"node {node_id}); segment frames carry 7 data bytes after the command byte."),
@@ -350,7 +399,8 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
 def _template_timers_ms() -> dict[str, int]:
     """The sensor's timers the configuration leaves at the template EDS's defaults."""
     od = template_od()
-    return {"diag": od[0x1801][5].default, "heartbeat": od[0x1017].default,
+    return {"diag": od[0x1801][5].default, "health": od[0x1802][5].default,
+            "heartbeat": od[0x1017].default,
             "inhibit": od[0x1015].default // 10}          # 0x1015 counts 100 us
 
 
@@ -359,8 +409,8 @@ def _comments(cfg: Config) -> tuple[str, dict[str, str]]:
     source = Path(cfg.source).name
     text = ("ddh-vsensor: every frame the virtual position sensor reads or writes. CANopen "
             f"layout, little-endian. Generated by `ddh-vsensor dbc` from {source}: each frame ID "
-            "is the CANopen function code (0x080 EMCY, 0x180 TPDO1, 0x280 TPDO2, 0x580/0x600 "
-            "SDO, 0x700 heartbeat) plus the node ID configured in its can: section. "
+            "is the CANopen function code (0x080 EMCY, 0x180 TPDO1, 0x280 TPDO2, 0x380 TPDO3, "
+            "0x580/0x600 SDO, 0x700 heartbeat) plus the node ID configured in its can: section. "
             "Send types as Vector's interaction layer defines them: GenMsgSendType Cyclic "
             "(every GenMsgCycleTime ms) or NoMsgSendType (event frames: EMCY, SDO, NMT, SYNC); "
             "the I/O module frame also goes out on a change of its inputs (GenSigSendType "
@@ -386,11 +436,13 @@ def _comments(cfg: Config) -> tuple[str, dict[str, str]]:
     return text, nodes
 
 
-def machine_database(cfg: Config) -> Database:
+def machine_database(cfg: Config, cause_names: Sequence[str] = ()) -> Database:
     """Every frame the daemon reads or writes on this machine, as a cantools database.
 
-    Two frames on one ID (node IDs that collide, a Hall bit wired twice) are a ConfigError
-    naming the key that sets the second one.
+    ``cause_names``: the health frame's cause codes in order (code 0 first, "none"), as the
+    diagnosis catalogue numbers them (``diagnosis.causes.CAUSE_NAMES``), for its value
+    table; none given, the codes go without one. Two frames on one ID (node IDs that collide,
+    a Hall bit wired twice) are a ConfigError naming the key that sets the second one.
     """
     ids = _Ids(cfg)
     ids.owner[0x000] = NMT_COMMAND
@@ -430,7 +482,7 @@ def machine_database(cfg: Config) -> Database:
         "NoMsgSendType"))
     timers_ms = _template_timers_ms()
     for unit in units:
-        messages.extend(_sensor_messages(cfg, unit, ids, timers_ms))
+        messages.extend(_sensor_messages(cfg, unit, ids, timers_ms, cause_names))
     comment, node_comments = _comments(cfg)
     nodes = [Node(name, comment=text) for name, text in node_comments.items()]
     definitions = OrderedDict(GenMsgCycleTime=_CYCLE_TIME, GenMsgSendType=_SEND_TYPE,

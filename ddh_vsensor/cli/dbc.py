@@ -25,9 +25,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from ddh_vsensor.canbus.layout import machine_database
+    from ddh_vsensor.diagnosis.causes import CAUSE_NAMES
     cfg = config_from(args)
     output_file(args.out, "DBC")
-    db = machine_database(cfg)
+    db = machine_database(cfg, CAUSE_NAMES)     # the health frame's cause value table
     try:
         with atomic_path(args.out) as tmp:
             cantools.database.dump_file(db, str(tmp), database_format="dbc")

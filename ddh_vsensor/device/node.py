@@ -11,6 +11,19 @@ EDS shipped in the package, behaving as CiA 301 / CiA 406 describe for a generic
   UDINT; no 24-bit object) and the 16-bit one on an even byte. The rejected-frames counter
   is the one narrowed to fit 64 bits: a master differencing it stays right up to 255
   rejections per TPDO2 period, where a controller sends 10 frames in the default 100 ms.
+- TPDO3 (0x380 + node): the unit's health every 0x1802 sub 5 (EDS default 10000 ms; a master
+  may write 1..65535 ms, the lower bound TPDO1's), in the same tick as a TPDO1: 0x2010 sub 1
+  cause code (UNSIGNED8), sub 2 status (UNSIGNED8), sub 3 and 4 the expected error at the
+  references now and at the horizon (UNSIGNED16, 0.01 mm), sub 5 the days until the
+  tolerance (UNSIGNED16, 0.1 day), 64 bits.
+- Unit health 0x2010 (read only): :meth:`SensorNode.set_health` gives it (the service, from
+  the daemon's day summaries; None until one is computed), the node serves it live (SDO reads
+  and every TPDO it is mapped into), so NMT resets and boots keep it. Status bit 0 alarm (the
+  expected error passes the tolerance within the horizon), bit 1 too few days of evidence for
+  a trend, bit 2 no health yet; 0xFFFF: an error unknown, or the tolerance not passed within
+  the horizon; sub 6 days of evidence (UNSIGNED16), sub 7 the cause's parameter and sub 8/9
+  its interval (REAL32, NaN unknown: SDO only). The alarm is also an EMCY warning FF30
+  "maintenance due" (:mod:`.emcy`).
 - Identity 0x1018 and device name 0x1008: configuration (``can.vendor_id``,
   ``can.serial_number_base``, ...; :func:`ddh_vsensor.canbus.eds.unit_object_dictionary`).
 - PDO configuration by a master: :mod:`.pdo`; EMCY, error register 0x1001 and error field
@@ -19,7 +32,8 @@ EDS shipped in the package, behaving as CiA 301 / CiA 406 describe for a generic
 - NMT slave: boot-up, then PRE-OPERATIONAL, then OPERATIONAL if ``can.nmt_auto_start``.
   Reset communication restores the communication area (0x1000..0x1FFF) to its defaults,
   reset node everything; the estimate itself is the process value and is kept. PDOs go out
-  only while OPERATIONAL.
+  only while OPERATIONAL: every TPDO at the first tick there (after a boot or a start), then
+  each on its timer.
 - Heartbeat producer 0x1017 (EDS default 1000 ms); node guarding answered, life guarding
   with 0x100C x 0x100D: :mod:`.guarding`.
 - Consumer heartbeat time 0x1016 sub 1: the unit's motor controller, whose heartbeat the
@@ -43,9 +57,12 @@ EDS shipped in the package, behaving as CiA 301 / CiA 406 describe for a generic
 
 canopen's own timers (``PdoMap.start``, the NMT heartbeat task) run in threads on the bus and
 would keep a hung service looking alive; here the service's tick sends everything, so a
-heartbeat on the bus means the service loop is running. ``LocalNode`` TPDOs ignore SYNC: a
-TPDO a master made synchronous goes out from :meth:`SensorNode.on_sync`, which the service
-calls for every SYNC (COB-ID 0x1005, the pre-defined 0x80) on the node's bus.
+heartbeat on the bus means the service loop is running. Every TPDO (:data:`.pdo.TPDO_COMS`) is
+scheduled, configured, stored and restored the same way; TPDO2 and TPDO3 go out in ticks that
+send a TPDO1 (on its timer), every whole number of TPDO1 periods nearest their own timers.
+``LocalNode`` TPDOs ignore SYNC: a TPDO a master made synchronous goes out from
+:meth:`SensorNode.on_sync`, which the service calls for every SYNC (COB-ID 0x1005, the
+pre-defined 0x80) on the node's bus.
 """
 
 from __future__ import annotations
@@ -66,11 +83,13 @@ from ddh_vsensor.device.guarding import Guarding
 from ddh_vsensor.device.network import ServiceNetwork
 from ddh_vsensor.device.objects import (ABORT_MAX_BELOW_MIN, ABORT_NOT_STORED, ABORT_VALUE_RANGE,
                       ABORT_VALUE_TOO_HIGH, ABORT_VALUE_TOO_LOW, ALARM_POSITION_ERROR,
-                      CHANNEL_ARRAYS, COMM_AREA, INT16, INT32, LIVE_OBJECTS, PDO_INVALID,
-                      SPEED_STEP_MM_S, UNCERTAINTY_MAX_COUNTS, UNCERTAINTY_STEP_MM,
-                      WARNING_CLAMPED, WARNING_NO_REFERENCE, WARNING_SOFT_LIMIT, Published,
-                      clamp, raw, value_of)
-from ddh_vsensor.device.pdo import SYNC_TYPE_MAX, Getter, Packer, PdoConfig
+                      CHANNEL_ARRAYS, COMM_AREA, HEALTH, HEALTH_SUBS, INT16, INT32,
+                      LIVE_OBJECTS, PDO_INVALID, SPEED_STEP_MM_S, UNCERTAINTY_MAX_COUNTS,
+                      UNCERTAINTY_STEP_MM, WARNING_CLAMPED, WARNING_NO_REFERENCE,
+                      WARNING_SOFT_LIMIT, Health, Published, clamp, health_values, raw,
+                      value_of)
+from ddh_vsensor.device.pdo import (SYNC_TYPE_MAX, TPDO_COMS, TPDO_MAPS, Getter, Packer,
+                                    PdoConfig)
 from ddh_vsensor.device.pdo import log as pdo_log    # quiet while stored values replay
 from ddh_vsensor.device.sdo_gate import SdoGate
 from ddh_vsensor.device.storage import (ALL, COMMUNICATION, LOAD, SAVE, Key, ParameterStore,
@@ -81,7 +100,8 @@ log = logging.getLogger(__name__)
 SYNC_COB_ID = 0x80              # the pre-defined SYNC COB-ID the service routes to on_sync
 CYCLIC_TIMER = 0x6200           # CiA 406 cyclic timer (ms): TPDO1's event timer by another name
 STORE, RESTORE, CONSUMER_HEARTBEAT = 0x1010, 0x1011, 0x1016
-TPDO_COMS, TPDO_MAPS = (0x1800, 0x1801), (0x1A00, 0x1A01)
+HEALTH_TPDO = 2                 # TPDO3's place in the node's TPDOs (0-based)
+HEALTH_TIMER_MAX_MS = 0xFFFF    # TPDO3's event timer: any UNSIGNED16 but 0 (a slow TPDO)
 
 
 class _Warnings(logging.Filter):
@@ -120,16 +140,19 @@ class SensorNode:
         assert isinstance(node, canopen.LocalNode)
         self.node = node
         node.tpdo.read(from_od=True)
-        for pdo in (node.tpdo[1], node.tpdo[2]):
+        self.pdos = PdoConfig(node, actuator)
+        self.tpdos = self.pdos.tpdos                    # TPDO1..3
+        self.tpdo1, self.tpdo2, self.tpdo3 = self.tpdos
+        for pdo in self.tpdos:
             if pdo.cob_id in network.subscribers:       # we send these; never receive them
                 network.unsubscribe(pdo.cob_id, pdo.on_message)
-        self.pdos = PdoConfig(node, actuator)
-        self.tpdo1, self.tpdo2 = self.pdos.tpdo1, self.pdos.tpdo2
-        for pdo in (self.tpdo1, self.tpdo2):
             pdo.transmit = lambda pdo=pdo: self._transmit(pdo)   # type: ignore[method-assign]
         self.cob_ids = {"position": self.tpdo1.cob_id, "diag": self.tpdo2.cob_id,
+                        "health": self.tpdo3.cob_id,
                         "heartbeat": 0x700 + self.node_id, "sdo_tx": 0x580 + self.node_id,
                         "sdo_rx": 0x600 + self.node_id, "emcy": 0x80 + self.node_id}
+        self._health: Health | None = None
+        self._health_values = health_values(None)      # 0x2010 sub 0..9 as served
         self.auto_start = cfg.can.nmt_auto_start
         self.stroke_steps = round(self.stroke_mm / self.step_mm)
         # Settings from the config, stored as if written by a configuration tool: the
@@ -138,9 +161,10 @@ class SensorNode:
         self._configure(0x6005, 1, struct.pack("<I", round(self.step_mm * 1e6)))
         emcy_cob_id = self.cob_ids["emcy"] | (0 if cfg.can.emcy_enabled else PDO_INVALID)
         self._configure(0x1014, 0, struct.pack("<I", emcy_cob_id))
-        self.event_timer_ms = float(cfg.can.event_timer_ms)
+        # each TPDO's event timer (ms): TPDO1's from the config, the others the EDS's
+        self.timers_ms = [float(cfg.can.event_timer_ms)] + [
+            float(raw(node, com, 5)) for com in TPDO_COMS[1:]]
         self._configure(0x1800, 5, struct.pack("<H", max(1, round(self.event_timer_ms))))
-        self.diag_timer_ms = float(node.sdo[0x1801][5].raw)
         self.heartbeat = heartbeat
         # the controller 0x1016 names: the configuration's (the consumer's, if one is given)
         self.controller_node_id = heartbeat.node_id if heartbeat is not None else \
@@ -151,8 +175,10 @@ class SensorNode:
                                                       (1, 0xFFFF))))
         self.storage: ParameterStore | None = None
         self._stored: dict[Key, bytes] = {}     # stored by 0x1010: power-on values
-        self._every = (1, 10)               # ticks per TPDO1, per TPDO2 (set_tick)
-        self._next = (0, 0)                 # tick index at which each is due next
+        self._every: tuple[int, ...] = ()   # ticks per TPDO (set_tick)
+        self._restart = (0,) * len(self.tpdos)      # every TPDO due at once
+        self._next = self._restart          # tick index at which each is due next
+        self.set_tick(self.event_timer_ms)  # until the service sets its tick
         self.heartbeat_period_s = 0.0
         self._next_heartbeat_s: float | None = None
         self.on_timer_change: Callable[[], None] | None = None
@@ -175,6 +201,32 @@ class SensorNode:
         self.sdo_gate = SdoGate(node, network, self.cob_ids["sdo_tx"])
         self.presets = 0
 
+    # --- event timers (ms) of TPDO1, TPDO2 and TPDO3 ------------------------------------------
+
+    @property
+    def event_timer_ms(self) -> float:
+        return self.timers_ms[0]
+
+    @event_timer_ms.setter
+    def event_timer_ms(self, ms: float) -> None:
+        self.timers_ms[0] = ms
+
+    @property
+    def diag_timer_ms(self) -> float:
+        return self.timers_ms[1]
+
+    @diag_timer_ms.setter
+    def diag_timer_ms(self, ms: float) -> None:
+        self.timers_ms[1] = ms
+
+    @property
+    def health_timer_ms(self) -> float:
+        return self.timers_ms[HEALTH_TPDO]
+
+    @health_timer_ms.setter
+    def health_timer_ms(self, ms: float) -> None:
+        self.timers_ms[HEALTH_TPDO] = ms
+
     # --- NMT and heartbeat ---------------------------------------------------------------
 
     def _start_heartbeat(self, heartbeat_time_ms: int) -> None:
@@ -193,6 +245,7 @@ class SensorNode:
         nmt.send_command(0x80)          # -> PRE-OPERATIONAL: heartbeat from 0x1017
         if self.auto_start:
             nmt.send_command(0x01)      # -> OPERATIONAL
+        self._next = self._restart      # every TPDO at the first tick
         self.emcy.booted()
         self.guarding.reset()
         log.info("%s sensor node %d booted, %s", self.actuator, self.node_id, nmt.state)
@@ -213,7 +266,7 @@ class SensorNode:
         """Objects back to their power-on values (EDS defaults plus the config's settings):
         the communication area only, or everything; PDOs rebuilt, timers re-applied."""
         store = self.node.data_store
-        timers = {index: self.node.get_data(index, 5) for index in (0x1800, 0x1801)}
+        timers = {index: self.node.get_data(index, 5) for index in TPDO_COMS}
         for index in list(store):
             if not communication_only or index in COMM_AREA:
                 del store[index]
@@ -221,7 +274,7 @@ class SensorNode:
             if not communication_only or index in COMM_AREA:
                 store.setdefault(index, {})[subindex] = data
         if self._stored:
-            self.pdos.written.update((self.tpdo1, self.tpdo2))
+            self.pdos.written.update(self.tpdos)
         self.pdos.restore()                    # rebuilt only if a master or a store changed it
         self.emcy.reset()
         for index, before in timers.items():  # a changed timer: the path of an SDO write
@@ -290,6 +343,8 @@ class SensorNode:
             0x2004: lambda p: p.rejected_frames & 0xFF}
         if index in live:
             return live[index]
+        if index == HEALTH and 0 < subindex <= HEALTH_SUBS:     # the health as it is now
+            return lambda p: self._health_values[subindex]      # type: ignore[return-value]
         get_data, value = self.node.get_data, self._value
 
         def other(p: Published) -> int | None:
@@ -306,16 +361,16 @@ class SensorNode:
             self.network.send_message(pdo.cob_id, pdo.data)
 
     def set_tick(self, tick_ms: float) -> None:
-        """The service ticks every ``tick_ms``: TPDO1 every round(event timer / tick)
-        ticks, TPDO2 every round(its timer / tick) ticks, in a tick that also sends TPDO1.
-        A shorter timer takes effect at once: nothing already scheduled waits longer than
-        the new interval from the last tick."""
+        """The service ticks every ``tick_ms``: TPDO1 every round(event timer / tick) ticks,
+        TPDO2 and TPDO3 each every whole number of TPDO1 periods nearest its own timer, in a
+        tick that also sends TPDO1. A shorter timer takes effect at once: nothing already
+        scheduled waits longer than the new interval from the last tick."""
         pos = max(1, round(self.event_timer_ms / tick_ms))
-        diag = max(pos, round(self.diag_timer_ms / tick_ms / pos) * pos)
-        self._every = (pos, diag)
+        self._every = (pos, *(max(pos, round(ms / tick_ms / pos) * pos)
+                              for ms in self.timers_ms[1:]))
         if self._tick is not None:
-            self._next = (min(self._next[0], self._tick + pos),
-                          min(self._next[1], self._tick + diag))
+            self._next = tuple(min(due, self._tick + every)
+                               for due, every in zip(self._next, self._every))
 
     def due(self, tick_index: int) -> bool:
         """Whether :meth:`publish` at this tick sends the position (TPDO1 on its timer)."""
@@ -323,35 +378,33 @@ class SensorNode:
             self.tpdo1.trans_type > SYNC_TYPE_MAX
 
     def publish(self, p: Published, tick_index: int) -> int:
-        """TPDO1 (and TPDO2) if due at this tick and not synchronous; frames sent (none
-        unless OPERATIONAL)."""
+        """TPDO1 (and TPDO2, TPDO3) if due at this tick and not synchronous; frames sent
+        (none unless OPERATIONAL). The first tick in OPERATIONAL (after a boot, or a start
+        from PRE-OPERATIONAL or STOPPED) sends every TPDO, then each goes out on its timer:
+        a master starting the node sees the slow TPDO3 at once."""
         self._tick = tick_index
         if not self.operational:
+            self._next = self._restart
             return 0
-        next_pos, next_diag = self._next
-        if tick_index < next_pos:
+        if tick_index < self._next[0]:
             return 0
-        every_pos, every_diag = self._every
         sent = 0
-        if self.tpdo1.trans_type > SYNC_TYPE_MAX:
-            self.encode(p)
-            self.tpdo1.transmit()
-            sent += 1
-        if tick_index >= next_diag:
-            if self.tpdo2.trans_type > SYNC_TYPE_MAX:
-                self.encode_diag(p)
-                self.tpdo2.transmit()
+        due = list(self._next)      # all 0 after a boot or a stop: every TPDO goes out now
+        for k, (pdo, every) in enumerate(zip(self.tpdos, self._every)):
+            if tick_index < due[k]:             # TPDO2, TPDO3: not in this TPDO1's tick
+                continue
+            if pdo.trans_type > SYNC_TYPE_MAX:
+                self._encode(pdo, p)
+                pdo.transmit()
                 sent += 1
-            next_diag = tick_index + every_diag
-        self._next = (tick_index + every_pos, next_diag)
+            due[k] = tick_index + every
+        self._next = tuple(due)
         return sent
 
     @property
     def synchronous(self) -> bool:
         """Whether a valid TPDO goes out on SYNC."""
-        tpdo1, tpdo2 = self.tpdo1, self.tpdo2
-        return (tpdo1.enabled and tpdo1.trans_type <= SYNC_TYPE_MAX) or \
-            (tpdo2.enabled and tpdo2.trans_type <= SYNC_TYPE_MAX)
+        return any(pdo.enabled and pdo.trans_type <= SYNC_TYPE_MAX for pdo in self.tpdos)
 
     def on_sync(self) -> int:
         """A SYNC: the synchronous TPDOs that are due go out now with the estimate as it
@@ -363,7 +416,7 @@ class SensorNode:
         sent = 0
         p: Published | None = None
         pdos = self.pdos
-        for pdo in (self.tpdo1, self.tpdo2):
+        for pdo in self.tpdos:
             every = pdo.trans_type
             if every > SYNC_TYPE_MAX or not pdo.enabled:
                 continue
@@ -382,6 +435,22 @@ class SensorNode:
             sent += 1
         return sent
 
+    # --- health (0x2010, TPDO3, EMCY FF30) -----------------------------------------------------
+
+    def set_health(self, h: Health | None) -> None:
+        """The unit's health as of now (None: none computed yet): 0x2010 serves it from now
+        on, every TPDO it is mapped into carries it, and its alarm is the EMCY warning
+        "maintenance due" (FF30 as it begins, an error reset as it ends, with the next fault
+        report)."""
+        if h != self._health:
+            self._health = h
+            self._health_values = health_values(h)
+        self.emcy.maintenance(h is not None and h.alarm)
+
+    @property
+    def health(self) -> Health | None:
+        return self._health
+
     # --- SDO -------------------------------------------------------------------------------
 
     def _on_read(self, index: int, subindex: int, od: object) -> int | None:
@@ -391,16 +460,21 @@ class SensorNode:
             return self._value(index, subindex, None)
         if index == CYCLIC_TIMER:
             return struct.unpack("<H", self.node.get_data(0x1800, 5))[0]
+        if index == HEALTH:
+            return self._value(index, subindex, None)
         if index not in LIVE_OBJECTS or subindex != (1 if index in CHANNEL_ARRAYS else 0):
             return None
         return self._value(index, subindex, self.live())
 
-    def _value(self, index: int, subindex: int, p: Published | None) -> int | None:
-        """The value of an object that follows the estimate (None: a stored object)."""
+    def _value(self, index: int, subindex: int, p: Published | None) -> int | float | None:
+        """The value of an object that follows the estimate or the health (None: a stored
+        object)."""
         if index == 0x6501:                     # measuring step, as 0x6005 sub 1
             return struct.unpack("<I", self.node.get_data(0x6005, 1))[0]
         if index == 0x650A:                     # module identification: offset, min, max
             return {1: 0, 2: 0, 3: self.stroke_steps}.get(subindex)
+        if index == HEALTH:                     # the unit's health (sub 0: the EDS's)
+            return self._health_values[subindex] if 0 < subindex <= HEALTH_SUBS else None
         if p is None or index not in LIVE_OBJECTS:
             return None
         if index == 0x6020:
@@ -467,22 +541,20 @@ class SensorNode:
             # is don't care (CiA 301)
             if value_of(data) & ~PDO_INVALID != SYNC_COB_ID:
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
-        elif index in (0x1800, 0x1801) and subindex == 5 or index == CYCLIC_TIMER:
+        elif index in TPDO_COMS and subindex == 5 or index == CYCLIC_TIMER:
             ms = struct.unpack("<H", bytes(data))[0]
+            k = 0 if index == CYCLIC_TIMER else TPDO_COMS.index(index)
             lo, hi = self.event_timer_bounds_ms
+            if k == HEALTH_TPDO:            # a slow TPDO: any timer the object holds
+                hi = HEALTH_TIMER_MAX_MS
             if ms < lo or ms > hi:           # 0: this node only sends on a timer
                 log.warning("%s: TPDO%d event timer %d ms refused: outside %g..%g ms",
-                            self.actuator, 2 if index == 0x1801 else 1, ms, lo, hi)
+                            self.actuator, k + 1, ms, lo, hi)
                 raise SdoAbortedError(ABORT_VALUE_TOO_LOW if ms < lo else ABORT_VALUE_TOO_HIGH)
             if index == CYCLIC_TIMER:       # CiA 406's name for TPDO1's event timer
-                index = 0x1800
-                self.node.data_store.setdefault(index, {})[5] = bytes(data)
-            if index == 0x1800:
-                self.event_timer_ms = float(ms)
-            else:
-                self.diag_timer_ms = float(ms)
-            log.info("%s: TPDO%d event timer set to %d ms over SDO", self.actuator,
-                     1 if index == 0x1800 else 2, ms)
+                self.node.data_store.setdefault(0x1800, {})[5] = bytes(data)
+            self.timers_ms[k] = float(ms)
+            log.info("%s: TPDO%d event timer set to %d ms over SDO", self.actuator, k + 1, ms)
             if self.on_timer_change is not None:
                 self.on_timer_change()
 
@@ -574,7 +646,7 @@ class SensorNode:
             raise SdoAbortedError(ABORT_NOT_STORED) from None
         self._stored = kept
         if index == RESTORE:                # the next reset rebuilds the TPDOs from defaults
-            self.pdos.written.update((self.tpdo1, self.tpdo2))
+            self.pdos.written.update(self.tpdos)
         log.info("%s: %s parameters %s (0x%04X over SDO; %s)", self.actuator,
                  "all" if subindex == ALL else "communication",
                  "stored" if index == STORE else "back to their defaults from the next reset "

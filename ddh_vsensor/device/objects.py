@@ -1,8 +1,10 @@
 """The emulated sensor's object dictionary: CiA 301 abort codes, the objects whose value is
-the estimate, their encodings, and the record a node publishes from."""
+the estimate, their encodings, the record a node publishes from, and the unit's health as its
+node publishes it (record 0x2010, TPDO3, EMCY FF30)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import canopen
@@ -35,6 +37,20 @@ LIVE_OBJECTS = frozenset({0x1001, 0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6020
 CHANNEL_ARRAYS = frozenset({0x6020, 0x6030, 0x6400})     # CiA 406 per-channel: sub 1
 INT32 = (-(2 ** 31), 2 ** 31 - 1)
 INT16 = (-(2 ** 15), 2 ** 15 - 1)
+# The unit's health, manufacturer record 0x2010 (read only, served from the node's Health):
+# sub 1 cause code (UNSIGNED8), 2 status bits, 3 and 4 the expected error at the references
+# now and at the horizon (UNSIGNED16, 0.01 mm), 5 the days until the tolerance (UNSIGNED16,
+# 0.1 day), 6 days of evidence (UNSIGNED16), 7 the cause's parameter, 8 and 9 its interval
+# (REAL32). Sub 1..5 are TPDO3's default mapping (8 bytes).
+HEALTH = 0x2010
+HEALTH_SUBS = 9
+HEALTH_ALARM = 0x01                 # sub 2: the tolerance is passed within the horizon
+HEALTH_FEW_DAYS = 0x02              # sub 2: too few days of evidence for a trend
+HEALTH_NONE = 0x04                  # sub 2: no health computed yet
+HEALTH_ERROR_STEP_MM = 0.01         # sub 3, 4
+HEALTH_DAY_STEP = 0.1               # sub 5
+HEALTH_UNKNOWN = 0xFFFF             # sub 3, 4 unknown; sub 5 not within the horizon
+REAL32_MAX = 3.4028234663852886e38
 
 
 @dataclass(frozen=True)
@@ -47,6 +63,55 @@ class Published:
     flags: int
     input_frames: int
     rejected_frames: int
+
+
+@dataclass(frozen=True)
+class Health:
+    """One unit's health as its node publishes it (0x2010, TPDO3, EMCY FF30)."""
+
+    # 0 none, else the cause's index in diagnosis.causes.CAUSE_NAMES (the service converts:
+    # the device does not import diagnosis)
+    cause_code: int
+    alarm: bool                     # the expected error passes the tolerance within the horizon
+    days_needed: int                # days of evidence still missing to name a cause (0: enough)
+    days: int                       # days of evidence looked at
+    error_now_mm: float | None      # expected position error at the references now
+    error_projected_mm: float | None    # ... at the horizon
+    days_to_tolerance: float | None     # None: not within the horizon
+    value: float | None             # the cause's parameter
+    interval: tuple[float, float] | None
+
+
+def _steps(value: float | None, step: float) -> int:
+    """A non-negative UNSIGNED16 in ``step`` units; 0xFFFF for None (or not finite), values
+    beyond saturating at 0xFFFE so they never read as unknown."""
+    if value is None or not math.isfinite(value):
+        return HEALTH_UNKNOWN
+    return clamp(round(value / step), (0, HEALTH_UNKNOWN - 1))
+
+
+def _real32(value: float | None) -> float:
+    """A REAL32's value: NaN for None; beyond the type's range, its infinity."""
+    if value is None:
+        return math.nan
+    value = float(value)
+    return math.copysign(math.inf, value) if math.isfinite(value) and \
+        abs(value) > REAL32_MAX else value
+
+
+def health_values(h: Health | None) -> tuple[int | float | None, ...]:
+    """0x2010 sub 0..9 as the node serves them (sub 0, the EDS's constant, is None). No
+    health yet (None): status bit 2 only, the errors unknown, no days, NaN parameters."""
+    if h is None:
+        return (None, 0, HEALTH_NONE, HEALTH_UNKNOWN, HEALTH_UNKNOWN, HEALTH_UNKNOWN, 0,
+                math.nan, math.nan, math.nan)
+    status = (HEALTH_ALARM if h.alarm else 0) | (HEALTH_FEW_DAYS if h.days_needed > 0 else 0)
+    low, high = h.interval if h.interval is not None else (None, None)
+    return (None, clamp(h.cause_code, (0, 0xFF)), status,
+            _steps(h.error_now_mm, HEALTH_ERROR_STEP_MM),
+            _steps(h.error_projected_mm, HEALTH_ERROR_STEP_MM),
+            _steps(h.days_to_tolerance, HEALTH_DAY_STEP), clamp(h.days, (0, 0xFFFF)),
+            _real32(h.value), _real32(low), _real32(high))
 
 
 def clamp(value: int, bounds: tuple[int, int]) -> int:

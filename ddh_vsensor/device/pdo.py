@@ -4,7 +4,8 @@ any mappable object, set the transmission type: 254/255 on the event timer, 1..2
 SYNC, 0 at a SYNC after its data changed (:meth:`.SensorNode.on_sync`). Everything else is
 refused with its abort code: the COB-IDs stay the pre-defined ones the service routes and
 the DBC describes (no RTR, bit 30 set), no RTR-only or reserved types (241..253), inhibit
-time 0. The event timers (sub 5) are the node's.
+time 0. The event timers (sub 5) are the node's. All three TPDOs (position, diagnostics,
+health: :data:`TPDO_COMS`) are configured alike.
 
 A TPDO's data is packed every tick: canopen encodes each mapped variable through its object
 dictionary (tens of microseconds per frame), so each mapping is compiled once into
@@ -21,12 +22,15 @@ from typing import Any
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from ddh_vsensor.device.objects import (ABORT_MAP_LENGTH, ABORT_NOT_MAPPABLE, ABORT_UNSUPPORTED_ACCESS,
-                      ABORT_VALUE_RANGE, PDO_INVALID, PDO_NO_RTR, raw, value_of)
+from ddh_vsensor.device.objects import (ABORT_MAP_LENGTH, ABORT_NOT_MAPPABLE,
+                                        ABORT_UNSUPPORTED_ACCESS, ABORT_VALUE_RANGE,
+                                        PDO_INVALID, PDO_NO_RTR, raw, value_of)
 
 log = logging.getLogger(__name__)
 
 PDO_MAX_BITS = 64
+TPDO_COMS = (0x1800, 0x1801, 0x1802)            # TPDO1..3 communication parameters
+TPDO_MAPS = tuple(com + 0x200 for com in TPDO_COMS)     # ... and mapping parameters
 SYNC_TYPE_MAX = 240             # transmission types 0..240 are synchronous (CiA 301)
 DUMMY_INDEX_END = 0x20          # indices below are the data type dummies: mapped, never written
 
@@ -70,14 +74,19 @@ class Packer:
 
 
 class PdoConfig:
-    """TPDO1 and TPDO2 of one node and the writes to their communication (0x1800/0x1801
-    sub 1..3) and mapping (0x1A00/0x1A01) parameters; ``on_write`` is an object dictionary
-    write callback."""
+    """The TPDOs of one node (``tpdos``: TPDO1..3) and the writes to their communication
+    (0x1800.. sub 1..3) and mapping (0x1A00..) parameters; ``on_write`` is an object
+    dictionary write callback."""
 
     def __init__(self, node: canopen.LocalNode, name: str) -> None:
         self.node, self.name = node, name
-        self.tpdo1, self.tpdo2 = node.tpdo[1], node.tpdo[2]
-        self.predefined_cob_ids = {pdo: pdo.cob_id for pdo in (self.tpdo1, self.tpdo2)}
+        self.tpdos: tuple[canopen.pdo.PdoMap, ...] = tuple(
+            node.tpdo[n] for n in range(1, len(TPDO_COMS) + 1))
+        self.tpdo1, self.tpdo2, self.tpdo3 = self.tpdos
+        # communication or mapping parameter index -> its TPDO
+        self.by_index = {index: pdo for pdo, com, mapping in zip(self.tpdos, TPDO_COMS, TPDO_MAPS)
+                         for index in (com, mapping)}
+        self.predefined_cob_ids = {pdo: pdo.cob_id for pdo in self.tpdos}
         self.written: set[canopen.pdo.PdoMap] = set()   # configured over SDO since boot
         # compiled mappings (None: canopen encodes it); dropped whenever a mapping changes
         self.packers: dict[canopen.pdo.PdoMap, Packer | None] = {}
@@ -128,10 +137,11 @@ class PdoConfig:
         return bits
 
     def on_write(self, index: int, subindex: int, od: object, data: bytes) -> None:
-        if index in (0x1800, 0x1801, 0x1A00, 0x1A01):
-            self.written.add(self.tpdo1 if index in (0x1800, 0x1A00) else self.tpdo2)
-        if index in (0x1800, 0x1801):
-            pdo = self.tpdo1 if index == 0x1800 else self.tpdo2
+        pdo = self.by_index.get(index)
+        if pdo is None:
+            return
+        self.written.add(pdo)
+        if index in TPDO_COMS:
             value = value_of(data)
             if subindex == 1:
                 self.write_cob_id(pdo, value)
@@ -142,8 +152,7 @@ class PdoConfig:
                 self.syncs_counted.pop(pdo, None)
             elif subindex == 3 and value != 0:  # no inhibit time: the event timer paces
                 raise SdoAbortedError(ABORT_VALUE_RANGE)
-        elif index in (0x1A00, 0x1A01):
-            pdo = self.tpdo1 if index == 0x1A00 else self.tpdo2
+        else:
             value = value_of(data)
             if pdo.enabled or (subindex > 0 and raw(self.node, index, 0) != 0):
                 raise SdoAbortedError(ABORT_UNSUPPORTED_ACCESS)   # CiA 301 procedure

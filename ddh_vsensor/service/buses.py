@@ -11,8 +11,8 @@ from ddh_vsensor.config import DEFAULT_BUS, Config
 from ddh_vsensor.service.bus import bus_settings
 
 # A unit's own frames: its controller's and its emulated sensor's; they travel on its bus.
-UNIT_FRAME_KINDS = ("sevcon", "heartbeat", "position", "diag", "sensor_heartbeat", "emcy",
-                    "sdo_tx", "sdo_rx")
+UNIT_FRAME_KINDS = ("sevcon", "heartbeat", "position", "diag", "health", "sensor_heartbeat",
+                    "emcy", "sdo_tx", "sdo_rx")
 
 
 def machine_buses(cfg: Config, default: dict[str, Any]) -> dict[str, dict[str, Any]]:

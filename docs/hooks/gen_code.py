@@ -15,7 +15,7 @@ import yaml
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
 from ddh_vsensor.canbus.eds import unit_object_dictionary
-from ddh_vsensor.canbus.layout import EMCY_CODES
+from ddh_vsensor.canbus.layout import EMCY_CODES, MAINTENANCE_EMCY
 from ddh_vsensor.cli.config import schema_lines
 from ddh_vsensor.cli.main import build_parser
 from ddh_vsensor.config import load_config
@@ -142,7 +142,7 @@ def _variables(obj) -> list[ODVariable]:
 
 def _pdo_rows(od) -> list[list[object]]:
     rows = []
-    for n in (1, 2):
+    for n in range(1, 5):                       # the pre-defined TPDO1..4, those there are
         comm, mapping = od.get(0x1800 + n - 1), od.get(0x1A00 + n - 1)
         if comm is None or mapping is None:
             continue
@@ -207,8 +207,12 @@ def device_sheet() -> str:
                                 rows)]
     emcy = [[f"0x{code:04X}", camel, f"0x{int(flag):02X}", (flag.name or "").lower()]
             for flag, (code, camel) in EMCY_CODES.items()]
+    emcy.append([f"0x{MAINTENANCE_EMCY[0]:04X}", MAINTENANCE_EMCY[1], "0x00",
+                 "none: the health alarm (0x2010 sub 2 bit 0)"])
     out += ["## EMCY codes\n", ("One EMCY when a fault flag is set (its code), an error reset "
-            "(code 0x0000) when it clears. Flags not listed are states, not faults: no EMCY.\n"),
+            "(code 0x0000) when it clears. Flags not listed are states, not faults: no EMCY. "
+            "The unit's health alarm is no flag: a warning, maintenance due, while it lasts "
+            "(error register bits 0 and 7), the error reset when it ends.\n"),
             table(["code", "name", "flag", "flag name"], emcy)]
     return "\n".join(out)
 

@@ -88,6 +88,23 @@ def test_tpdo2_packs_like_the_diag_frame(sensor: tuple[str, canopen.LocalNode],
     assert bytes(tpdo.data) == bytes(expected.data)
 
 
+def test_tpdo3_packs_like_the_health_frame(sensor: tuple[str, canopen.LocalNode],
+                                           cfg: Config) -> None:
+    actuator, node = sensor
+    codec = FrameCodec(cfg)
+    tpdo = node.tpdo[3]
+    assert tpdo.enabled and tpdo.trans_type == 254 and tpdo.event_timer == 10000
+    assert tpdo.cob_id == codec.ids[message_name("health", actuator)]
+    assert [(v.index, v.subindex) for v in tpdo.map] == [(0x2010, sub) for sub in range(1, 6)]
+    for var, value in zip(tpdo.map, (4, 0x01, 123, 456, 0xFFFF)):
+        var.raw = value
+    expected = codec.messages[message_name("health", actuator)].encode(
+        {"CauseCode": 4, "HealthAlarm": 1, "HealthFewDays": 0, "HealthNotYet": 0,
+         "HealthReserved": 0, "ErrorNow": 1.23, "ErrorAtHorizon": 4.56,
+         "DaysToTolerance": 6553.5})
+    assert bytes(tpdo.data) == expected
+
+
 # --- the EDS generated per unit ------------------------------------------------------------
 
 CONFIGURED = {(0x6005, 1), (0x6501, 0), (0x650A, 3), (0x1800, 5), (0x1014, 0), (0x1008, 0),

@@ -11,9 +11,10 @@ from pathlib import Path
 import cantools
 import pytest
 
-from ddh_vsensor.canbus.layout import (IO_MODULE, KINDS, all_message_names, frame_ids,
-                                       machine_database, message_name)
+from ddh_vsensor.canbus.layout import (IO_MODULE, KINDS, MAINTENANCE_EMCY, all_message_names,
+                                       camel, frame_ids, machine_database, message_name)
 from ddh_vsensor.config import Config, ConfigError, load_config
+from ddh_vsensor.diagnosis.causes import CAUSE_NAMES
 from ddh_vsensor.estimator.flags import Flags
 
 from .conftest import REPO, machine
@@ -22,7 +23,8 @@ SHIPPED = REPO / "dbc" / "ddh_vsensor.dbc"
 PACKAGED = REPO / "ddh_vsensor" / "data" / "ddh_vsensor.dbc"
 HAND_WRITTEN = Path(__file__).parent / "data" / "handwritten_loader.dbc"
 FUNCTION_CODES = {"sevcon": 0x180, "heartbeat": 0x700, "position": 0x180, "diag": 0x280,
-                  "sensor_heartbeat": 0x700, "emcy": 0x080, "sdo_tx": 0x580, "sdo_rx": 0x600}
+                  "health": 0x380, "sensor_heartbeat": 0x700, "emcy": 0x080, "sdo_tx": 0x580,
+                  "sdo_rx": 0x600}
 
 # Comments deliberately reworded when the DBC became generated: (message, signal or None).
 REWORDED = {(None, None),                                        # the database's
@@ -36,9 +38,16 @@ REWORDED = {(None, None),                                        # the database'
             ("SENSOR_BOOM_HEARTBEAT", None),                      # node guarding answers
             ("SENSOR_BUCKET_HEARTBEAT", None),
             ("DIAG_BOOM_TPDO2", "Uncertainty"), ("DIAG_BUCKET_TPDO2", "Uncertainty"),  # 32 bits
-            ("DIAG_BOOM_TPDO2", "RejectedFrames"), ("DIAG_BUCKET_TPDO2", "RejectedFrames")}
-# Frames described since (the sensors consume SYNC), and the nodes whose comment says so.
-ADDED = {"SYNC"}
+            ("DIAG_BOOM_TPDO2", "RejectedFrames"), ("DIAG_BUCKET_TPDO2", "RejectedFrames"),
+            # maintenance due (the health alarm, FF30): the EMCY, its register bit 7
+            ("SENSOR_BOOM_EMCY", None), ("SENSOR_BUCKET_EMCY", None),
+            ("SENSOR_BOOM_EMCY", "RegisterManufacturer"),
+            ("SENSOR_BUCKET_EMCY", "RegisterManufacturer")}
+# Frames described since (the sensors consume SYNC, publish their unit's health), and the
+# nodes whose comment says so.
+ADDED = {"SYNC", "HEALTH_BOOM_TPDO3", "HEALTH_BUCKET_TPDO3"}
+# Value table entries added since: EMCY FF30 maintenance due.
+CHOICES_ADDED = {"ErrorCode": {MAINTENANCE_EMCY[0]: MAINTENANCE_EMCY[1]}}
 REWORDED_NODES = {"NMT_MASTER"}
 # Send types as Vector's interaction layer defines them (hand-written -> generated), and the
 # I/O module's refresh as its cycle time.
@@ -64,7 +73,7 @@ def test_packaged_dbc_is_a_relative_link_to_the_repo_dbc() -> None:
 
 
 def test_shipped_dbc_is_the_generated_one_byte_for_byte() -> None:
-    generated = machine_database(load_config()).as_dbc_string()
+    generated = machine_database(load_config(), CAUSE_NAMES).as_dbc_string()
     assert SHIPPED.read_bytes() == generated.encode("cp1252")     # cantools writes DBC so
 
 
@@ -103,7 +112,10 @@ def test_nothing_a_tool_relies_on_changed_from_the_hand_written_dbc() -> None:
                 {f: getattr(old_signal, f) for f in fields}, (was.name, signal.name)
             if diag:
                 assert (signal.start, signal.length) == DIAG_LAYOUT[signal.name], signal.name
-            assert _choices(signal) == _choices(old_signal), (was.name, signal.name)
+            expected = _choices(old_signal)
+            if expected is not None and signal.name in CHOICES_ADDED:
+                expected = {**expected, **CHOICES_ADDED[signal.name]}
+            assert _choices(signal) == expected, (was.name, signal.name)
             if signal.comment != old_signal.comment:
                 reworded.add((was.name, signal.name))
     if new.buses[0].comment != old.buses[0].comment:
@@ -275,3 +287,63 @@ def test_emcy_value_table_is_what_the_sensor_node_sends() -> None:
     from ddh_vsensor.device.emcy import EMCY_FAULTS
     assert {flag: code for flag, (code, _) in EMCY_CODES.items()} == \
         {flag: code for flag, (code, _) in EMCY_FAULTS.items()}
+
+
+# --- the unit's health (TPDO3) ------------------------------------------------------------------
+
+def test_health_frame_is_tpdo3_with_the_mapping_s_signals(any_machine: Config) -> None:
+    """HEALTH_<UNIT>_TPDO3: 0x380 + sensor node, the template EDS's TPDO3 mapping (0x2010 sub
+    1..5) signal for signal, scales and units; cycle time its event timer 0x1802 sub 5."""
+    from ddh_vsensor.canbus.eds import template_od
+    od = template_od()
+    db = machine_database(any_machine)
+    for unit in any_machine.unit_names:
+        message = db.get_message_by_name(message_name("health", unit))
+        assert message.frame_id == 0x380 + any_machine.can.units[unit].sensor_node_id
+        assert (message.length, message.send_type, message.cycle_time, message.senders) == \
+            (8, "Cyclic", od[0x1802][5].default, ["DDH_VSENSOR"])
+        mapped = [od[0x1A02][sub].default for sub in range(1, od[0x1A02][0].default + 1)]
+        assert [(e >> 16, (e >> 8) & 0xFF, e & 0xFF) for e in mapped] == \
+            [(0x2010, sub, bits) for sub, bits in ((1, 8), (2, 8), (3, 16), (4, 16), (5, 16))]
+        layout = {s.name: (s.start, s.length, s.scale, s.unit, s.is_signed)
+                  for s in message.signals}
+        assert layout == {
+            "CauseCode": (0, 8, 1, None, False),
+            "HealthAlarm": (8, 1, 1, None, False), "HealthFewDays": (9, 1, 1, None, False),
+            "HealthNotYet": (10, 1, 1, None, False), "HealthReserved": (11, 5, 1, None, False),
+            "ErrorNow": (16, 16, 0.01, "mm", False),
+            "ErrorAtHorizon": (32, 16, 0.01, "mm", False),
+            "DaysToTolerance": (48, 16, 0.1, "d", False)}
+        for name in ("ErrorNow", "ErrorAtHorizon", "DaysToTolerance"):
+            assert 0xFFFF in message.get_signal_by_name(name).choices, name
+        raw = bytes([3, 0x03]) + (125).to_bytes(2, "little") + (410).to_bytes(2, "little") \
+            + (0xFFFF).to_bytes(2, "little")
+        decoded = message.decode(raw, decode_choices=False)
+        assert decoded == pytest.approx({
+            "CauseCode": 3, "HealthAlarm": 1, "HealthFewDays": 1, "HealthNotYet": 0,
+            "HealthReserved": 0, "ErrorNow": 1.25, "ErrorAtHorizon": 4.10,
+            "DaysToTolerance": 6553.5})
+        assert str(message.decode(raw)["DaysToTolerance"]) == "NotWithinHorizon"
+
+
+def test_cause_value_table_is_the_names_the_caller_passes(cfg: Config) -> None:
+    """The layout does not import the diagnosis (a layer above): the cause names come in as an
+    argument, the CLI passes the catalogue's; without them the codes have no value table."""
+    bare = machine_database(cfg).get_message_by_name("HEALTH_BOOM_TPDO3")
+    assert bare.get_signal_by_name("CauseCode").choices is None
+    db = machine_database(cfg, CAUSE_NAMES)
+    cause = db.get_message_by_name("HEALTH_BOOM_TPDO3").get_signal_by_name("CauseCode")
+    assert _choices(cause) == {code: camel(name) for code, name in enumerate(CAUSE_NAMES)}
+    assert cause.choices[0] == "None" and len(CAUSE_NAMES) <= 256
+    shipped = cantools.database.load_file(str(SHIPPED))
+    assert _choices(shipped.get_message_by_name("HEALTH_BUCKET_TPDO3").get_signal_by_name(
+        "CauseCode")) == _choices(cause)
+
+
+def test_emcy_maintenance_due_is_in_the_value_table(cfg: Config) -> None:
+    from ddh_vsensor.device.emcy import MAINTENANCE_CODE, MAINTENANCE_REGISTER
+    emcy = machine_database(cfg).get_message_by_name("SENSOR_BOOM_EMCY")
+    assert emcy.get_signal_by_name("ErrorCode").choices[0xFF30] == "MaintenanceDue"
+    assert MAINTENANCE_CODE == MAINTENANCE_EMCY[0] == 0xFF30
+    assert MAINTENANCE_REGISTER == 0x81                 # generic and manufacturer
+    assert "maintenance due" in emcy.get_signal_by_name("RegisterManufacturer").comment

@@ -34,7 +34,7 @@ def test_dbc_of_the_reference_loader_is_the_shipped_file(tmp_path: Path, capsys)
     assert main(["dbc", "--config", str(REPO / "config" / "loader.yaml"), "--out",
                  str(out)]) == 0
     assert out.read_bytes() == (REPO / "dbc" / "ddh_vsensor.dbc").read_bytes()
-    assert "20 frames of 2 unit(s) (boom, bucket)" in capsys.readouterr().out
+    assert "22 frames of 2 unit(s) (boom, bucket)" in capsys.readouterr().out
 
 
 def test_dbc_of_another_machine(lift_tilt: Path, tmp_path: Path) -> None:
@@ -43,6 +43,8 @@ def test_dbc_of_another_machine(lift_tilt: Path, tmp_path: Path) -> None:
     db = cantools.database.load_file(str(out))
     assert db.get_message_by_name("POSITION_TILT_TPDO1").frame_id == 0x1B2
     assert not any("BOOM" in m.name for m in db.messages)
+    cause = db.get_message_by_name("HEALTH_TILT_TPDO3").get_signal_by_name("CauseCode")
+    assert cause.choices[0] == "None" and len(cause.choices) > 1    # the catalogue's causes
 
 
 def test_eds_of_each_unit(lift_tilt: Path, tmp_path: Path, capsys) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from ddh_vsensor.canbus.eds import unit_object_dictionary
-from ddh_vsensor.canbus.layout import EMCY_CODES
+from ddh_vsensor.canbus.layout import EMCY_CODES, MAINTENANCE_EMCY
 from ddh_vsensor.cli.config import schema_lines
 from ddh_vsensor.config import load_config
 from ddh_vsensor.estimator.flags import Flags
@@ -72,10 +72,12 @@ def test_device_sheet_is_the_eds(site: Path):
     od = unit_object_dictionary(cfg, cfg.unit_names[0])
     for obj in od.values():
         assert f"0x{obj.index:04X}" in text and obj.name in text, obj.name
-    for code, name in EMCY_CODES.values():
+    for code, name in [*EMCY_CODES.values(), MAINTENANCE_EMCY]:
         assert f"0x{code:04X}" in text and name in text
     tpdo1 = od[0x1800][1].default & 0x7FF          # the COB-ID the EDS gives TPDO1
     assert re.search(rf"TPDO1\s+0x{tpdo1:03X}\s", text)
+    tpdo3 = od[0x1802][1].default & 0x7FF
+    assert re.search(rf"TPDO3\s+0x{tpdo3:03X}\s", text)
 
 
 def test_flag_table_has_every_flag(site: Path):
