@@ -32,7 +32,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "uncertainty, flags, input counters, measuring step, timers; and, from "
                        "the service's state directory, whether each reference switch's travel "
                        "between its edges still matches its configured window and hysteresis. "
-                       "--preset writes the CiA 406 preset value (a manual reference) first.")
+                       "--preset writes the CiA 406 preset value (a manual reference) first. "
+                       "--health prints each unit's health as the service last judged it from "
+                       "its day summaries (no bus needed).")
     add_config_arg(p)
     add_bus_args(p)
     p.add_argument("--timeout", type=float, default=1.0, metavar="S",
@@ -43,6 +45,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--state-dir", metavar="DIR", help="the service's state directory, where it "
                    "records its reference switches' drift (default: $STATE_DIRECTORY, else "
                    f"{DEFAULT_STATE_DIR} where it exists, else $XDG_STATE_HOME/ddh-vsensor)")
+    p.add_argument("--health", action="store_true", help="each unit's health from the state "
+                   "directory (the cause its days point to, the expected error at the "
+                   "references, the days until it passes health.tolerance_mm); no SDO")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_run)
 
@@ -58,6 +63,10 @@ def _run(args: argparse.Namespace) -> int:
     cfg = config_from(args)
     presets = [(cfg.require_unit(unit), mm) for unit, mm in args.preset]
     state_dir = _state_dir(args.state_dir)
+    if args.health:
+        if presets:
+            raise UserError("--health reads the state directory only: no --preset with it")
+        return _print_health(cfg, state_dir, args.json)
     if not 0.01 <= args.timeout <= 60:
         raise UserError(f"--timeout {args.timeout}: outside 0.01..60 s")
     out: dict[str, Any] = {}
@@ -161,6 +170,29 @@ def switch_lines(switches: dict[str, Any] | None, problem: str | None) -> list[s
                           for span, v in s["spans"].items()) or "no pair measured yet"
         lines.append(f"switch {name:<7}{'DRIFTED' if s['drifted'] else 'ok':>10}  {spans}")
     return lines
+
+
+def _print_health(cfg: Config, state_dir: Path, as_json: bool) -> int:
+    from dataclasses import asdict
+
+    from ddh_vsensor.diagnosis.health import FILE, read_health
+    path = state_dir / FILE
+    try:
+        health = read_health(path)
+    except FileNotFoundError:
+        raise UserError(f"no health in {state_dir}: the service writes {FILE} with its day "
+                        "summaries (`run --machine`, with a --state-dir)") from None
+    except PermissionError:
+        raise UserError(f"cannot read {path}: permission denied (the service's state directory "
+                        "is its own: run status as root)") from None
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path} unusable: {exc}") from None
+    if as_json:
+        print(json.dumps({u: asdict(h) for u, h in health.items()}, indent=2))
+        return 0
+    for unit in cfg.unit_names:
+        print(f"{unit}: {health[unit].finding if unit in health else 'no health yet'}")
+    return 0
 
 
 def _no_answer(unit: str, node_id: int, exc: Exception) -> str:

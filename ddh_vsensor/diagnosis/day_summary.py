@@ -275,6 +275,7 @@ class DaySummaries:
         self.days: dict[str, Day] = {}
         self.notes: list[str] = []                # for the caller's log
         self.written: list[Path] = []
+        self.writes = 0                           # files written (the health follows them)
         self._saved_s = clock()
 
     # samples in
@@ -493,6 +494,7 @@ class DaySummaries:
             record.dirty = True
             self.notes.append(f"cannot write the day summary {path}: {exc}")
             return
+        self.writes += 1
         if path not in self.written:
             self.written.append(path)
 

@@ -14,7 +14,8 @@ One asyncio loop:
   heartbeats, the systemd watchdog (while the integration keeps up), READY once every bus is
   open, the systemd status, the estimates saved every ``state_save_interval_s`` (in a
   worker thread, atomically: :mod:`.persistence`), and with ``options.machine`` the day
-  summary's samples handed to its worker process (:mod:`.summary`);
+  summary's samples handed to its worker process (:mod:`.summary`), and the health it
+  judges from the summaries on the nodes (:mod:`.health`; the last one at start);
 - both ticks run straight from the loop's wake on the same deadlines (one wake where their
   periods meet), and the bus links read on the publishing tick's grid (:mod:`.bus`): the
   loop's wake-ups, not the per-frame work, were most of the service's CPU;
@@ -55,11 +56,12 @@ from ddh_vsensor.service.inputs import Inputs
 from ddh_vsensor.service.limits import LogLimiter, RateLimitedLog
 from ddh_vsensor.device.network import ServiceNetwork
 from ddh_vsensor.device.node import SensorNode
-from ddh_vsensor.device.objects import Published
+from ddh_vsensor.device.objects import Health, Published
 from ddh_vsensor.service.persistence import StateStore, write_states, write_switch_records
 from ddh_vsensor.service.scheduler import Tick, Ticker
 from ddh_vsensor.service.sdnotify import SystemdNotifier
-from ddh_vsensor.service.summary import SummaryRecorder
+from ddh_vsensor.service.health import load_health, node_health
+from ddh_vsensor.service.summary import HEALTH_FILE, SummaryRecorder
 from ddh_vsensor.service.unit_state import STALE_PERIODS, Unit
 
 log = logging.getLogger(__name__)
@@ -130,10 +132,14 @@ class Service:
             self._bus_nodes[cfg.can.units[actuator].bus].append(unit.node)
         self.states = StateStore(cfg, self.options.state_dir)
         self.summaries: SummaryRecorder | None = None
+        self._health_alarms: set[str] = set()
         if self.options.machine is not None and self.options.state_dir is not None:
-            self.summaries = SummaryRecorder(cfg, self.options.machine, self.options.state_dir)
+            self.summaries = SummaryRecorder(cfg, self.options.machine, self.options.state_dir,
+                                             on_health=self._on_health)
             for actuator, feed in self.summaries.feeds.items():
                 self.units[actuator].summary_feed = feed
+        if self.options.state_dir is not None:
+            self._set_health(load_health(Path(self.options.state_dir) / HEALTH_FILE))
         self.states.restore(self.units)
         for unit in self.units.values():
             unit.cap_uncertainty_at_stroke()
@@ -270,6 +276,26 @@ class Service:
         return unit.published(self.clock() if now is None else now)
 
     # --- run / stop ----------------------------------------------------------------------------
+
+    def _on_health(self, doc: dict) -> None:
+        try:
+            health = node_health(doc)
+        except ValueError as exc:
+            log.warning("health: the worker's document not taken (%s)", exc)
+            return
+        self._set_health(health)
+
+    def _set_health(self, health: dict[str, Health]) -> None:
+        for actuator, unit in self.units.items():
+            assert unit.node is not None
+            h = health.get(actuator)
+            if h is not None and h.alarm and actuator not in self._health_alarms:
+                log.warning("%s: maintenance due: the expected position error at the references "
+                            "passes %g mm within %g days (ddh-vsensor status --health)",
+                            actuator, self.cfg.health.tolerance_mm,
+                            self.cfg.health.horizon_days)
+            unit.node.set_health(h)
+        self._health_alarms = {a for a, h in health.items() if h.alarm}
 
     def request_stop(self, exit_code: int = 0) -> None:
         self._exit_code = max(self._exit_code, exit_code)

@@ -15,7 +15,9 @@ up after :data:`MAX_RESTARTS`; blocks wait for it in a queue, at most :data:`MAX
 A stop hands the worker the last samples and waits up to :data:`STOP_WAIT_S` for the day's
 file. A killed daemon loses the samples not yet handed over (up to :data:`BLOCK_S`): its
 worker, seeing its input end (or on SIGTERM), writes the day; a power cut loses what came
-since the worker last wrote it (:data:`SAVE_INTERVAL_S`).
+since the worker last wrote it (:data:`SAVE_INTERVAL_S`). The worker judges the machine's
+health whenever it writes a day (and as it starts) and hands it back: ``on_health`` gets it
+in the loop's thread (from :meth:`SummaryRecorder.ship`).
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ from ddh_vsensor.config import Config
 from ddh_vsensor.estimator.day_samples import (MACHINE_RE, SAVE_INTERVAL_S, SampleFeed,
                                               SummaryError, machine_name)
 from ddh_vsensor.errors import UserError
+
+HEALTH_FILE = "health.json"       # ddh_vsensor.diagnosis.health.FILE (not imported: the loop)
 
 log = logging.getLogger(__name__)
 
@@ -69,9 +73,12 @@ class SummaryRecorder:
 
     def __init__(self, cfg: Config, machine: str, state_dir: Path,
                  clock: Callable[[], float] = time.monotonic,
-                 save_interval_s: float = SAVE_INTERVAL_S) -> None:
+                 save_interval_s: float = SAVE_INTERVAL_S,
+                 on_health: Callable[[dict], None] | None = None) -> None:
         self.cfg, self.machine = cfg, machine_name(machine)
         self.directory = Path(state_dir) / SUBDIR
+        self.health_path = Path(state_dir) / HEALTH_FILE
+        self.on_health = on_health
         self.clock, self.save_interval_s = clock, save_interval_s
         self.feeds = {a: SampleFeed(list(cfg.unit(a).references_mm)) for a in cfg.can.units}
         self._worker: Worker | None = None
@@ -85,7 +92,7 @@ class SummaryRecorder:
         """Every :data:`BLOCK_S` (or now: ``force``), the kept samples to the worker; the
         worker's notes into the log."""
         if self._worker is not None:
-            self._worker.collect()
+            self._collect()
         now = self.clock()
         if not force and now < self._next_ship_s:
             return
@@ -121,7 +128,7 @@ class SummaryRecorder:
                         "from the day's file", worker.exitcode)
         try:
             self._worker = Worker(("start", self.cfg, self.machine, str(self.directory),
-                                   self.save_interval_s))
+                                   self.save_interval_s, str(self.health_path)))
         except OSError as exc:
             self.disabled = True
             log.error("day summary: cannot start its worker (%s); no day summaries", exc)
@@ -136,10 +143,17 @@ class SummaryRecorder:
         if worker is None:
             return True
         done = worker.close(wait_s)
+        self._collect()
         if not done:
             log.warning("day summary: the worker did not finish within %g s; the day's file "
                         "is as last written", wait_s)
         return done
+
+    def _collect(self) -> None:
+        assert self._worker is not None
+        for doc in self._worker.collect():
+            if self.on_health is not None:
+                self.on_health(doc)
 
 
 class Worker:
@@ -189,15 +203,19 @@ class Worker:
         except (OSError, ValueError, EOFError, pickle.UnpicklingError):
             pass
 
-    def collect(self) -> None:
-        """The worker's answers so far: blocks done, notes to log."""
+    def collect(self) -> list[dict]:
+        """The worker's answers so far: blocks done, notes logged; the health documents it
+        handed over, oldest first."""
+        health = []
         while True:
             try:
                 kind, text = self._in.get_nowait()
             except queue.Empty:
-                return
+                return health
             if kind == "done":
                 self.queued = max(self.queued - 1, 0)
+            elif kind == "health":
+                health.append(text)
             elif kind == "warning":
                 log.warning("day summary: %s", text)
             else:
@@ -214,7 +232,6 @@ class Worker:
             self.process.kill()
             self.process.wait()
         self._reader.join(1.0)
-        self.collect()
         return self.process.returncode == 0
 
 

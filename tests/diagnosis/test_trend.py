@@ -6,44 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ddh_vsensor.diagnosis.evidence import GRIDS
 from ddh_vsensor.diagnosis.trend import DAY_S, unit_trend
 
-T0 = 1.767e9
-
-
-def rows(true_u_per_day, cause="pump_leakage", others=("displacement", "time_offset"),
-         noise=0.02, seed=0, mm_per_u=8.0):
-    """Per day and cause a row as :mod:`ddh_vsensor.fleet.analysis` writes it: squared error
-    of 20 observations around the day's true parameter (log scale for factors)."""
-    return mixed_rows({cause: (mm_per_u, true_u_per_day)}, others, noise, seed)
-
-
-def mixed_rows(shown, others, noise, seed):
-    """Rows where each cause of ``shown`` (cause -> (mm per unit, true parameter per day))
-    shows in the references and the ``others`` explain nothing."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for day in range(len(next(iter(shown.values()))[1])):
-        obs = {c: (m, u[day] + rng.normal(0.0, noise)) for c, (m, u) in shown.items()}
-        sse_nominal = 20.0 * (1.0 + sum((m * v) ** 2 for m, v in obs.values()))
-        for c in (*shown, *others):
-            grid = np.asarray(GRIDS[c], float)
-            gu = np.log(grid) if c in ("pump_leakage", "displacement") else grid
-            if c in obs:
-                m, v = obs[c]
-                rest = sum((mm * vv) ** 2 for cc, (mm, vv) in obs.items() if cc != c)
-                sse = 20.0 * (1.0 + (m * (gu - v)) ** 2 + rest)
-                emax = m * np.abs(gu)
-            else:                               # explains nothing
-                sse = np.full(len(grid), sse_nominal) + 5.0 * gu ** 2
-                emax = np.abs(gu)
-            out.append({"cause": c, "grid": list(grid), "loss": list(sse),
-                        "emax_mm": list(emax), "n_obs": 20, "loss_nominal": sse_nominal,
-                        "max_increment_mm": 1.0, "time_s": T0 + day * DAY_S,
-                        "log_id": f"d{day}"})
-    return out
-
+from ..conftest import T0, mixed_rows, rows
 
 def test_a_rising_leakage_is_named_and_alarmed_before_it_crosses():
     days = np.arange(30)
