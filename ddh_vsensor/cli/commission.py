@@ -195,7 +195,7 @@ def _measure_baseline(cfg: Config, machine: Config, text: str, source: str,
         bar.update(done[0] / len(names), what)
         done[0] += 1
 
-    base = measure(leave_one_out(runs, fit), machine.physics_hash(), LEAVE_ONE_OUT, names,
+    base = measure(leave_one_out(runs, fit), machine.estimate_hash(), LEAVE_ONE_OUT, names,
                    resolve_mode(machine, None), progress=progress)
     bar.close(f"{len(names)} run files held out")
     return base

@@ -115,7 +115,7 @@ class UnitBaseline:
 
 @dataclass(frozen=True)
 class Baseline:
-    config_hash: str                # the commissioned configuration's physics hash
+    config_hash: str                # the commissioned configuration's estimate hash
     mode: str                       # the estimator mode the residuals are of
     created: str                    # ISO 8601, UTC
     held_out: str                   # how the runs were held out
@@ -258,7 +258,7 @@ def measure_fixed(cfg: Config, runs: Mapping[str, Sequence[Run]], mode: str | No
                   segment_s: float = POSITION_SEGMENT_S) -> Baseline:
     """The baseline of a configuration not fitted to ``runs`` (every run is held out)."""
     names = list(dict.fromkeys(r.source for rs in runs.values() for r in rs))
-    return measure([(cfg, runs)], cfg.physics_hash(), NOT_FITTED, names,
+    return measure([(cfg, runs)], cfg.estimate_hash(), NOT_FITTED, names,
                    resolve_mode(cfg, mode), segment_s)
 
 
@@ -367,11 +367,13 @@ def read(path: str | Path) -> Baseline:
 
 def for_analysis(path: str | Path, cfg: Config, unit: str, mode: str) -> OwnError:
     """The unit's own error from the baseline at ``path``, checked against the analysis: the
-    same configuration (physics hash), the unit present, the same estimator mode."""
+    same configuration (:meth:`Config.estimate_hash`: the physics, the switches, the drive's
+    reading, the estimator), the unit present, the same estimator mode."""
     base = read(path)
-    if base.config_hash != cfg.physics_hash():
-        raise UserError(f"{path}: the baseline of another configuration (hash "
-                        f"{base.config_hash[:12]}, this one's {cfg.physics_hash()[:12]}): "
+    if base.config_hash != cfg.estimate_hash():
+        raise UserError(f"{path}: the baseline of another configuration (its physics, "
+                        "switches, drive reading or estimator settings differ; hash "
+                        f"{base.config_hash[:12]}, this one's {cfg.estimate_hash()[:12]}): "
                         "give the baseline commission wrote with this configuration")
     if unit not in base.units or not base.units[unit].kinds:
         have = ", ".join(u for u, b in base.units.items() if b.kinds) or "none"

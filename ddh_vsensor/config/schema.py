@@ -655,6 +655,18 @@ class Config:
         blob = json.dumps(data, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
+    def estimate_hash(self) -> str:
+        """Hash of everything an estimate of a recorded run depends on: the physics, the
+        reference switches, the drive's torque reading, the bands of what is known (the
+        Kalman filter's) and the estimator's settings; not the buses, the CAN layout, the
+        handling of faults or the health. What was measured of an estimate (a diagnosis
+        baseline) holds for this hash only."""
+        data = dataclasses.asdict(self)
+        for key in ("bus", "buses", "can", "faults", "health", "work_cycle", "source"):
+            data.pop(key)
+        blob = json.dumps(data, sort_keys=True, default=str).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
 
 
 def _drop_unset(section: dict[str, Any], cls: type) -> None:

@@ -52,7 +52,7 @@ def test_commission_writes_the_baseline_beside_the_configuration(commissioned,
                                                                   calibration_csvs) -> None:
     out, data = commissioned
     assert data["format"] == FORMAT and data["format_version"] == FORMAT_VERSION
-    assert data["config_hash"] == load_config(out).physics_hash()
+    assert data["config_hash"] == load_config(out).estimate_hash()
     assert data["mode"] == load_config(out).estimator.mode
     assert data["held_out"] == LEAVE_ONE_OUT
     assert data["runs"] == calibration_csvs
@@ -126,6 +126,7 @@ def _bad(data: dict, tmp_path: Path, name: str, edit) -> Path:
     ("format", "not a baseline file"),
     ("version", "baseline format version 2; this ddh-vsensor reads version 1"),
     ("hash", "the baseline of another configuration"),
+    ("switch moved", "switches, drive reading or estimator settings differ"),
     ("unit", "no baseline for the bucket (units in it: boom)"),
     ("mode", "measured in dynamic mode, the analysis is in full: analyze with --mode dynamic"),
     ("malformed", "units.boom.position.rms_mm must be a number >= 0"),
@@ -145,6 +146,17 @@ def test_a_bad_baseline_is_one_line(commissioned, calibration_csvs, tmp_path, ca
         path = _bad(data, tmp_path, "v.json", lambda d: d.update(format_version=2))
     elif case == "hash":
         path = _bad(data, tmp_path, "h.json", lambda d: d.update(config_hash="0" * 16))
+    elif case == "switch moved":          # same physics, a reference switch 2 mm further
+        path = out.with_name("machine.baseline.json")
+        text = out.read_text()
+        moved = tmp_path / "moved.yaml"
+        cfg = load_config(out)
+        ref, mm = next(iter(cfg.unit("boom").references_mm.items()))
+        moved.write_text(text.replace(f"{ref}: {mm:g}", f"{ref}: {mm + 2.0:g}", 1))
+        changed = load_config(moved)
+        assert changed.unit("boom").references_mm[ref] == mm + 2.0
+        assert changed.physics_hash() == cfg.physics_hash()
+        out = moved
     elif case == "unit":
         path, unit = out.with_name("machine.baseline.json"), "bucket"
     elif case == "mode":
