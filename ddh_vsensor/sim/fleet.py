@@ -8,9 +8,10 @@ I/O module's (a time offset growing from a day on: the sensor chain drifting).
 Wear rates: drawn is the time from the onset until the expected position error first
 exceeds :data:`CROSS_MM` (2..3 weeks, uniform, whole days); the rate is then solved for from
 the worn unit's own sensitivity on the machine's own days (the error per unit of the
-parameter on each day's work, payload and oil; :func:`expected_error_mm` takes the median
-over a day and the two before, as the analysis does) and, for leakage, from the unit's own
-base factor. The day-to-day scatter of the work moves the first crossing a few days either
+parameter on each day's work, payload and oil, as the analysis sees the day: its log, or
+with day summaries its sessions' mean; :func:`expected_error_mm` takes the median over a day
+and the two before, as the analysis does) and, for leakage, from the unit's own base
+factor. The day-to-day scatter of the work moves the first crossing a few days either
 way of the drawn one. A fixed rate per effect would not do: a time offset's error grows with
 the unit's speeds, a leakage's with its load, oil and pumps, so the faster unit would cross
 within a week of the onset and no warning could come a week ahead of it.
@@ -130,6 +131,7 @@ def plan_fleet(cfg: Config, machines: int, days: int, seed: int = 0,
         raise UserError(f"a day's work {work_s:g} s: 0 (no summaries) or {log_s:g} (the log) "
                         f"..{3600.0 * HOURS_PER_DAY:g} s")
     units = cfg.unit_names
+    sessions = max(1, round(work_s / log_s)) if work_s else 1
     rng = np.random.default_rng([seed, 7])
     n_wear = int(round(wear_share * machines))
     wearing = set(rng.choice(machines, size=n_wear, replace=False).tolist()) if n_wear else set()
@@ -147,19 +149,21 @@ def plan_fleet(cfg: Config, machines: int, days: int, seed: int = 0,
             drawn = (actuator, effect, start, round(7.0 * weeks))
         plan = MachinePlan(f"M{m:02d}", base, None, seed=int(rng.integers(2 ** 31)))
         if drawn is not None:
-            plan = replace(plan, wear=_wear_crossing(cfg, seed, plan, *drawn, log_s, cross_mm))
+            plan = replace(plan, wear=_wear_crossing(cfg, seed, plan, *drawn, log_s, cross_mm,
+                                                     sessions))
         plans.append(plan)
     return FleetPlan(plans, days, seed, log_s, work_s)
 
 
 def _wear_crossing(cfg: Config, seed: int, plan: MachinePlan, actuator: str, effect: str,
-                   start: int, after_days: int, log_s: float, cross_mm: float) -> Wear:
+                   start: int, after_days: int, log_s: float, cross_mm: float,
+                   sessions: int = 1) -> Wear:
     """The wear that takes the error from the unit's base value to ``cross_mm``
     ``after_days`` after the onset at the unit's median sensitivity over those days (the
     error is linear in the parameter's distance from neutral; the day-to-day scatter of
     the work moves the first crossing by a few days either way)."""
     sens = float(np.median([_day_sensitivity_mm(cfg, actuator, effect, seed, plan.seed, d,
-                                                log_s)
+                                                log_s, sessions)
                             for d in range(start, start + after_days + 1)]))
     neutral = getattr(UnitEffects(), effect)
     crossing = neutral + cross_mm / sens
@@ -176,18 +180,24 @@ def expected_error_mm(cfg: Config, plan: FleetPlan, machine: MachinePlan, day: i
     if w is None:
         return 0.0
     neutral = getattr(UnitEffects(), w.effect)
+    sessions = plan.sessions if plan.work_s else 1
     return float(np.median([
-        _day_sensitivity_mm(cfg, w.actuator, w.effect, plan.seed, machine.seed, d, plan.log_s)
+        _day_sensitivity_mm(cfg, w.actuator, w.effect, plan.seed, machine.seed, d, plan.log_s,
+                            sessions)
         * abs(getattr(machine.effects(d)[w.actuator], w.effect) - neutral)
         for d in range(max(0, day - 2), day + 1)]))
 
 
 def _day_sensitivity_mm(cfg: Config, unit: str, effect: str, fleet_seed: int,
-                        machine_seed: int, day: int, log_s: float) -> float:
+                        machine_seed: int, day: int, log_s: float, sessions: int = 1
+                        ) -> float:
     """Expected position error per unit of the wear's parameter (per second of time offset,
-    per 1.0 of leakage factor) on one day of a machine's work (the day's profile, payload
-    and oil of :func:`day_spec`): the largest change the wear makes to an edge-to-edge
-    increment of the estimate (0 with fewer than two Hall edges: nothing to change).
+    per 1.0 of leakage factor) on one day of a machine's work as the analysis sees it: the
+    mean over the day's ``sessions`` (the logged one alone without day summaries; a day
+    summary's rows are its stretches' mean) of each session's largest change the wear makes
+    to an edge-to-edge increment of the estimate (0 with fewer than two Hall edges: nothing
+    to change). The later sessions' oil is warmer and their payloads their own, so a day's
+    work as the daemon sees it is more sensitive to a leakage than its first minutes.
 
     A time offset shifts the logged speed against the Hall edges: an increment changes by
     the offset times the difference of the speeds at its two edges. Extra leakage lets the
@@ -196,9 +206,15 @@ def _day_sensitivity_mm(cfg: Config, unit: str, effect: str, fleet_seed: int,
     time between its edges. Both from the configuration and the steady-state model."""
     if effect not in ("time_offset", "pump_leakage"):
         raise ValueError(f"no wear sensitivity for {effect!r}")
+    return float(np.mean([
+        _session_sensitivity_mm(cfg, unit, effect,
+                                *_conditions(cfg, fleet_seed, machine_seed, day, j, log_s)[:3])
+        for j in range(sessions)]))
+
+
+def _session_sensitivity_mm(cfg: Config, unit: str, effect: str, oil_start_c: float,
+                            profile: Profile, payload_kg: float) -> float:
     ucfg = cfg.unit(unit)
-    rng = np.random.default_rng([fleet_seed, machine_seed, day])
-    morning_c, profile, payload_kg = _day_conditions(cfg, rng, log_s)
     t = np.arange(0.0, profile.duration_s, SAMPLE_S)
     x_mm, v_mm_s = profile.trajectories[unit].evaluate(t)
     changed = np.zeros(len(t), bool)
@@ -212,7 +228,7 @@ def _day_sensitivity_mm(cfg: Config, unit: str, effect: str, fleet_seed: int,
         return float(np.max(np.abs(np.diff(v_mm_s[edges]))))
     nominal = DDHUnit.from_config(cfg, unit)
     worn = nominal.with_pumps(leakage=2.0)
-    oil_c = morning_c + OIL_WARMING_C_PER_S * profile.duration_s / 2
+    oil_c = oil_start_c + OIL_WARMING_C_PER_S * profile.duration_s / 2
     force = nominal.load_force_n(payload_kg)
     n = holding_speed(worn, force, oil_c).speed_rpm
     torque = steady_state(worn, n, force, oil_c).torque_nm
@@ -252,30 +268,38 @@ def _day_conditions(cfg: Config, rng: np.random.Generator, log_s: float
     return morning_c, profile, float(rng.choice(PAYLOADS_KG))
 
 
+def _conditions(cfg: Config, fleet_seed: int, machine_seed: int, day: int, session: int,
+                log_s: float) -> tuple[float, Profile, float, int]:
+    """A session's oil at its start (degC), work, payload (kg) and noise seed: the first is
+    the day's morning (the logged session), each later its own moves and payload, its oil
+    warmer (see the module's docstring)."""
+    rng = np.random.default_rng([fleet_seed, machine_seed, day])
+    morning_c, profile, payload_kg = _day_conditions(cfg, rng, log_s)
+    seed = int(rng.integers(2 ** 31))
+    if session == 0:
+        return morning_c, profile, payload_kg, seed
+    rng = np.random.default_rng([fleet_seed, machine_seed, day, session])
+    oil_c = morning_c + (WORKING_OIL_C - morning_c) * (1.0 - np.exp(-session / WARMUP_SESSIONS))
+    profile = work_profile(cfg, rng, log_s)
+    payload_kg = float(rng.choice(PAYLOADS_KG))
+    return float(oil_c), profile, payload_kg, int(rng.integers(2 ** 31))
+
+
 def day_spec(cfg: Config, plan: FleetPlan, machine: MachinePlan, day: int) -> RunSpec:
-    rng = np.random.default_rng([plan.seed, machine.seed, day])
-    morning_c, profile, payload_kg = _day_conditions(cfg, rng, plan.log_s)
-    return RunSpec(cycle=profile, payload_kg=payload_kg,
-                   oil_temp_c=morning_c, effects=machine.effects(day),
-                   seed=int(rng.integers(2 ** 31)),
-                   sensors=replace(SensorSettings(),
-                                   oil_temp_drift_c_per_s=OIL_WARMING_C_PER_S),
-                   step_s=STEP_S)
+    """A day's logged session."""
+    return session_spec(cfg, plan, machine, day, 0)
 
 
 def session_spec(cfg: Config, plan: FleetPlan, machine: MachinePlan, day: int,
                  session: int) -> RunSpec:
-    """A day's session of work: the first is the logged one (:func:`day_spec`), each later
-    its own moves and payload, its oil warmer (see the module's docstring)."""
-    spec = day_spec(cfg, plan, machine, day)
-    if session == 0:
-        return spec
-    rng = np.random.default_rng([plan.seed, machine.seed, day, session])
-    oil_c = spec.oil_temp_c + (WORKING_OIL_C - spec.oil_temp_c) * (
-        1.0 - np.exp(-session / WARMUP_SESSIONS))
-    return replace(spec, cycle=work_profile(cfg, rng, plan.log_s),
-                   payload_kg=float(rng.choice(PAYLOADS_KG)), oil_temp_c=float(oil_c),
-                   seed=int(rng.integers(2 ** 31)))
+    """A day's session of work (:func:`_conditions`) with the machine's effects of the day."""
+    oil_c, profile, payload_kg, seed = _conditions(cfg, plan.seed, machine.seed, day, session,
+                                                   plan.log_s)
+    return RunSpec(cycle=profile, payload_kg=payload_kg, oil_temp_c=oil_c,
+                   effects=machine.effects(day), seed=seed,
+                   sensors=replace(SensorSettings(),
+                                   oil_temp_drift_c_per_s=OIL_WARMING_C_PER_S),
+                   step_s=STEP_S)
 
 
 def session_start_s(plan: FleetPlan, day: int, session: int) -> float:
