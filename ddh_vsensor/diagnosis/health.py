@@ -132,6 +132,7 @@ def document(cfg: Config, machine: str, health: Mapping[str, UnitHealth]) -> dic
 
 
 def write_health(path: Path, doc: Mapping[str, Any]) -> None:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(path) as fh:
         fh.write(json.dumps(doc, indent=1) + "\n")
 

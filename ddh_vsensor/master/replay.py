@@ -173,14 +173,16 @@ def _input_frames(cfg: Config, runs: Mapping[str, Run]) -> Iterator[can.Message]
 
 def _heartbeats(cfg: Config, runs: Mapping[str, Run],
                 period_s: float) -> Iterator[can.Message]:
-    """Every unit's controller reporting OPERATIONAL every ``period_s`` from 0 s to the end
-    of the longest run (the IDs the log writers use: :func:`.io.log.heartbeat_ids`)."""
+    """Every unit's controller reporting OPERATIONAL every ``period_s`` from the first sample
+    to the end of the longest run (the IDs the log writers use: :func:`.io.log.heartbeat_ids`;
+    runs on the wall clock start at 1.7e9 s, not 0)."""
     import numpy as np
 
     from ddh_vsensor.io.log import NMT_OPERATIONAL, heartbeat_ids
     ids = heartbeat_ids(cfg, list(runs))
+    start = min(float(r.time_s[0]) for r in runs.values())
     end = max(float(r.time_s[-1]) for r in runs.values())
-    for t in np.arange(0.0, end + 1e-9, period_s).tolist():
+    for t in (start + np.arange(0.0, end - start + 1e-9, period_s)).tolist():
         for frame_id in ids:
             yield can.Message(timestamp=t, arbitration_id=frame_id, is_extended_id=False,
                               data=bytes([NMT_OPERATIONAL]))
