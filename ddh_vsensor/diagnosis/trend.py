@@ -23,7 +23,10 @@ young wear does. An alarm is raised when that cause's trend takes that error pas
 tolerance within the horizon (beyond the days the trend was fitted on at the slope's
 conservative bound, :data:`EXTRAPOLATION_SE` standard errors nearer zero: a week of logs
 says how fast a parameter moves over that week, no more), or when a named cause has it there
-already. A trend is caught
+already. An alarm, once raised, holds for :data:`HOLD_DAYS` (with the figures of the day it
+was last raised) unless the evidence raises it again: a trend near the tolerance's horizon
+is judged over and over on noisy days, and a warning that comes and goes with them reads as
+noise to whoever acts on it (alarm management's off-delay). A trend is caught
 while the error is still small against the nominal model's own ~1 mm at the references, so
 its cause cannot yet explain the :data:`MIN_SCORE` share that naming a cause asks for; the
 significant slope, the positive held-out score and the projected error together do.
@@ -46,6 +49,7 @@ MIN_LOGS = 7                    # a week of daily logs before anything is named
 SLOPE_T = 4.0                   # |slope| / its standard error for a trend to count
 EXTRAPOLATION_SE = 2.0          # beyond its days, a trend goes on at |slope| - this x its se
 TREND_SCORE = 0.05              # held-out score a trending cause needs for an alarm
+HOLD_DAYS = 3                   # an alarm holds this many days after the evidence raised it
 PENALTY_PER_PARAMETER = 0.02
 LEVEL = 0.90
 DAY_S = 86400.0
@@ -286,4 +290,16 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
                                     t_now + over[0] * DAY_S))
         else:
             out.alarms.append(None)
+    return _held(out)
+
+
+def _held(out: UnitTrend) -> UnitTrend:
+    """Each day without an alarm of its own keeps the last one raised fewer than
+    :data:`HOLD_DAYS` calendar days before it."""
+    raised: Alarm | None = None
+    for i, (t, alarm) in enumerate(zip(out.times_s, out.alarms)):
+        if alarm is not None:
+            raised = alarm
+        elif raised is not None and t // DAY_S - raised.time_s // DAY_S < HOLD_DAYS:
+            out.alarms[i] = raised
     return out

@@ -117,3 +117,21 @@ def test_a_fit_at_a_grid_end_has_no_place_on_the_line():
     u[2], var[2] = -5.0, np.inf
     _, b, _ = _line(t, u, var)
     assert abs(b - 0.1) < 1e-9
+
+
+def test_an_alarm_holds_for_hold_days_unless_raised_again():
+    """A trend near the horizon judged on noisy days raises and drops its alarm from day to
+    day; each day without one keeps the last raised fewer than HOLD_DAYS days before."""
+    from ddh_vsensor.diagnosis.trend import HOLD_DAYS, Alarm, UnitTrend, _held
+    days = 10
+    out = UnitTrend("M", "boom", times_s=[T0 + d * DAY_S + 3600.0 * (d % 3)
+                                          for d in range(days)])
+    raised = {2, 3, 7}
+    out.alarms = [Alarm(out.times_s[d], "pump_leakage", 1.3, 2.0, 3.5,
+                        out.times_s[d] + 5 * DAY_S) if d in raised else None
+                  for d in range(days)]
+    held = _held(out).alarms
+    on = [d for d, a in enumerate(held) if a is not None]
+    assert HOLD_DAYS == 3
+    assert on == [2, 3, 4, 5, 7, 8, 9]
+    assert held[5] is held[3] and held[9] is held[7]
