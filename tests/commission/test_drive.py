@@ -20,13 +20,22 @@ DRIVE = UnitEffects(torque_offset=1.5, torque_speed_offset=2.0, torque_lag=3.0)
 
 
 @pytest.fixture(scope="module")
-def calibration(cfg: Config) -> dict[str, list]:
+def runs(cfg: Config) -> dict[str, dict]:
     """One calibration run, full payload at 25 degC, on a plant with the drive above and on
-    a true one."""
-    runs = simulate_campaign(cfg, [
-        RunSpec(cycle=calibration_cycle(cfg), payload_kg=1040.0, oil_temp_c=25.0,
-                effects={a: e for a in cfg.unit_names}) for e in (DRIVE, UnitEffects())])
-    return {"drive": runs[0], "true": runs[1]}
+    a true one; the paper cycle at 27 degC with 1040 kg on that drive. Simulated in one
+    lockstep batch (its rows are independent: each run as simulated alone)."""
+    calibration = [RunSpec(cycle=calibration_cycle(cfg), payload_kg=1040.0, oil_temp_c=25.0,
+                           effects={a: e for a in cfg.unit_names})
+                   for e in (DRIVE, UnitEffects())]
+    paper = RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=27.0,
+                    effects={a: DRIVE for a in cfg.unit_names})
+    drive, true, work = simulate_campaign(cfg, [*calibration, paper])
+    return {"drive": drive, "true": true, "paper": work}
+
+
+@pytest.fixture(scope="module")
+def calibration(runs: dict[str, dict]) -> dict[str, dict]:
+    return {"drive": runs["drive"], "true": runs["true"]}
 
 
 def test_the_drives_offset_speed_offset_and_filter_are_found(cfg, calibration) -> None:
@@ -47,17 +56,15 @@ def test_without_logged_pressures_nothing_is_measured(cfg, calibration) -> None:
     assert not fit.measured and fit.why_not == NOT_MEASURED
 
 
-def test_the_filter_given_the_measured_drive_errs_less(cfg) -> None:
+def test_the_filter_given_the_measured_drive_errs_less(cfg, runs) -> None:
     """The paper cycle at 27 degC with 1040 kg on that drive, no references. Measured: worst
     boom / bucket 0.63 / 1.22 mm with the drive's reading taken as the shaft's torque, 0.11 /
     0.49 mm with its measured offsets and filter (the bucket's own error on the nominal plant
     is 0.3-0.5 mm); none beyond its uncertainty unflagged either way."""
-    runs = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=27.0,
-                                           effects={a: DRIVE for a in cfg.unit_names})])
     measured = dataclasses.replace(cfg, units={n: dataclasses.replace(u, motor=dataclasses.replace(
         u.motor, torque_offset_nm=1.5, torque_speed_offset_nm=2.0, torque_filter_s=0.003,
         torque_offset_tolerance_nm=0.05)) for n, u in cfg.units.items()})
-    jobs = [(a, runs[0][a]) for a in cfg.unit_names]
+    jobs = [(a, runs["paper"][a]) for a in cfg.unit_names]
     worst = {}
     for name, c in (("exact", cfg), ("measured", measured)):
         res = kalman.run_many(c, jobs, references=False,

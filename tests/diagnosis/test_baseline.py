@@ -7,6 +7,9 @@ fitted to them): a drive that reports its torque as real drives do (lagged, ripp
 with speed: the typical values of ``sim.effects.STRUCTURE_TYPICAL``), and pumps leaking 10 %
 through orifices. And the baseline of our simulator's own nominal runs, which changes no
 decision the other tests check.
+
+Every campaign the module analyses is simulated once, all in one lockstep batch
+(:func:`.conftest.simulate_trials`: each run as ``simulate_trial`` gives it alone).
 """
 
 from __future__ import annotations
@@ -26,11 +29,11 @@ from ddh_vsensor.diagnosis.reference_fit import diagnose_references
 from ddh_vsensor.diagnosis.references import reference_run
 from ddh_vsensor.diagnosis.runs import prepare_run
 from ddh_vsensor.diagnosis.selection import OWN_ERROR_RMS_MM
-from ddh_vsensor.diagnosis.trials import Trial, draw_trial, simulate_trial, write_trial
+from ddh_vsensor.diagnosis.trials import Trial, draw_trial, write_trial
 from ddh_vsensor.measured import Run
 from ddh_vsensor.sim.effects import STRUCTURE_TYPICAL
 
-from .conftest import BASE_SEED
+from .conftest import BASE_SEED, simulate_trials
 from .test_references import CASES
 
 REPO = Path(__file__).resolve().parents[2]
@@ -42,24 +45,56 @@ SEED = 6101                     # the analysed runs
 LEAKAGE = 2.5
 
 
-def _runs(cfg: Config, structure: dict[str, float], seed: int, cycle: str = "paper",
-          more: tuple[tuple[str, float], ...] = ()) -> list[dict[str, Run]]:
+def _trial(structure: dict[str, float], seed: int, cycle: str = "paper",
+           more: tuple[tuple[str, float], ...] = ()) -> Trial:
     """A campaign of the plant (payloads 0 and 1040 kg, two oil temperatures, 8 runs)."""
     base = draw_trial(seed, "none", cycle=cycle)
-    trial = Trial(seed, "none", None, base.speeds, base.oil_temps_c, cycle,
-                  tuple(structure.items()) + more)
-    return [{a: dataclasses.replace(r, source=f"{seed}-{cycle}-{i}") for a, r in run.items()}
-            for i, run in enumerate(simulate_trial(cfg, trial))]
+    return Trial(seed, "none", None, base.speeds, base.oil_temps_c, cycle,
+                 tuple(structure.items()) + more)
 
 
-def _baseline(cfg: Config, structure: dict[str, float], seed: int) -> Baseline:
-    runs = _runs(cfg, structure, seed) + _runs(cfg, structure, seed, "random")
+def _sourced(trial: Trial, runs: list[dict[str, Run]]) -> list[dict[str, Run]]:
+    return [{a: dataclasses.replace(r, source=f"{trial.seed}-{trial.cycle}-{i}")
+             for a, r in run.items()} for i, run in enumerate(runs)]
+
+
+def _baseline_trials(structure: dict[str, float], seed: int) -> list[Trial]:
+    """The plant's effect-free runs a baseline is measured on: paper and random cycles."""
+    return [_trial(structure, seed), _trial(structure, seed, "random")]
+
+
+# the campaigns of the references' cases checked against the simulator's baseline
+# (a named cause and none: the two answers a raised threshold could change)
+REFERENCE_CASES = [c for c in CASES if c[0] in ("pump_leakage", "none")]
+
+
+@pytest.fixture(scope="module")
+def plants(cfg: Config) -> dict[object, list[dict[str, Run]]]:
+    """Every campaign of the module, simulated in one batch: name -> runs."""
+    trials: dict[object, list[Trial]] = {
+        "drive baseline": _baseline_trials(DRIVE, BASELINE_SEED),
+        "orifice baseline": _baseline_trials(ORIFICE, BASELINE_SEED),
+        "simulator baseline": _baseline_trials({}, BASE_SEED + 997),
+        "drive leaking": [_trial(DRIVE, SEED, more=(("boom.pump_leakage", LEAKAGE),))],
+        "orifice": [_trial(ORIFICE, SEED)],
+        "drive torque gain": [_trial(DRIVE, SEED, more=(("boom.torque_gain", 1.12),))],
+    }
+    cases = {(effect, seed): draw_trial(seed, effect) for effect, _, seed in REFERENCE_CASES}
+    runs = iter(simulate_trials(cfg, [t for ts in trials.values() for t in ts]
+                                + list(cases.values())))
+    out: dict[object, list[dict[str, Run]]] = {
+        name: [r for t in ts for r in _sourced(t, next(runs))] for name, ts in trials.items()}
+    out.update({key: next(runs) for key in cases})     # as simulate_trial hands them over
+    return out
+
+
+def _baseline(cfg: Config, runs: list[dict[str, Run]]) -> Baseline:
     return measure_fixed(cfg, {a: [r[a] for r in runs] for a in cfg.unit_names})
 
 
 @pytest.fixture(scope="module")
-def drive_baseline(cfg: Config, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return _baseline(cfg, DRIVE, BASELINE_SEED).save(
+def drive_baseline(cfg: Config, plants, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _baseline(cfg, plants["drive baseline"]).save(
         tmp_path_factory.mktemp("drive") / "machine.baseline.json")
 
 
@@ -69,15 +104,14 @@ def _analyze(paths: list[Path], out: Path, *extra: str) -> dict:
     return json.loads((out / "report.json").read_text())
 
 
-def test_a_real_cause_is_named_against_the_machines_own_error(cfg, drive_baseline, tmp_path,
-                                                              capsys):
+def test_a_real_cause_is_named_against_the_machines_own_error(cfg, plants, drive_baseline,
+                                                              tmp_path, capsys):
     """The drive's torque on this plant reads 1.1-1.25 x the chamber pressures' torque
     without any effect, far beyond the simulator's 2 %. A pump leaking 2.5 x on the boom is
     fitted (2.51) but no set agrees with the pressures, so the answer is unexplained; read
     against the plant's own line (its baseline: 1.166 x -3.95 N*m, within 5.4 % and 1.5 N*m),
     the leakage is named (2.513)."""
-    paths = write_trial(_runs(cfg, DRIVE, SEED, more=(("boom.pump_leakage", LEAKAGE),)),
-                        tmp_path / "runs")["boom"]
+    paths = write_trial(plants["drive leaking"], tmp_path / "runs")["boom"]
     simulator = _analyze(paths, tmp_path / "simulator")
     said = capsys.readouterr().out
     assert simulator["cause"] == "unexplained", simulator["ranking"][:3]
@@ -103,13 +137,13 @@ def test_a_real_cause_is_named_against_the_machines_own_error(cfg, drive_baselin
     assert "thresholds: the machine" in (tmp_path / "machine" / "report.html").read_text()
 
 
-def test_effect_free_runs_of_a_machine_that_errs_more_are_none(cfg, tmp_path):
+def test_effect_free_runs_of_a_machine_that_errs_more_are_none(cfg, plants):
     """Pumps leaking 10 % through orifices: on effect-free runs the nominal model errs
     1.4 mm RMS, beyond the simulator's 0.5 mm, and a residual model explains it: unexplained.
     Its baseline (1.5 mm RMS on the plant's other runs) makes that the machine's own error:
     none, for the causes these runs could show."""
-    own = _baseline(cfg, ORIFICE, BASELINE_SEED).units["boom"].own_error("orifice plant")
-    runs = [prepare_run(r["boom"]) for r in _runs(cfg, ORIFICE, SEED)]
+    own = _baseline(cfg, plants["orifice baseline"]).units["boom"].own_error("orifice plant")
+    runs = [prepare_run(r["boom"]) for r in plants["orifice"]]
     simulator = diagnose(cfg, "boom", runs)
     assert simulator.cause == "unexplained", simulator.decision.reason
     assert simulator.decision.rms_before_mm > OWN_ERROR_RMS_MM
@@ -119,14 +153,14 @@ def test_effect_free_runs_of_a_machine_that_errs_more_are_none(cfg, tmp_path):
     assert "this machine's baseline" in machine.decision.reason
 
 
-def test_torque_gain_against_leakage_from_references_and_holds(cfg, drive_baseline):
+def test_torque_gain_against_leakage_from_references_and_holds(cfg, plants, drive_baseline):
     """From the Hall edges and holds alone (the paper cycle: no press against a relief
     valve, no pressures), a drive reading its torque 12 % high moves the references and the
     holds' creep as a leakage of x0.89 does: on the simulator's exact model the two differ by
     a few hundredths of a millimetre and torque_gain is named; against the plant's own
     error (its baseline: 0.16 mm RMS on these references) they cannot be told apart, and the
     answer says what would."""
-    runs = _runs(cfg, DRIVE, SEED, more=(("boom.torque_gain", 1.12),))
+    runs = plants["drive torque gain"]
     rruns = [reference_run(cfg, "boom", r["boom"]) for r in runs]
     simulator = diagnose_references(cfg, "boom", rruns)
     assert simulator.cause == "torque_gain", simulator.decision.reason
@@ -141,9 +175,10 @@ def test_torque_gain_against_leakage_from_references_and_holds(cfg, drive_baseli
 
 
 @pytest.fixture(scope="module")
-def simulator_baseline(cfg: Config, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def simulator_baseline(cfg: Config, plants,
+                       tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The baseline of our simulator's nominal runs (another seed than every campaign's)."""
-    return _baseline(cfg, {}, BASE_SEED + 997).save(
+    return _baseline(cfg, plants["simulator baseline"]).save(
         tmp_path_factory.mktemp("simulator") / "loader.baseline.json")
 
 
@@ -164,12 +199,11 @@ def test_our_simulators_baseline_changes_no_decision(campaigns, simulator_baseli
     assert after["not_observable"] == before["not_observable"]
 
 
-# a named cause and none: the two answers a raised threshold could change
-@pytest.mark.parametrize("effect,actuator,seed", [c for c in CASES
-                                                  if c[0] in ("pump_leakage", "none")])
-def test_our_simulators_baseline_changes_no_decision_from_references(cfg, simulator_baseline,
+@pytest.mark.parametrize("effect,actuator,seed", REFERENCE_CASES)
+def test_our_simulators_baseline_changes_no_decision_from_references(cfg, plants,
+                                                                     simulator_baseline,
                                                                      effect, actuator, seed):
-    runs = simulate_trial(cfg, draw_trial(seed, effect))
+    runs = plants[(effect, seed)]
     rruns = [reference_run(cfg, actuator, r[actuator]) for r in runs]
     own = read(simulator_baseline).units[actuator].own_error(str(simulator_baseline))
     before = diagnose_references(cfg, actuator, rruns)

@@ -13,12 +13,14 @@ import pyarrow.parquet as pq
 from ddh_vsensor.cli.main import main
 from ddh_vsensor.fleet.store import Store
 
-from .conftest import DAYS, MACHINES
+from .conftest import DAYS, MACHINES, linked_copy
 
 
 def test_summaries_stand_for_their_days_logs(fleet_logs, fleet_summaries, local_store,
                                               tmp_path, capsys):
     store = tmp_path / "store"
+    # the tables the logs' fits are made on, as the fleet's store has them (built there)
+    linked_copy(local_store[0] / "tables", store / "tables")
     assert main(["fleet", "ingest", str(fleet_logs), str(fleet_summaries), "--store",
                  str(store), "--workers", "1"]) == 0
     out = capsys.readouterr().out
