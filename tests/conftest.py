@@ -10,8 +10,11 @@ import os
 # Set before numpy is first imported in a worker; where it already was, this changes nothing.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import contextlib
 import datetime as dt
-from collections.abc import Callable
+import fcntl
+import shutil
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -148,3 +151,43 @@ def wear_days(cfg: Config) -> Callable[[int], list[dict]]:
     11) and whose bucket's stay 5 % off."""
     boom, bucket = cfg.unit_names[:2]
     return lambda days: day_docs(cfg, {boom: wearing(days), bucket: steady(days)})
+
+
+# --- built once per run --------------------------------------------------------------------
+
+
+def shared_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The run's temporary directory every pytest-xdist worker shares (without xdist the
+    session's own)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@contextlib.contextmanager
+def built_once(path: Path) -> Iterator[bool]:
+    """Whether the caller has to build ``path`` (True: it does, under a lock every worker
+    of the run takes; False: another process built it, complete). A build that fails
+    leaves it to the next caller."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    complete = path.with_name(path.name + ".complete")
+    with open(path.with_name(path.name + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if complete.exists():
+            yield False
+            return
+        if path.exists():
+            shutil.rmtree(path)
+        yield True
+        complete.touch()
+
+
+@pytest.fixture(scope="session")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """:func:`shared_root`, for test packages that cannot import this module."""
+    return shared_root(tmp_path_factory)
+
+
+@pytest.fixture(scope="session")
+def build_once() -> Callable[[Path], contextlib.AbstractContextManager[bool]]:
+    """:func:`built_once`, for test packages that cannot import this module."""
+    return built_once

@@ -19,14 +19,11 @@ several test files that analyse the same campaign do not each simulate and analy
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
-import fcntl
 import hashlib
 import json
 import os
-import shutil
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +34,8 @@ from ddh_vsensor.config import Config
 from ddh_vsensor.diagnosis.trials import (EFFECT_NAMES, OUTSIDE_NAMES, Trial, draw_magnitude,
                                           draw_trial, simulate_trial, write_trial)
 from ddh_vsensor.measured import Run
+
+from ..conftest import built_once, shared_root
 
 BASE_SEED = int(os.environ.get("DDH_DIAGNOSIS_SEED", "20260"))
 SENSOR_CAUSES = ("torque_gain", "torque_offset", "oil_temp_offset", "position_scale")
@@ -94,31 +93,6 @@ def simulate_trials(cfg: Config, trials: Sequence[Trial]) -> list[list[dict[str,
         "simulate_trial no longer hands over simulate_campaign's runs as they are"
     runs = iter(simulate_campaign(cfg, [spec for s in specs for spec in s]))
     return [[next(runs) for _ in s] for s in specs]
-
-
-def shared_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The run's temporary directory every pytest-xdist worker shares (without xdist the
-    session's own)."""
-    base = tmp_path_factory.getbasetemp()
-    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
-
-
-@contextlib.contextmanager
-def built_once(path: Path) -> Iterator[bool]:
-    """Whether the caller has to build ``path`` (True: it does, under a lock every worker
-    of the run takes; False: another process built it, complete). A build that fails
-    leaves it to the next caller."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    complete = path.with_name(path.name + ".complete")
-    with open(path.with_name(path.name + ".lock"), "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if complete.exists():
-            yield False
-            return
-        if path.exists():
-            shutil.rmtree(path)
-        yield True
-        complete.touch()
 
 
 class Campaigns:

@@ -2,19 +2,16 @@
 (session-wide: the fleet tests share it), and day summaries of its logs.
 
 The fleet's logs and its store are made once per run of the suite: under pytest-xdist in a
-directory every worker of the run shares (:func:`built_once`); each worker's tests get
-their own copy of the store (hard links: the store writes each file anew and renames it into
-place, so nothing a test does to its copy reaches another's).
+directory every worker of the run shares (``build_once``, tests/conftest.py); each worker's
+tests get their own copy of the store (hard links: the store writes each file anew and
+renames it into place, so nothing a test does to its copy reaches another's).
 """
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import json
 import os
 import shutil
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -22,31 +19,6 @@ import pytest
 from ddh_vsensor.cli.main import main
 
 MACHINES, DAYS, LOG_S, SEED = 3, 3, 30, 11
-
-
-def shared_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The run's temporary directory every pytest-xdist worker shares (without xdist the
-    session's own)."""
-    base = tmp_path_factory.getbasetemp()
-    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
-
-
-@contextlib.contextmanager
-def built_once(path: Path) -> Iterator[bool]:
-    """Whether the caller has to build ``path`` (True: it does, under a lock every worker
-    of the run takes; False: another process built it, complete). A build that fails
-    leaves it to the next caller."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    complete = path.with_name(path.name + ".complete")
-    with open(path.with_name(path.name + ".lock"), "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if complete.exists():
-            yield False
-            return
-        if path.exists():
-            shutil.rmtree(path)
-        yield True
-        complete.touch()
 
 
 def linked_copy(source: Path, target: Path) -> Path:
@@ -57,9 +29,9 @@ def linked_copy(source: Path, target: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
-def fleet_logs(tmp_path_factory) -> Path:
-    out = shared_root(tmp_path_factory) / "fleet" / "logs"
-    with built_once(out) as build:
+def fleet_logs(run_dir, build_once) -> Path:
+    out = run_dir / "fleet" / "logs"
+    with build_once(out) as build:
         if build:
             assert main(["simulate", "fleet", "--machines", str(MACHINES), "--days",
                          str(DAYS), "--log-s", str(LOG_S), "--seed", str(SEED), "--out",
@@ -68,10 +40,10 @@ def fleet_logs(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def local_store(fleet_logs, tmp_path_factory) -> tuple[Path, dict]:
+def local_store(fleet_logs, build_once, tmp_path_factory) -> tuple[Path, dict]:
     """The fleet ingested and reported on the default LocalCluster (this worker's copy)."""
     shared = fleet_logs.parent / "local"
-    with built_once(shared) as build:
+    with build_once(shared) as build:
         if build:
             assert main(["fleet", "ingest", str(fleet_logs), "--store",
                          str(shared / "store")]) == 0
