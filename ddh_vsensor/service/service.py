@@ -132,7 +132,6 @@ class Service:
             self._bus_nodes[cfg.can.units[actuator].bus].append(unit.node)
         self.states = StateStore(cfg, self.options.state_dir)
         self.summaries: SummaryRecorder | None = None
-        self._health_alarms: set[str] = set()
         if self.options.machine is not None and self.options.state_dir is not None:
             self.summaries = SummaryRecorder(cfg, self.options.machine, self.options.state_dir,
                                              on_health=self._on_health)
@@ -295,7 +294,12 @@ class Service:
                             actuator, self.cfg.health.tolerance_mm,
                             self.cfg.health.horizon_days)
             unit.node.set_health(h)
-        self._health_alarms = {a for a, h in health.items() if h.alarm}
+
+    @property
+    def _health_alarms(self) -> set[str]:
+        """The units whose node publishes a maintenance due."""
+        return {a for a, u in self.units.items()
+                if u.node is not None and u.node.health is not None and u.node.health.alarm}
 
     def request_stop(self, exit_code: int = 0) -> None:
         self._exit_code = max(self._exit_code, exit_code)

@@ -57,6 +57,17 @@ def integrate(service: Service, frames: list) -> None:
         service.ingest.handle([msg], msg.timestamp)
 
 
+def handed_over(recorder):
+    """The worker, once it has taken every block shipped now (bounded wait)."""
+    recorder.ship(force=True)
+    worker = recorder._worker
+    deadline = time.monotonic() + WORKER_WAIT_S
+    while worker.queued and time.monotonic() < deadline:
+        time.sleep(0.05)
+        worker.collect()
+    return worker
+
+
 def written(state: Path) -> dict:
     path, = (state / "summaries").glob("M7_*.summary.json")
     return json.loads(path.read_text())
@@ -92,12 +103,7 @@ def test_a_dead_worker_is_started_again_and_goes_on_from_the_days_file(
     recorder = service.summaries
     recorder.save_interval_s = 0.0              # the worker writes after every block
     integrate(service, session_frames[0])
-    recorder.ship(force=True)
-    worker = recorder._worker
-    deadline = time.monotonic() + WORKER_WAIT_S
-    while worker.queued and time.monotonic() < deadline:
-        time.sleep(0.05)
-        recorder.ship()
+    worker = handed_over(recorder)
     before = written(tmp_path / "state")
     os.kill(worker.process.pid, signal.SIGKILL)
     worker.process.wait()
@@ -129,12 +135,7 @@ def test_a_worker_left_by_a_killed_daemon_writes_the_day_on_sigterm(cfg, unit_ta
     service = daemon(cfg, unit_tables, tmp_path / "state")
     recorder = service.summaries
     integrate(service, session_frames[0])
-    recorder.ship(force=True)
-    worker = recorder._worker
-    deadline = time.monotonic() + WORKER_WAIT_S
-    while worker.queued and time.monotonic() < deadline:
-        time.sleep(0.05)
-        worker.collect()
+    worker = handed_over(recorder)
     assert not (tmp_path / "state" / "summaries").exists()      # nothing written yet
     worker.process.send_signal(signal.SIGTERM)
     assert worker.process.wait(WORKER_WAIT_S) == 0
