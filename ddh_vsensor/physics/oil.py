@@ -31,6 +31,13 @@ class Oil:
         self._slope = (y100 - y40) / (t100 - t40)   # -B of log log(nu+0.7) = A - B log T
         self._intercept = y40 - self._slope * t40
 
+    def __eq__(self, other: object) -> bool:
+        """An oil is its configuration (units built from equal configurations are equal)."""
+        return isinstance(other, Oil) and other.cfg == self.cfg
+
+    def __hash__(self) -> int:
+        return hash(self.cfg)
+
     def kinematic_viscosity_cst(self, temp_c: ArrayLike) -> np.ndarray:
         t = np.log10(np.asarray(temp_c, dtype=float) + KELVIN_OFFSET)
         return 10.0 ** (10.0 ** (self._intercept + self._slope * t)) - _WALTHER_SHIFT_CST

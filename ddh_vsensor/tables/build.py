@@ -7,8 +7,10 @@ whose motor torque is exactly that node's torque (see ``steady_state_at_torque``
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 
 import numpy as np
@@ -23,6 +25,11 @@ from ddh_vsensor.tables.lookup import FullTable, PaperTable, UnitTables
 FORMAT_VERSION = 1
 
 Progress = Callable[[str, float], None]
+
+# The diagnosis asks for one unit's tables many times over (each cause's grid, each campaign):
+# the last few built are kept, their arrays read-only since every caller shares them.
+_BUILT: OrderedDict[tuple, UnitTables] = OrderedDict()
+BUILT_KEPT = 16
 
 
 def torque_span_nm(unit: DDHUnit) -> float:
@@ -60,8 +67,25 @@ def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
 def build_unit_tables(cfg: Config, actuator: str, unit: DDHUnit | None = None,
                       progress: Progress | None = None) -> UnitTables:
     """Both table kinds of one actuator. ``unit`` overrides the physics (e.g. an extended
-    model from diagnosis); its config hash is still ``cfg``'s."""
+    model from diagnosis); its config hash is still ``cfg``'s. Tables of a unit built
+    lately are given again, not rebuilt (with a fresh ``meta``)."""
     unit = unit or DDHUnit.from_config(cfg, actuator)
+    key = (actuator, unit, cfg.tables, cfg.physics_hash(), cfg.source)
+    if progress is None and key in _BUILT:
+        _BUILT.move_to_end(key)
+        kept = _BUILT[key]
+        return dataclasses.replace(kept, meta=dict(kept.meta))
+    tables = _build(cfg, actuator, unit, progress)
+    tables.full.velocity_mm_s.setflags(write=False)
+    tables.paper.mm_per_rev.setflags(write=False)
+    _BUILT[key] = tables
+    while len(_BUILT) > BUILT_KEPT:
+        _BUILT.popitem(last=False)
+    return dataclasses.replace(tables, meta=dict(tables.meta))
+
+
+def _build(cfg: Config, actuator: str, unit: DDHUnit, progress: Progress | None
+           ) -> UnitTables:
     speed, torque, temp = _axes(cfg, unit)
     started = time.perf_counter()
     full = np.empty((temp.count, speed.count, torque.count))
