@@ -123,9 +123,11 @@ def _summary(cal: UnitCalibration) -> list[str]:
 def _drive_summary(fit: DriveFit) -> str:
     if not fit.measured:
         return f"drive's torque reading not measured: {fit.why_not}"
-    return (f"drive's torque reading: offset {fit.offset_nm:+.2f} +- {fit.offset_sigma_nm:.2f} "
-            f"N*m, {fit.speed_offset_nm:+.2f} N*m more at the speed limit, filter "
-            f"{fit.filter_s * 1e3:.1f} ms")
+    gain = (f"gain 1 (not measured: {fit.gain_why_not})" if fit.gain_why_not else
+            f"gain {fit.gain:.4f} +- {fit.gain_sigma:.4f}")
+    return (f"drive's torque reading: {gain}, offset {fit.offset_nm:+.2f} +- "
+            f"{fit.offset_sigma_nm:.2f} N*m, {fit.speed_offset_nm:+.2f} N*m more at the speed "
+            f"limit, filter {fit.filter_s * 1e3:.1f} ms")
 
 
 def _flow_summary(fit: FlowFit) -> list[str]:

@@ -167,8 +167,9 @@ TRANSDUCER_BAR = 1.0
 
 
 def drive_settings(cfg: Config, drives: Mapping[str, DriveFit]) -> list[Setting]:
-    """The drive's reading of the shaft's torque where the runs measured it: its offset (and
-    the band now known of it: 3 sigma, at least what a transducer's accuracy puts through the
+    """The drive's reading of the shaft's torque where the runs measured it: its gain (1,
+    and why, where the runs' torques were too close together to tell it), offset (and the
+    band now known of it: 3 sigma, at least what a transducer's accuracy puts through the
     larger pump's gain), speed offset and filter. Where they did not, the keys stay as they
     are (the command says why)."""
     out = []
@@ -194,7 +195,12 @@ def drive_settings(cfg: Config, drives: Mapping[str, DriveFit]) -> list[Setting]
                         "speed limit", after="speed_limit_rpm"),
                 Setting((*base, "torque_offset_nm"), f"{fit.offset_nm:.3f}",
                         f"commissioned: +-{fit.offset_sigma_nm:.3f} (1 sigma), {evidence}",
-                        after="speed_limit_rpm")]
+                        after="speed_limit_rpm"),
+                Setting((*base, "torque_gain"), f"{fit.gain:.4f}",
+                        f"not commissioned: {fit.gain_why_not} (the offsets are fitted at 1)"
+                        if fit.gain_why_not else
+                        f"commissioned: +-{fit.gain_sigma:.4f} (1 sigma), shaft torques "
+                        f"spanning {fit.torque_span_nm:.1f} N*m", after="speed_limit_rpm")]
     return out
 
 

@@ -129,11 +129,13 @@ class MotorConfig:
     speed_limit_rpm: float = field(metadata=_positive(le=100000.0))
     torque_lag_s: float = field(default=0.0005, metadata={"ge": -0.005, "le": 0.005})
     # The drive's torque is its estimate from the currents, not the shaft's: it reads
-    # torque_offset_nm more, torque_speed_offset_nm more at the speed limit (the motor's own
-    # speed-proportional losses) and trails the shaft's by a first-order filter of
-    # torque_filter_s. How the drive reports, not physics (not hashed): every estimator takes
-    # the shaft's torque from its reading through them (commissioning measures them where
-    # the chamber pressures are logged)
+    # torque_gain times the shaft's plus torque_offset_nm, plus torque_speed_offset_nm at the
+    # speed limit (the motor's own speed-proportional losses), and trails the shaft's by a
+    # first-order filter of torque_filter_s. How the drive reports, not physics (not
+    # hashed): every estimator takes the shaft's torque from its reading through them
+    # (commissioning measures them where the chamber pressures are logged)
+    torque_gain: float = field(default=1.0, metadata={"ge": 0.5, "le": 2.0,
+                                                      "hash_if_set": True})
     torque_offset_nm: float = field(default=0.0, metadata={"ge": -100.0, "le": 100.0})
     torque_speed_offset_nm: float = field(default=0.0, metadata={"ge": -100.0, "le": 100.0})
     torque_filter_s: float = field(default=0.0, metadata={"ge": 0.0, "le": 0.05})
@@ -642,8 +644,9 @@ class Config:
             for key in ("references_mm", "reference_window_mm", "reference_hysteresis_mm",
                         "reference_tolerance_mm"):
                 unit.pop(key)
-            for key in ("torque_lag_s", "torque_offset_nm", "torque_speed_offset_nm",
-                        "torque_filter_s", "torque_offset_tolerance_nm"):
+            for key in ("torque_lag_s", "torque_gain", "torque_offset_nm",
+                        "torque_speed_offset_nm", "torque_filter_s",
+                        "torque_offset_tolerance_nm"):
                 unit["motor"].pop(key)                 # how the drive reports, not physics
             unit.pop("displacement_tolerance")         # what is known, not physics
             unit["pump_a"].pop("leakage_tolerance")
@@ -664,15 +667,17 @@ class Config:
         data = dataclasses.asdict(self)
         for key in ("bus", "buses", "can", "faults", "health", "work_cycle", "source"):
             data.pop(key)
+        for unit in data["units"].values():
+            _drop_unset(unit["motor"], MotorConfig)     # the drive's gain, where 1
         blob = json.dumps(data, sort_keys=True, default=str).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
 
 
 def _drop_unset(section: dict[str, Any], cls: type) -> None:
-    """Remove from ``section`` (``cls`` as a dict) the plant-structure keys at their default:
-    the hash of a configuration that does not set them is the one it had before they
-    existed."""
+    """Remove from ``section`` (``cls`` as a dict) the keys marked ``hash_if_set`` at their
+    default: the hash of a configuration that does not set them is the one it had before
+    they existed."""
     for f in dataclasses.fields(cls):
         if f.metadata.get("hash_if_set") and section[f.name] == f.default:
             del section[f.name]

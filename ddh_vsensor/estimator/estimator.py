@@ -138,7 +138,8 @@ class Estimator:
         self.motor = ucfg.motor
         self.torque_lag_s = ucfg.motor.torque_lag_s + ucfg.motor.torque_filter_s
         self.drive_offsets = bool(ucfg.motor.torque_offset_nm
-                                  or ucfg.motor.torque_speed_offset_nm)
+                                  or ucfg.motor.torque_speed_offset_nm
+                                  or ucfg.motor.torque_gain != 1.0)
         self.debounce_s = ecfg.debounce_s
         self.resync_gain_moving = ecfg.resync_gain_moving
         self.resync_slow_mm_s = ecfg.resync_slow_mm_s

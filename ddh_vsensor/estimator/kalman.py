@@ -283,7 +283,7 @@ class _Job:
     leak_tolerance_b: float
     displacement_tolerance: float
     motor: MotorConfig                  # the drive's reading of the shaft's torque
-    torque_offset_sd_nm: float          # what is known of its offset
+    torque_offset_sd_nm: float          # what is known of its offset, in the shaft's N*m
 
 
 def _set_mass(plant: Plant, mass_kg: np.ndarray) -> None:
@@ -338,8 +338,9 @@ def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool =
                              switches_from_config(u) if references else (), x0, *bands,
                              settings.displacement_tolerance if u.displacement_tolerance
                              is None else u.displacement_tolerance, u.motor,
-                             settings.torque_offset_nm if u.motor.torque_offset_tolerance_nm
-                             is None else u.motor.torque_offset_tolerance_nm))
+                             (settings.torque_offset_nm if u.motor.torque_offset_tolerance_nm
+                              is None else u.motor.torque_offset_tolerance_nm)
+                             / u.motor.torque_gain))
     periods = [float(np.median(np.diff(j.run.time_s))) for j in prepared]
     period = periods[0]
     for j, p in zip(prepared, periods):
@@ -382,9 +383,9 @@ class _Bank:
                 out[len(col):, b] = col[-1]
             return out
         self.speed = pad(lambda j: j.run.speed_rpm)
-        # the shaft's torque from the drive's reading: less its offsets, its filter undone
-        # (:mod:`.timing`); its reporting lag (motor.torque_lag_s) stays within the torque's
-        # timing noise, the model's torque being its last substep's
+        # the shaft's torque from the drive's reading: less its offsets, over its gain, its
+        # filter undone (:mod:`.timing`); its reporting lag (motor.torque_lag_s) stays within
+        # the torque's timing noise, the model's torque being its last substep's
         self.torque = pad(lambda j: torque_at_speed_instants(
             j.run.time_s, shaft_torque_nm(j.run.torque_nm, j.run.speed_rpm, j.motor),
             j.motor.torque_filter_s, 2.0 * period_s))

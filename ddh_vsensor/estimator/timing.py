@@ -1,16 +1,16 @@
 """The shaft's torque at the speed's instants, from the drive's reading of it.
 
-The drive's torque is its estimate from the motor's currents: it reads ``motor.torque_offset_nm``
-more than the shaft's, ``motor.torque_speed_offset_nm`` more at the speed limit (the motor's
-own losses, in proportion to its speed), and trails the shaft's by a first-order filter of
-``motor.torque_filter_s``, undone to first order by carrying each sample that much further
-along its last change (a first-order lag delays a ramp by its time constant). The rotor's
-inertia torque is J times the speed's change, and the pump torque is the reported
-torque less it, so the two signals must describe the same instants: where the torque swings 30
-N·m per sample a millisecond between them is several N·m of pump torque, which the chamber
-model reads as pressure. A drive that reports its torque
-``lag_s`` behind its speed (a filter, the order it samples in, a simulator's step) has each
-sample carried forward along its last change; the first sample after a gap has none and stays.
+The drive's torque is its estimate from the motor's currents: it reads ``motor.torque_gain``
+times the shaft's plus ``motor.torque_offset_nm``, plus ``motor.torque_speed_offset_nm`` at the
+speed limit (the motor's own losses, in proportion to its speed), and trails the shaft's by a
+first-order filter of ``motor.torque_filter_s``, undone to first order by carrying each sample
+that much further along its last change (a first-order lag delays a ramp by its time
+constant). The rotor's inertia torque is J times the speed's change, and the pump torque is
+the reported torque less it, so the two signals must describe the same instants: where the
+torque swings 30 N·m per sample a millisecond between them is several N·m of pump torque,
+which the chamber model reads as pressure. A drive that reports its torque ``lag_s`` behind
+its speed (a filter, the order it samples in, a simulator's step) has each sample carried
+forward along its last change; the first sample after a gap has none and stays.
 """
 
 from __future__ import annotations
@@ -53,7 +53,8 @@ def shaft_torques_nm(time_s: ArrayLike, torque_nm: ArrayLike, speed_rpm: ArrayLi
 
 
 def shaft_torque_nm(torque_nm: ArrayLike, speed_rpm: ArrayLike, motor: MotorConfig) -> Any:
-    """A reading (or an array of them) less the drive's offsets; :func:`torque_at_speed_instant`
-    then carries it."""
-    return (torque_nm - motor.torque_offset_nm
-            - motor.torque_speed_offset_nm / motor.speed_limit_rpm * speed_rpm)
+    """A reading (or an array of them) less the drive's offsets, over its gain;
+    :func:`torque_at_speed_instant` then carries it."""
+    return ((torque_nm - motor.torque_offset_nm
+             - motor.torque_speed_offset_nm / motor.speed_limit_rpm * speed_rpm)
+            / motor.torque_gain)

@@ -198,7 +198,9 @@ def test_the_measured_flow_model_is_written_with_its_evidence(
     assert machine.displacement_tolerance == pytest.approx(FLOORS["logged"]["displacement"])
     # the drive reads the shaft's torque (no drive effect): measured as such, known to what a
     # transducer's bar puts through the pumps
-    assert "drive's torque reading: offset" in printed
+    assert "drive's torque reading: gain" in printed
+    # the pressures' torque is the model's, 0.03-0.06 % off the simulated plant's (measured)
+    assert abs(machine.motor.torque_gain - 1.0) < 0.002
     assert abs(machine.motor.torque_offset_nm) < 0.05
     assert abs(machine.motor.torque_speed_offset_nm) < 0.05
     assert machine.motor.torque_offset_tolerance_nm == pytest.approx(max(

@@ -157,6 +157,36 @@ def test_faults_section_is_optional_with_documented_defaults(cfg):
     assert bare.physics_hash() == cfg.physics_hash()     # saved states stay valid
 
 
+# the reference loader's estimate hash: a baseline measured under it holds for this hash only
+LOADER_ESTIMATE_HASH = "867420c477315b28"
+
+
+def test_the_drives_torque_gain_is_how_it_reads_not_physics(cfg):
+    """The drive's torque gain left at 1 keeps both hashes (the loader's baselines stay
+    valid); set, it changes what an estimate depends on and not the physics or tables."""
+    assert cfg.unit("boom").motor.torque_gain == 1.0
+    assert cfg.estimate_hash() == LOADER_ESTIMATE_HASH
+    data = copy.deepcopy(RAW)
+    data["units"]["boom"]["motor"]["torque_gain"] = 1.0
+    same = parse_config(data)
+    assert (same.physics_hash(), same.estimate_hash()) == (cfg.physics_hash(),
+                                                           cfg.estimate_hash())
+    data["units"]["boom"]["motor"]["torque_gain"] = 1.05
+    gained = parse_config(data)
+    assert gained.unit("boom").motor.torque_gain == 1.05
+    assert gained.physics_hash() == cfg.physics_hash()
+    assert gained.estimate_hash() != cfg.estimate_hash()
+
+
+@pytest.mark.parametrize("value,words", [(0.0, "must be at least 0.5"),
+                                         (5.0, "must be at most 2.0")])
+def test_a_torque_gain_out_of_bounds_is_one_line(value, words):
+    with pytest.raises(ConfigError) as err:
+        parse_config(_mutate("units.boom.motor.torque_gain", value), source="machine.yaml")
+    assert str(err.value) == (f"machine.yaml: units.boom.motor.torque_gain: {value} is not "
+                              f"physical here: {words}")
+
+
 def test_max_speed_from_the_physics(cfg):
     u = cfg.unit("boom")
     side_a = (u.motor.speed_limit_rpm / 60 * u.pump_a.speed_ratio * u.pump_a.displacement_cm3_rev

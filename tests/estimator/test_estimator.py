@@ -63,19 +63,22 @@ def test_the_faces_agree_with_the_torque_carried_to_the_speeds_instants(
     assert np.max(np.abs(estimates[1] - estimates[0])) > 0.01
 
 
+@pytest.mark.parametrize("gain,offset,speed_offset", [(1.0, 1.5, 2.0), (1.05, 0.0, 0.0),
+                                                       (1.05, 1.5, 2.0)])
 @pytest.mark.parametrize("mode", ["full", "dynamic"])
 def test_the_faces_agree_on_the_shaft_torque_from_the_drives_reading(
-        cfg, boom, unit_tables, make_run, mode):
-    """The drive's offset, speed offset and filter (``motor.torque_offset_nm``,
-    ``torque_speed_offset_nm``, ``torque_filter_s``): a reading made by them, taken back
-    through them, gives the estimate of the shaft's torque read as it is, in both faces."""
+        cfg, boom, unit_tables, make_run, mode, gain, offset, speed_offset):
+    """The drive's gain, offset, speed offset and filter (``motor.torque_gain``,
+    ``torque_offset_nm``, ``torque_speed_offset_nm``, ``torque_filter_s``): a reading made by
+    them, taken back through them, gives the estimate of the shaft's torque read as it is, in
+    both faces (a gain alone too)."""
     motor = cfg.unit("boom").motor
     drive = dataclasses.replace(cfg, units={name: dataclasses.replace(
-        u, motor=dataclasses.replace(u.motor, torque_offset_nm=1.5, torque_speed_offset_nm=2.0,
-                                     torque_filter_s=0.0))
+        u, motor=dataclasses.replace(u.motor, torque_gain=gain, torque_offset_nm=offset,
+                                     torque_speed_offset_nm=speed_offset, torque_filter_s=0.0))
         for name, u in cfg.units.items()})
     run = make_run(boom, seconds=20, unit_cfg=cfg.unit("boom"))
-    read = run.torque_nm + 1.5 + 2.0 * run.speed_rpm / motor.speed_limit_rpm
+    read = gain * run.torque_nm + offset + speed_offset * run.speed_rpm / motor.speed_limit_rpm
     base = Estimator(cfg, "boom", unit_tables["boom"], mode=mode, references=False,
                      initial_position_mm=22.0).run(run.time_s, run.speed_rpm, run.torque_nm,
                                                    run.oil_temp_c)
