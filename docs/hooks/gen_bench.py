@@ -323,8 +323,24 @@ def _commission(figures: dict[str, Any], consumed: set[str]) -> str:
                   "machines with an unflagged value beyond u"], rows)
 
 
+def _fleet_acceptance(figures: dict[str, Any], consumed: set[str]) -> str:
+    """Per fleet: seen while designing or drawn after, the wears due a warning and those
+    warned in time with the right cause, the misses, false alarms, and the cluster check."""
+    consumed.add("fleets")
+    rows = []
+    for seed, f in figures["fleets"].items():
+        due = next(v for k, v in f.items() if k.startswith("crossing on day"))
+        ok = next(v for k, v in f.items() if k.startswith("of those alarmed"))
+        remote = f.get("scheduler + 2 workers: identical alarms")
+        rows.append([seed, f["set"], f"{ok}/{due}", "; ".join(f["missed"]) or "none",
+                     fmt(f["false alarms"]), fmt(f["false alarms per 20 machine-months"]),
+                     "" if remote is None else fmt(remote), "yes" if f["passes"] else "no"])
+    return table(["seed", "set", "warned in time / due", "missed", "false alarms",
+                  "per 20 machine-months", "scheduler + 2 workers identical", "passes"], rows)
+
+
 CURATED = {"accuracy": _accuracy_all, "daemon": _daemon, "diagnosis": _diagnosis,
-           "kalman": _kalman, "commission": _commission}
+           "kalman": _kalman, "commission": _commission, "fleet_acceptance": _fleet_acceptance}
 
 
 def bench_section(root: Path, name: str) -> str:
