@@ -150,7 +150,7 @@ def fit_machine(cfg: Config, runs: dict[str, list[Run]], spread_factor: float,
     """Each unit's switches, flow model and drive reading from its runs: (calibrations, flow
     fits, why a unit's flow model was not measured, drive fits)."""
     from ddh_vsensor.commission.drive import fit_drive
-    from ddh_vsensor.commission.flow import fit_flows
+    from ddh_vsensor.commission.flow import applied, fit_flows
     cals = {a: calibrate_unit(a, cfg.unit(a), r, cfg.estimator.debounce_s, spread_factor)
             for a, r in runs.items()}
     flows: dict[str, FlowFit] = {}
@@ -162,7 +162,9 @@ def fit_machine(cfg: Config, runs: dict[str, list[Run]], spread_factor: float,
                 flows.update(fit_flows(cfg, {a: unit_runs}))
             except UserError as exc:
                 flow_problems[a] = str(exc)
-            drives[a] = fit_drive(cfg, a, unit_runs)
+            # the pressures' torque through the pumps as commissioned: the drive's gain is
+            # relative to the displacement the calibrated configuration carries
+            drives[a] = fit_drive(applied(cfg, flows), a, unit_runs)
     return cals, flows, flow_problems, drives
 
 
