@@ -32,6 +32,33 @@ from ddh_vsensor.tables.store import save_unit_tables
 
 REPO = Path(__file__).resolve().parents[1]
 
+# The modules that take tens of seconds, longest first (durations of a whole run, -n 2): run
+# before the rest, so that under --dist loadfile the two workers end together instead of one
+# finishing a long module alone (xdist's own order, by number of tests, put these last).
+LONG_FIRST = (
+    "tests/diagnosis/test_hidden_effects.py", "tests/diagnosis/test_baseline.py",
+    "tests/faults/test_bus_faults.py", "tests/commission/test_flow.py",
+    "tests/machines/test_machines_cli.py", "tests/faults/test_clock_outage.py",
+    "tests/service/test_health_replay.py", "tests/diagnosis/test_references.py",
+    "tests/docs/test_readme.py", "tests/service/test_cold_start.py",
+    "tests/service/test_cli.py", "tests/service/test_soak_smoke.py",
+)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The long modules first, each module's tests in their own order."""
+    rank = {path: i for i, path in enumerate(LONG_FIRST)}
+
+    def key(item: pytest.Item) -> int:
+        path = Path(str(item.path)).resolve().relative_to(REPO).as_posix()
+        return rank.get(path, len(rank))
+    items.sort(key=key)
+
 
 @pytest.fixture(scope="session")
 def cfg() -> Config:
