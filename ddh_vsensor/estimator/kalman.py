@@ -660,8 +660,18 @@ class _Bank:
     # --- the loop -------------------------------------------------------------------------
 
     def run(self) -> list[KalmanResult]:
-        s, B, N, T = self.s, self.B, self.N, self.T
+        """Every filter from its run's first sample to the longest run's last (a run past
+        its end holds its last sample)."""
         t_start = time.perf_counter()
+        self.start()
+        for k in range(self.N):
+            self.step(k)
+        return self.results(time.perf_counter() - t_start)
+
+    def start(self) -> None:
+        """The filters before their first sample: states, covariances, the edges each run's
+        switches give, and the outputs' arrays."""
+        s, B, N, T = self.s, self.B, self.N, self.T
         z, P, referenced = self._initial()
         self.suspect: list[str | None] = [None] * B
         self.was_stopped = np.zeros(B, dtype=bool)
@@ -702,118 +712,141 @@ class _Bank:
         discrete = (self.plant.friction_state[self.nom].copy(),
                     self.plant.regime_a[self.nom].copy(), self.plant.regime_b[self.nom].copy())
         inflate_per_sample = T / s.nis_window_s
-        for k in range(N):
-            if k > 0:
-                x_before = z[:, X].copy()
-                z, F, (tq_model, H), discrete = self._predict(
-                    z, np.sqrt(np.maximum(P[:, X, X], 0.0)), k, discrete)
-                Q = self._process_noise(z[:, X])
-                P = F @ P @ np.transpose(F, (0, 2, 1)) + Q
-                if k > 1:
-                    ratio = nis_win[k - 1]
-                    grow = np.where(ratio > 1.0,
-                                    np.minimum(ratio, s.max_inflation) ** inflate_per_sample, 1.0)
-                    P = P * grow[:, None, None]
-                    # a constant parameter is never less known than its band says: the fading
-                    # memory widens what moves, not a bound (scaled as D P D, P stays PSD)
-                    diag = np.arange(self.n_states)
-                    d = np.sqrt(np.minimum(1.0, self.prior_var / np.maximum(
-                        P[:, diag, diag], 1e-300)))
-                    P = d[:, :, None] * P * d[:, None, :]
-                # torque update
-                R = self._torque_variance(k)
-                # a motor standing still is held by the pumps' friction: any torque between
-                # the motoring and the pumping one holds the pressures (uniform over the band,
-                # about its middle)
-                stopped = np.abs(self.speed[k]) < 0.5 * s.speed_step_rpm
-                if stopped.any():
-                    half = np.where(stopped[:, None], self.band_half, 0.0)   # (B, 2) per Pa
-                    tq_model = tq_model - half[:, 0] * z[:, PA] - half[:, 1] * z[:, PB]
-                    H = H.copy()
-                    H[:, PA] -= half[:, 0]
-                    H[:, PB] -= half[:, 1]
-                    # where in the band the motor stuck is one value for the whole stop (the
-                    # friction holds it until the drive breaks it loose): a state drawn anew,
-                    # uniform over the band, as the motor stops, not a noise of each sample
-                    # (a hundred samples of one stuck torque would teach the filter a
-                    # hundred times what one does)
-                    new = stopped & ~self.was_stopped
-                    if new.any():
-                        band_var = (np.abs(half[:, 0] * z[:, PA])
-                                    + np.abs(half[:, 1] * z[:, PB])) ** 2 / 3.0
-                        z[new, STICK] = 0.0
-                        P[new, STICK, :] = 0.0
-                        P[new, :, STICK] = 0.0
-                        P[new, STICK, STICK] = band_var[new]
-                        self.prior_var[new, STICK] = band_var[new]
-                    H[:, STICK] = stopped
-                self.was_stopped = stopped
-                y = self.torque[k] - (tq_model + z[:, TOFF] + np.where(stopped, z[:, STICK], 0.0))
-                PH = np.einsum("bij,bj->bi", P, H)
-                # never below the measurement's own variance (R > 0): a covariance rounded
-                # off positive definiteness must not give a gain beyond the sample's weight
-                S = np.maximum(np.einsum("bi,bi->b", H, PH), 0.0) + R
-                nis[k] = y * y / S
-                # an innovation far beyond its spread is a linearisation the sample does not
-                # fit (a stop met sooner or later than modelled): Huber's weight, the
-                # innovation's variance widened so it moves the states by at most huber sigma
-                S = S * np.maximum(1.0, np.sqrt(nis[k]) / s.huber)
-                K = PH / S[:, None]
-                if s.unexplained_gate:
-                    # beyond the gate the model does not explain the torque (a chamber it has
-                    # pressurised holds a void on the plant, a force it lacks): the sample says
-                    # nothing it can use, and the travel the model predicted over it is not
-                    # known to have happened
-                    unexplained = nis[k] > self.torque_gate
-                    K[np.ix_(unexplained, SLOW)] = 0.0
-                    P[unexplained, X, X] += (z[unexplained, X] - x_before[unexplained]) ** 2
-                # the torque's dependence on the position (the chambers' volumes) is too weak
-                # to trust under structure the model lacks, and at a stroke end any force the
-                # model lacks reads as the stop: the position, the flow error, the
-                # displacement (the travel's scale: only the edges measure it) and what is
-                # position too (the switches' offsets, the positions at pending edges) are
-                # "considered" (Schmidt), not updated; the covariance update then is Joseph's
-                # for that gain
-                K[:, X] = 0.0
-                K[:, EPS] = 0.0
-                K[:, DISP] = 0.0
-                K[:, N_BASE:] = 0.0
-                z = z + K * y[:, None]
-                z[:, [PA, PB]] = np.clip(z[:, [PA, PB]], self.p_floor, self.p_ceiling)
-                KPH = K[:, :, None] * PH[:, None, :]
-                P = (P - KPH - np.transpose(KPH, (0, 2, 1))
-                     + K[:, :, None] * (S[:, None, None] * K[:, None, :]))
-            z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
-            # a switch changed: the rod's position at that instant, as known now, is kept
-            # (cloned) until the debounce accepts the edge; the stop or anything else met
-            # before then cannot be mistaken for the switch's offset
-            for b, sw, te in seen.get(k, ()):
-                self._clone(z, P, b, k, sw, te)
-            for b, c, rising, sw in edges.get(k, ()):
-                self._reference(z, P, b, k, c, rising, sw, referenced, events)
-            # the oil's offset stays within temp_bound_sd of its spread: a value beyond is
-            # another error taken for temperature (and the viscosity law has no meaning there)
-            z[:, DT] = np.clip(z[:, DT], -temp_bound, temp_bound)
-            z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
-            P[:, X, X] = np.maximum(P[:, X, X], (s.floor_mm * 1e-3) ** 2)
-            P = 0.5 * (P + np.transpose(P, (0, 2, 1)))
-            # rounding must not leave a variance negative: the next gain would flip its sign
-            diag = P[:, np.arange(self.n_states), np.arange(self.n_states)]
-            P[:, np.arange(self.n_states), np.arange(self.n_states)] = np.maximum(diag, 0.0)
-            if not (np.isfinite(z).all() and np.isfinite(P).all()):
-                bad = [self.jobs[b].run.source for b in range(B)
-                       if not (np.isfinite(z[b]).all() and np.isfinite(P[b]).all())]
-                raise FloatingPointError(f"kalman: non-finite state at sample {k}: {bad}")
-            nis_win[k] = (nis[max(0, k - win + 1):k + 1].sum(axis=0)) / bound
-            flagged[k] = ((nis_win[k] > 1.0) | np.array([n is not None for n in self.suspect])
-                          | (self.cusum > self.cusum_h))
-            not_ref[k] = ~referenced
-            out_x[k], out_v[k] = z[:, X], z[:, V]
-            out_sd[k] = np.sqrt(np.maximum(P[:, X, X], 0.0))
-            out_load[k], out_dt[k], out_toff[k] = z[:, LOAD], z[:, DT], z[:, TOFF]
-            out_dq[k], out_sq[k] = self.flow_sigma * z[:, EPS], self.flow_sigma
-            out_p[k] = z[:, PA:PB + 1] * 1e-5
-        seconds = time.perf_counter() - t_start
+        self.z, self.P, self.referenced, self.discrete = z, P, referenced, discrete
+        self.win, self.bound, self.temp_bound = win, bound, temp_bound
+        self.inflate_per_sample = inflate_per_sample
+        self.seen, self.edges, self.events = seen, edges, events
+        self.nis, self.nis_win, self.flagged, self.not_ref = nis, nis_win, flagged, not_ref
+        self.out = (out_x, out_v, out_sd, out_load, out_dt, out_toff, out_dq, out_sq, out_p)
+
+    def step(self, k: int) -> None:
+        """Sample k of every filter: the prediction from k - 1 and the torque's update
+        (k > 0), the edges seen and accepted at k, the outputs at k."""
+        s, B = self.s, self.B
+        z, P, referenced, discrete = self.z, self.P, self.referenced, self.discrete
+        win, bound, temp_bound = self.win, self.bound, self.temp_bound
+        inflate_per_sample = self.inflate_per_sample
+        seen, edges, events = self.seen, self.edges, self.events
+        nis, nis_win, flagged, not_ref = self.nis, self.nis_win, self.flagged, self.not_ref
+        out_x, out_v, out_sd, out_load, out_dt, out_toff, out_dq, out_sq, out_p = self.out
+        if k > 0:
+            x_before = z[:, X].copy()
+            z, F, (tq_model, H), discrete = self._predict(
+                z, np.sqrt(np.maximum(P[:, X, X], 0.0)), k, discrete)
+            Q = self._process_noise(z[:, X])
+            P = F @ P @ np.transpose(F, (0, 2, 1)) + Q
+            if k > 1:
+                ratio = nis_win[k - 1]
+                grow = np.where(ratio > 1.0,
+                                np.minimum(ratio, s.max_inflation) ** inflate_per_sample, 1.0)
+                P = P * grow[:, None, None]
+                # a constant parameter is never less known than its band says: the fading
+                # memory widens what moves, not a bound (scaled as D P D, P stays PSD)
+                diag = np.arange(self.n_states)
+                d = np.sqrt(np.minimum(1.0, self.prior_var / np.maximum(
+                    P[:, diag, diag], 1e-300)))
+                P = d[:, :, None] * P * d[:, None, :]
+            # torque update
+            R = self._torque_variance(k)
+            # a motor standing still is held by the pumps' friction: any torque between
+            # the motoring and the pumping one holds the pressures (uniform over the band,
+            # about its middle)
+            stopped = np.abs(self.speed[k]) < 0.5 * s.speed_step_rpm
+            if stopped.any():
+                half = np.where(stopped[:, None], self.band_half, 0.0)   # (B, 2) per Pa
+                tq_model = tq_model - half[:, 0] * z[:, PA] - half[:, 1] * z[:, PB]
+                H = H.copy()
+                H[:, PA] -= half[:, 0]
+                H[:, PB] -= half[:, 1]
+                # where in the band the motor stuck is one value for the whole stop (the
+                # friction holds it until the drive breaks it loose): a state drawn anew,
+                # uniform over the band, as the motor stops, not a noise of each sample
+                # (a hundred samples of one stuck torque would teach the filter a
+                # hundred times what one does)
+                new = stopped & ~self.was_stopped
+                if new.any():
+                    band_var = (np.abs(half[:, 0] * z[:, PA])
+                                + np.abs(half[:, 1] * z[:, PB])) ** 2 / 3.0
+                    z[new, STICK] = 0.0
+                    P[new, STICK, :] = 0.0
+                    P[new, :, STICK] = 0.0
+                    P[new, STICK, STICK] = band_var[new]
+                    self.prior_var[new, STICK] = band_var[new]
+                H[:, STICK] = stopped
+            self.was_stopped = stopped
+            y = self.torque[k] - (tq_model + z[:, TOFF] + np.where(stopped, z[:, STICK], 0.0))
+            PH = np.einsum("bij,bj->bi", P, H)
+            # never below the measurement's own variance (R > 0): a covariance rounded
+            # off positive definiteness must not give a gain beyond the sample's weight
+            S = np.maximum(np.einsum("bi,bi->b", H, PH), 0.0) + R
+            nis[k] = y * y / S
+            # an innovation far beyond its spread is a linearisation the sample does not
+            # fit (a stop met sooner or later than modelled): Huber's weight, the
+            # innovation's variance widened so it moves the states by at most huber sigma
+            S = S * np.maximum(1.0, np.sqrt(nis[k]) / s.huber)
+            K = PH / S[:, None]
+            if s.unexplained_gate:
+                # beyond the gate the model does not explain the torque (a chamber it has
+                # pressurised holds a void on the plant, a force it lacks): the sample says
+                # nothing it can use, and the travel the model predicted over it is not
+                # known to have happened
+                unexplained = nis[k] > self.torque_gate
+                K[np.ix_(unexplained, SLOW)] = 0.0
+                P[unexplained, X, X] += (z[unexplained, X] - x_before[unexplained]) ** 2
+            # the torque's dependence on the position (the chambers' volumes) is too weak
+            # to trust under structure the model lacks, and at a stroke end any force the
+            # model lacks reads as the stop: the position, the flow error, the
+            # displacement (the travel's scale: only the edges measure it) and what is
+            # position too (the switches' offsets, the positions at pending edges) are
+            # "considered" (Schmidt), not updated; the covariance update then is Joseph's
+            # for that gain
+            K[:, X] = 0.0
+            K[:, EPS] = 0.0
+            K[:, DISP] = 0.0
+            K[:, N_BASE:] = 0.0
+            z = z + K * y[:, None]
+            z[:, [PA, PB]] = np.clip(z[:, [PA, PB]], self.p_floor, self.p_ceiling)
+            KPH = K[:, :, None] * PH[:, None, :]
+            P = (P - KPH - np.transpose(KPH, (0, 2, 1))
+                 + K[:, :, None] * (S[:, None, None] * K[:, None, :]))
+        z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
+        # a switch changed: the rod's position at that instant, as known now, is kept
+        # (cloned) until the debounce accepts the edge; the stop or anything else met
+        # before then cannot be mistaken for the switch's offset
+        for b, sw, te in seen.get(k, ()):
+            self._clone(z, P, b, k, sw, te)
+        for b, c, rising, sw in edges.get(k, ()):
+            self._reference(z, P, b, k, c, rising, sw, referenced, events)
+        # the oil's offset stays within temp_bound_sd of its spread: a value beyond is
+        # another error taken for temperature (and the viscosity law has no meaning there)
+        z[:, DT] = np.clip(z[:, DT], -temp_bound, temp_bound)
+        z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
+        P[:, X, X] = np.maximum(P[:, X, X], (s.floor_mm * 1e-3) ** 2)
+        P = 0.5 * (P + np.transpose(P, (0, 2, 1)))
+        # rounding must not leave a variance negative: the next gain would flip its sign
+        diag = P[:, np.arange(self.n_states), np.arange(self.n_states)]
+        P[:, np.arange(self.n_states), np.arange(self.n_states)] = np.maximum(diag, 0.0)
+        if not (np.isfinite(z).all() and np.isfinite(P).all()):
+            bad = [self.jobs[b].run.source for b in range(B)
+                   if not (np.isfinite(z[b]).all() and np.isfinite(P[b]).all())]
+            raise FloatingPointError(f"kalman: non-finite state at sample {k}: {bad}")
+        nis_win[k] = (nis[max(0, k - win + 1):k + 1].sum(axis=0)) / bound
+        flagged[k] = ((nis_win[k] > 1.0) | np.array([n is not None for n in self.suspect])
+                      | (self.cusum > self.cusum_h))
+        not_ref[k] = ~referenced
+        out_x[k], out_v[k] = z[:, X], z[:, V]
+        out_sd[k] = np.sqrt(np.maximum(P[:, X, X], 0.0))
+        out_load[k], out_dt[k], out_toff[k] = z[:, LOAD], z[:, DT], z[:, TOFF]
+        out_dq[k], out_sq[k] = self.flow_sigma * z[:, EPS], self.flow_sigma
+        out_p[k] = z[:, PA:PB + 1] * 1e-5
+        self.z, self.P, self.discrete = z, P, discrete
+
+    def results(self, seconds: float) -> list[KalmanResult]:
+        """Each filter's outputs over its own run; ``seconds`` the batch's wall time."""
+        s, z = self.s, self.z
+        nis, nis_win, flagged, not_ref = self.nis, self.nis_win, self.flagged, self.not_ref
+        out_x, out_v, out_sd, out_load, out_dt, out_toff, out_dq, out_sq, out_p = self.out
+        events = self.events
         results = []
         for b, j in enumerate(self.jobs):
             n = int(self.lengths[b])
