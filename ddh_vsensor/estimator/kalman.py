@@ -133,14 +133,15 @@ from scipy.stats import chi2
 from ddh_vsensor.config import DATASHEET_TOLERANCES, Config, HydraulicsConfig, MotorConfig
 from ddh_vsensor.estimator.estimator import ReferenceEvent, RunEstimate
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.estimator.timing import shaft_torque_nm, torque_at_speed_instants
-from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, Switch, accepted_edges,
-                                              switches_from_config)
+from ddh_vsensor.estimator.timing import (shaft_torque_nm, torque_at_speed_instant,
+                                          torque_at_speed_instants)
+from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, Debouncer, Switch,
+                                              accepted_edges, switches_from_config)
 from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.conversions import BAR_PA, RPM_RAD_S
 from ddh_vsensor.physics.pump import rating_viscosity_pa_s
 from ddh_vsensor.physics.steady import steady_state_at_torque
-from ddh_vsensor.physics.tank_sensor import pump_oil_temperature_c
+from ddh_vsensor.physics.tank_sensor import TrailingRate, pump_oil_temperature_c
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.model.plant import Plant, RowSpec
 
@@ -316,6 +317,19 @@ def cusum_threshold(ratio: float, false_alarm: float, cells: int = 200) -> float
     return hi
 
 
+def _job(cfg: Config, actuator: str, unit: DDHUnit, run: Run, references: bool,
+         x0_mm: float | None, settings: KalmanSettings) -> _Job:
+    """One filter's unit, run and bands of what is known, from the configuration."""
+    u = cfg.unit(actuator)
+    bands = [settings.leak_tolerance if p.leakage_tolerance is None else p.leakage_tolerance
+             for p in (u.pump_a, u.pump_b)]
+    return _Job(actuator, run, unit, switches_from_config(u) if references else (), x0_mm,
+                *bands, settings.displacement_tolerance if u.displacement_tolerance is None
+                else u.displacement_tolerance, u.motor,
+                (settings.torque_offset_nm if u.motor.torque_offset_tolerance_nm is None
+                 else u.motor.torque_offset_tolerance_nm) / u.motor.torque_gain)
+
+
 def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool = True,
              initial_positions_mm: Sequence[float | None] | None = None,
              settings: KalmanSettings = KalmanSettings()) -> list[KalmanResult]:
@@ -331,16 +345,7 @@ def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool =
     for (actuator, r), x0 in zip(jobs, positions):
         if actuator not in units:
             units[actuator] = DDHUnit.from_config(cfg, actuator)
-        u = cfg.unit(actuator)
-        bands = [settings.leak_tolerance if p.leakage_tolerance is None else p.leakage_tolerance
-                 for p in (u.pump_a, u.pump_b)]
-        prepared.append(_Job(actuator, r, units[actuator],
-                             switches_from_config(u) if references else (), x0, *bands,
-                             settings.displacement_tolerance if u.displacement_tolerance
-                             is None else u.displacement_tolerance, u.motor,
-                             (settings.torque_offset_nm if u.motor.torque_offset_tolerance_nm
-                              is None else u.motor.torque_offset_tolerance_nm)
-                             / u.motor.torque_gain))
+        prepared.append(_job(cfg, actuator, units[actuator], r, references, x0, settings))
     periods = [float(np.median(np.diff(j.run.time_s))) for j in prepared]
     period = periods[0]
     for j, p in zip(prepared, periods):
@@ -359,6 +364,14 @@ def run(cfg: Config, actuator: str, measured: Run, *, references: bool = True,
     start, mid-stroke, not referenced until the first edge)."""
     return run_many(cfg, [(actuator, measured)], references=references,
                     initial_positions_mm=[initial_position_mm], settings=settings)[0].estimate
+
+
+def _flags(inconsistent: np.ndarray, not_referenced: np.ndarray, x_mm: np.ndarray,
+           stroke_mm: float) -> np.ndarray:
+    return (np.where(inconsistent, MODEL_INCONSISTENT, 0)
+            | np.where(not_referenced, int(Flags.NOT_REFERENCED), 0)
+            | np.where((x_mm <= 0.0) | (x_mm >= stroke_mm), int(Flags.AT_SOFT_LIMIT), 0)
+            ).astype(np.uint8)
 
 
 class _Bank:
@@ -851,10 +864,7 @@ class _Bank:
         for b, j in enumerate(self.jobs):
             n = int(self.lengths[b])
             x_mm = out_x[:n, b] * 1e3
-            flags = (np.where(flagged[:n, b], MODEL_INCONSISTENT, 0)
-                     | np.where(not_ref[:n, b], int(Flags.NOT_REFERENCED), 0)
-                     | np.where((x_mm <= 0.0) | (x_mm >= self.stroke[b] * 1e3),
-                                int(Flags.AT_SOFT_LIMIT), 0)).astype(np.uint8)
+            flags = _flags(flagged[:n, b], not_ref[:n, b], x_mm, self.stroke[b] * 1e3)
             est = RunEstimate(x_mm, out_v[:n, b] * 1e3, s.coverage * out_sd[:n, b] * 1e3, flags,
                               events[b])
             offsets = {name: float(z[b, i]) * 1e3 for name, i in self.slot[b].items()}
@@ -948,3 +958,132 @@ class _Bank:
         P[b] -= np.outer(K, ph)
         events[b].append(ReferenceEvent(k, c, sw.name, rising, p_mm, -y * 1e3, False,
                                         float(K[X])))
+
+
+@dataclass(frozen=True)
+class KalmanSample:
+    """One sample of an online filter: the published position and what the filter knows of
+    the unit's slow states then."""
+
+    index: int                          # samples since the filter's first
+    position_mm: float
+    velocity_mm_s: float
+    uncertainty_mm: float
+    flags: int
+    load_n: float
+    temp_offset_c: float
+    torque_offset_nm: float
+    pressures_bar: tuple[float, float]
+    events: tuple[ReferenceEvent, ...]  # references accepted at this sample (global indices)
+
+
+class OnlineKalman:
+    """One unit's filter fed sample by sample, as a service feeds it: the bank and step
+    :func:`run_many` runs, on inputs kept for the last :attr:`capacity` samples only (older
+    ones are moved out as the window fills). To the bit :func:`run_many`'s where the tank
+    sensor's lag is 0; with a lag, the pumps' oil is the reading plus the lag times the
+    reading's rate over the last minute (:class:`.TrailingRate`), not a minute centred on
+    the sample. The Hall switches are debounced as they come (:class:`.Debouncer`); a
+    switch's change is cloned when it is seen and used once accepted, as offline."""
+
+    def __init__(self, cfg: Config, actuator: str, period_s: float, *,
+                 references: bool = True, initial_position_mm: float | None = None,
+                 settings: KalmanSettings = KalmanSettings(), capacity: int | None = None
+                 ) -> None:
+        self.cfg, self.actuator, self.period_s = cfg, actuator, period_s
+        self.references, self.x0_mm, self.settings = references, initial_position_mm, settings
+        debounce_n = math.ceil(cfg.estimator.debounce_s / period_s)
+        # what a step reads back: the torque window's samples, an edge's, three for the speed
+        self.keep = max(1, int(round(settings.nis_window_s / period_s))) + debounce_n + 3
+        self.capacity = capacity if capacity is not None else 4 * self.keep
+        if self.capacity <= self.keep:
+            raise ValueError(f"capacity {self.capacity}: more than {self.keep} samples needed")
+        motor = cfg.unit(actuator).motor
+        self.motor, self.lag_s = motor, cfg.hydraulics.oil_temp_lag_s
+        self.rate = TrailingRate()
+        self.bank: _Bank | None = None
+        self.base = 0                   # global index of the bank's sample 0
+        self.k = 0                      # the bank's index of the next sample
+        self.last: tuple[float, float] | None = None      # (time, shaft torque) before
+        self.debouncers: dict[str, Debouncer] = {}
+
+    def _begin(self, time_s: float, speed_rpm: float, torque_nm: float,
+               oil_temp_c: float) -> _Bank:
+        n = self.capacity
+        run = Run(time_s + self.period_s * np.arange(n), np.full(n, speed_rpm),
+                  np.full(n, torque_nm), np.full(n, oil_temp_c), np.full(n, np.nan),
+                  source=f"<online {self.actuator}>")
+        job = _job(self.cfg, self.actuator, DDHUnit.from_config(self.cfg, self.actuator), run,
+                   self.references, self.x0_mm, self.settings)
+        self.debouncers = {sw.name: Debouncer(self.cfg.estimator.debounce_s)
+                           for sw in job.switches}
+        return _Bank([job], self.period_s, self.settings, self.cfg.estimator.debounce_s,
+                     self.cfg.hydraulics, {self.actuator: RowSpec.from_config(
+                         self.cfg, self.actuator)})
+
+    def _rebase(self) -> None:
+        """Move the last :attr:`keep` samples to the window's start."""
+        b, shift = self.bank, self.capacity - self.keep
+        assert b is not None
+        for a in (b.speed, b.torque, b.temp, b.time, b.nis, b.nis_win, b.flagged, b.not_ref,
+                  *b.out):
+            a[:self.keep] = a[shift:self.capacity]
+        b.seen.clear()
+        b.edges.clear()
+        self.base += shift
+        self.k -= shift
+
+    def update(self, time_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float,
+               refs: dict[str, bool] | None = None,
+               ref_edge_s: dict[str, float] | None = None) -> KalmanSample:
+        """One sample: the drive's speed and torque reading, the tank sensor's oil
+        temperature, each Hall switch's state (and the time it changed, where the I/O
+        module timed it)."""
+        first = self.bank is None
+        if first:
+            self.bank = self._begin(time_s, speed_rpm, torque_nm, oil_temp_c)
+        b = self.bank
+        assert b is not None
+        if self.k == self.capacity:
+            self._rebase()
+        k = self.k
+        shaft = float(shaft_torque_nm(torque_nm, speed_rpm, self.motor))
+        carried = shaft
+        if self.last is not None:
+            dt = time_s - self.last[0]
+            if 0.0 < dt <= 2.0 * self.period_s and self.motor.torque_filter_s:
+                carried = torque_at_speed_instant(shaft, self.last[1], dt,
+                                                  self.motor.torque_filter_s)
+        self.last = (time_s, shaft)
+        rate = self.rate.update(time_s, oil_temp_c)
+        b.time[k, 0], b.speed[k, 0], b.torque[k, 0] = time_s, speed_rpm, carried
+        b.temp[k, 0] = oil_temp_c + self.lag_s * rate if self.lag_s else oil_temp_c
+        for sw in b.jobs[0].switches:
+            if refs is None or sw.name not in refs:
+                continue
+            deb, raw = self.debouncers[sw.name], bool(refs[sw.name])
+            starts = deb.state is not None and raw != deb.state and deb.candidate_since_s is None
+            accepted = deb.update(time_s, raw, self.base + k)
+            if starts:
+                te = (ref_edge_s or {}).get(sw.name, math.nan)
+                b.seen.setdefault(k, []).append((0, sw, float(te)))
+            if accepted is not None:
+                c, rising = accepted
+                b.edges.setdefault(k, []).append((0, c - self.base, rising, sw))
+        if first:
+            b.start()
+        before = len(b.events[0])
+        b.step(k)
+        b.seen.pop(k, None)
+        b.edges.pop(k, None)
+        self.k += 1
+        out_x, out_v, out_sd, out_load, out_dt, out_toff, _, _, out_p = b.out
+        x_mm = out_x[k, 0] * 1e3
+        flags = _flags(b.flagged[k], b.not_ref[k], np.array([x_mm]), b.stroke[0] * 1e3)
+        events = tuple(dataclasses.replace(e, index=e.index + self.base,
+                                           edge_index=e.edge_index + self.base)
+                       for e in b.events[0][before:])
+        return KalmanSample(self.base + k, float(x_mm), float(out_v[k, 0] * 1e3),
+                            float(self.settings.coverage * out_sd[k, 0] * 1e3), int(flags[0]),
+                            float(out_load[k, 0]), float(out_dt[k, 0]), float(out_toff[k, 0]),
+                            (float(out_p[k, 0, 0]), float(out_p[k, 0, 1])), events)

@@ -9,6 +9,8 @@ tau = 0 the reading is returned as it is.
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 SLOPE_WINDOW_S = 60.0       # the reading's rate from this much of it around each sample
@@ -42,3 +44,38 @@ def pump_oil_temperature_c(time_s: np.ndarray, tank_c: np.ndarray, lag_s: float)
     if lag_s == 0.0 or len(tank) < 2:
         return tank
     return tank + lag_s * reading_rate_c_per_s(time_s, tank)
+
+
+class TrailingRate:
+    """Online: the least-squares slope of the reading over the last ``window_s`` (the offline
+    slope is centred on its sample, which a stream cannot be: this one is half a window late,
+    seconds on a warm-up whose rate changes over minutes). The sums are over times relative to
+    an origin moved to the window's start every two windows (recomputed then), so that they
+    keep their precision over days."""
+
+    def __init__(self, window_s: float = SLOPE_WINDOW_S) -> None:
+        self.window_s = window_s
+        self._origin_s: float | None = None
+        self._samples: deque[tuple[float, float]] = deque()
+        self._sums = [0.0, 0.0, 0.0, 0.0, 0.0]          # n, t, y, t^2, t y
+
+    def update(self, time_s: float, temp_c: float) -> float:
+        """Take one reading; the slope (K/s) over the window now (0 with one sample)."""
+        self._samples.append((time_s, temp_c))
+        while self._samples[0][0] < time_s - self.window_s:
+            self._add(*self._samples.popleft(), -1.0)
+        if self._origin_s is None or time_s - self._origin_s > 2.0 * self.window_s:
+            self._origin_s = self._samples[0][0]
+            self._sums = [0.0, 0.0, 0.0, 0.0, 0.0]
+            for t, y in self._samples:
+                self._add(t, y, 1.0)
+        else:
+            self._add(time_s, temp_c, 1.0)
+        n, st, sy, stt, sty = self._sums
+        den = n * stt - st * st
+        return (n * sty - st * sy) / den if n > 1 and den > 0.0 else 0.0
+
+    def _add(self, time_s: float, y: float, sign: float) -> None:
+        t = time_s - self._origin_s if self._origin_s is not None else 0.0
+        for i, v in enumerate((1.0, t, y, t * t, t * y)):
+            self._sums[i] += sign * v

@@ -252,3 +252,34 @@ def test_a_drive_whose_torque_reads_high_fails_the_self_check(cfg):
     e = res.estimate
     assert (e.flags & kalman.MODEL_INCONSISTENT).any()
     assert _unflagged_beyond(e, r) < 0.01
+
+
+def test_fed_sample_by_sample_it_is_the_offline_filter_to_the_bit(cfg, nominal):
+    """The online face (a service's): the warm run's boom, each sample as it comes, the
+    window moved on many times (a capacity of 300 samples), with and without references:
+    every position, uncertainty, flag, load and reference event as the offline run's."""
+    run = nominal[1]["boom"]
+    period = float(np.median(np.diff(run.time_s)))
+    for references, x0 in ((True, None), (False, float(run.position_mm[0]))):
+        offline = kalman.run_many(cfg, [("boom", run)], references=references,
+                                  initial_positions_mm=[x0])[0]
+        online = kalman.OnlineKalman(cfg, "boom", period, references=references,
+                                     initial_position_mm=x0, capacity=300)
+        out = [online.update(run.time_s[k], run.speed_rpm[k], run.torque_nm[k],
+                             run.oil_temp_c[k], {n: bool(v[k]) for n, v in run.refs.items()},
+                             {n: float(v[k]) for n, v in run.ref_edge_s.items()})
+               for k in range(len(run.time_s))]
+        assert online.base > 5 * 300                      # the window moved on
+        e = offline.estimate
+        assert np.array_equal([o.position_mm for o in out], e.position_mm)
+        assert np.array_equal([o.uncertainty_mm for o in out], e.uncertainty_mm)
+        assert np.array_equal([o.flags for o in out], e.flags)
+        assert np.array_equal([o.load_n for o in out], offline.load_n)
+        events = [ev for o in out for ev in o.events]
+        assert events == e.events
+        assert (len(events) > 0) == references
+
+
+def test_an_online_window_too_small_for_its_reads_back_is_refused(cfg):
+    with pytest.raises(ValueError, match="capacity 10"):
+        kalman.OnlineKalman(cfg, "boom", 0.01, capacity=10)

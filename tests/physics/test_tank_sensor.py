@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ddh_vsensor.physics.tank_sensor import pump_oil_temperature_c, reading_rate_c_per_s
+from ddh_vsensor.physics.tank_sensor import (TrailingRate, pump_oil_temperature_c,
+                                             reading_rate_c_per_s)
 from ddh_vsensor.sim.sensors import quantise, tank_temperature
 
 LAG_S = 180.0
@@ -39,3 +40,16 @@ def test_the_rate_of_a_line_is_its_slope() -> None:
     t = np.arange(0.0, 100.0, 0.1)
     assert reading_rate_c_per_s(t, 3.0 + 0.02 * t) == pytest.approx(np.full_like(t, 0.02))
     assert reading_rate_c_per_s(np.array([0.0]), np.array([1.0])).tolist() == [0.0]
+
+
+def test_the_online_rate_is_the_last_minutes_slope_over_hours() -> None:
+    """The stream's rate is the least-squares slope of the last minute (an hour of samples at
+    epoch times: the sums keep their precision)."""
+    t = 1.7e9 + np.arange(0.0, 3600.0, 0.01)
+    y = quantise(20.0 + 0.01 * (t - t[0]) + 0.5 * np.sin((t - t[0]) / 50.0), 0.1)
+    rate = TrailingRate()
+    online = np.array([rate.update(a, b) for a, b in zip(t, y)])
+    for i in (6000, 200000, len(t) - 1):
+        last = (t >= t[i] - 60.0) & (t <= t[i])
+        assert online[i] == pytest.approx(np.polyfit(t[last] - t[i], y[last], 1)[0],
+                                          rel=1e-8, abs=1e-12)
