@@ -10,26 +10,31 @@ F(1, n-1)/(n-1) of the best).
 Across the last :data:`WINDOW` logs the cause is judged held out, day by day: each log's
 parameter is predicted by the linear trend fitted to the *other* logs, and the score is the
 share of the references' loss that prediction removes (minus a penalty per trend
-parameter). The best cause is named when it scores :data:`MIN_SCORE` or more (the
-position-truth analysis's threshold).
+parameter). The loss at a predicted parameter is read between the log's grid nodes along a
+parabola: an error linear in the parameter has a squared loss that is one, and a straight
+line between two nodes overstates it there (on the coarse grid near neutral, enough to hold
+a young wear's score below zero for days). The best cause is named when it scores
+:data:`MIN_SCORE` or more (the position-truth analysis's threshold).
 
 The expected position error of a parameter value is the largest change it makes to an
 edge-to-edge increment on the unit's recent work (median over the last three logs; linear
-beyond the grid). The cause judged for an alarm is the best-scoring of those scoring at
-least :data:`TREND_SCORE` whose trend is significant (slope at :data:`SLOPE_T`; the line
-weighs each log by its interval and the day-to-day scatter, see :func:`_line`), else the
-best-scoring: a machine's constant deviation may explain more of its references than a
-young wear does. An alarm is raised when that cause's trend takes that error past the
-tolerance within the horizon (beyond the days the trend was fitted on at the slope's
-conservative bound, :data:`EXTRAPOLATION_SE` standard errors nearer zero: a week of logs
-says how fast a parameter moves over that week, no more), or when a named cause has it there
-already. An alarm, once raised, holds for :data:`HOLD_DAYS` (with the figures of the day it
-was last raised) unless the evidence raises it again: a trend near the tolerance's horizon
-is judged over and over on noisy days, and a warning that comes and goes with them reads as
-noise to whoever acts on it (alarm management's off-delay). A trend is caught
-while the error is still small against the nominal model's own ~1 mm at the references, so
-its cause cannot yet explain the :data:`MIN_SCORE` share that naming a cause asks for; the
-significant slope, the positive held-out score and the projected error together do.
+beyond the grid). The cause judged for an alarm is, of those scoring at least
+:data:`TREND_SCORE` whose trend is significant (slope at :data:`SLOPE_T`; the line weighs
+each log by its interval and the day-to-day scatter, see :func:`_line`), the one whose slope
+adds most to its score over a constant (what wears is what changes: a cause that explains
+the machine's constant deviation may also follow a wear it stands in for, but its slope adds
+little); where none trends, the best-scoring. An alarm is raised when that cause's trend
+takes that error past the tolerance within the horizon (beyond the days the trend was fitted
+on at the slope's conservative bound, :data:`EXTRAPOLATION_SE` standard errors nearer zero:
+a week of logs says how fast a parameter moves over that week, no more), or when a named
+cause has it there already. An alarm, once raised, holds for :data:`HOLD_DAYS` (with the
+figures of the day it was last raised) unless the evidence raises it again: a trend near the
+tolerance's horizon is judged over and over on noisy days, and a warning that comes and goes
+with them reads as noise to whoever acts on it (alarm management's off-delay). A trend is
+caught while the error is still small against the nominal model's own ~1 mm at the
+references, so its cause cannot yet explain the :data:`MIN_SCORE` share that naming a cause
+asks for; the significant slope, the positive held-out score and the projected error
+together do.
 """
 
 from __future__ import annotations
@@ -120,6 +125,24 @@ def _interp(x: float, xs: np.ndarray, ys: np.ndarray) -> float:
     return float(ys[k] + (ys[k + 1] - ys[k]) * (x - xs[k]) / (xs[k + 1] - xs[k]))
 
 
+def _interp_loss(x: float, xs: np.ndarray, ys: np.ndarray) -> float:
+    """A loss between its grid nodes: the parabola through the node pair around ``x`` and
+    the next node on the nearer side (an error linear in the parameter makes its squared
+    loss a parabola, which a straight line between nodes overstates between them by up to
+    a quarter of the nodes' spacing squared times its curvature); beyond the grid, linear."""
+    n = len(xs)
+    if n < 3 or x <= xs[0] or x >= xs[-1]:
+        return _interp(x, xs, ys)
+    k = int(np.searchsorted(xs, x)) - 1                 # xs[k] < x <= xs[k + 1]
+    near_left = x - xs[k] < xs[k + 1] - x
+    j = k - 1 if (near_left and k > 0) or k + 2 >= n else k
+    x0, x1, x2 = xs[j], xs[j + 1], xs[j + 2]
+    y0, y1, y2 = ys[j], ys[j + 1], ys[j + 2]
+    return float(y0 * (x - x1) * (x - x2) / ((x0 - x1) * (x0 - x2))
+                 + y1 * (x - x0) * (x - x2) / ((x1 - x0) * (x1 - x2))
+                 + y2 * (x - x0) * (x - x1) / ((x2 - x0) * (x2 - x1)))
+
+
 def log_fit(cause: str, row: dict) -> LogFit:
     g = to_u(cause, np.asarray(row["grid"], float))
     loss = np.asarray(row["loss"], float)
@@ -195,19 +218,33 @@ def _variances(fits: Sequence[LogFit]) -> np.ndarray:
     return (width / z) ** 2
 
 
-def heldout_score(fits: Sequence[LogFit]) -> float:
+def heldout_score(fits: Sequence[LogFit], slope: bool = True) -> float:
     """Share of the references' loss removed when each log's parameter is
-    predicted by the trend of the other logs, less the trend's penalty."""
+    predicted by the trend of the other logs (``slope`` False: by their weighted mean, a
+    constant deviation), less the prediction's penalty per parameter."""
     t = np.array([f.time_s for f in fits]) / DAY_S
     u = np.array([f.u for f in fits])
     var = _variances(fits)
     held = total = 0.0
     for j, f in enumerate(fits):
         others = np.arange(len(fits)) != j
-        a, b, _ = _line(t[others], u[others], var[others])
-        held += max(_interp(a + b * t[j], f.grid_u, f.loss), 0.0)
+        if slope:
+            a, b, _ = _line(t[others], u[others], var[others])
+            predicted = a + b * t[j]
+        else:
+            predicted = _level(u[others], var[others])
+        held += max(_interp_loss(predicted, f.grid_u, f.loss), 0.0)
         total += f.loss_nominal
-    return 1.0 - held / total - 2 * PENALTY_PER_PARAMETER if total > 0 else 0.0
+    parameters = 2 if slope else 1
+    return 1.0 - held / total - parameters * PENALTY_PER_PARAMETER if total > 0 else 0.0
+
+
+def _level(u: np.ndarray, var: np.ndarray) -> float:
+    """The logs' common value: weighted by their own variances (a censored log left out)."""
+    known = np.isfinite(var)
+    if not known.any():
+        return float(np.median(u))
+    return float(np.average(u[known], weights=1.0 / var[known]))
 
 
 class Trend(NamedTuple):
@@ -251,10 +288,12 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
     out.times_s = [f.time_s for f in first]
     for i, t_now in enumerate(out.times_s):
         out.reference_error_mm.append(first[i].max_increment_mm)
-        scores = {}
+        scores, gains = {}, {}
         if i + 1 >= MIN_LOGS:
             for cause, fits in by_cause.items():
-                scores[cause] = heldout_score(fits[max(0, i + 1 - WINDOW):i + 1])
+                window = fits[max(0, i + 1 - WINDOW):i + 1]
+                scores[cause] = heldout_score(window)
+                gains[cause] = scores[cause] - heldout_score(window, slope=False)
         out.scores.append(scores)
         candidates = {c: _trend(by_cause[c][max(0, i + 1 - WINDOW):i + 1])
                       for c, score in scores.items() if score >= TREND_SCORE}
@@ -267,7 +306,8 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
         # what wears is what changes: a cause that only explains a constant deviation (the
         # machine's tolerances) well gives way to one that trends and explains some too
         trend_causes = [c for c, tr in candidates.items() if tr.trending]
-        best = max(trend_causes or candidates, key=scores.get)
+        best = (max(trend_causes, key=gains.get) if trend_causes
+                else max(candidates, key=scores.get))
         window = by_cause[best][max(0, i + 1 - WINDOW):i + 1]
         t, u, a, b, se, trending = candidates[best]
         u_now = a + b * t[-1] if trending else float(np.median(u[-3:]))

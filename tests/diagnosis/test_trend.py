@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ddh_vsensor.diagnosis.trend import DAY_S, unit_trend
+from ddh_vsensor.diagnosis.trend import DAY_S, _interp_loss, unit_trend
 
 from ..conftest import T0, mixed_rows, rows
 
@@ -100,6 +100,37 @@ def test_a_wear_is_alarmed_beside_a_constant_deviation_that_explains_more():
     assert crossing - day >= 7                  # 5 when the best-scoring cause was judged
     scores = tr.scores[day]
     assert scores["displacement"] > scores["time_offset"] >= 0.05     # the case in point
+
+
+def test_a_constant_deviation_that_follows_the_wear_does_not_take_its_alarm():
+    """Two causes trend: the pumps' leakage that wears, and the displacement that explains
+    the machine's constant deviation (1.5 mm) and follows a little of the wear it stands in
+    for (its own error stays under 2.9 mm over the 30 days). The displacement scores more;
+    the alarm is judged on the cause whose slope adds most over a constant, the leakage (the
+    best-scoring trending cause was judged before: the displacement, on day 20)."""
+    days = np.arange(30.0)
+    u_wear = 0.02 * np.maximum(days - 2, 0)              # 8 mm per u: 3 mm on day 21
+    u_disp = np.log(1.03) + 0.05 * u_wear                # 50 mm per u
+    shown = {"pump_leakage": (8.0, u_wear), "displacement": (50.0, u_disp)}
+    tr = unit_trend("M5", "bucket", mixed_rows(shown, ("belt_slip",), 0.002, 0),
+                    tolerance_mm=3.0, horizon_days=14.0)
+    first = tr.first_alarm
+    assert first is not None and first.cause == "pump_leakage"
+    day = int(round((first.time_s - T0) / DAY_S))
+    assert float(np.argmax(8.0 * u_wear > 3.0)) - day >= 7
+    scores = tr.scores[day]
+    assert scores["displacement"] > scores["pump_leakage"]                # the case in point
+
+
+def test_between_grid_nodes_a_squared_loss_is_read_as_the_parabola_it_is():
+    """The held-out loss of a parameter between two nodes: on a coarse grid a straight line
+    would put a loss 0.5 where the parabola has 0.25, enough to keep a young wear's
+    held-out score below zero."""
+    nodes = np.array([-0.03, -0.01, 0.0, 0.01, 0.03, 0.06])
+    loss = (100.0 * nodes) ** 2
+    assert _interp_loss(0.005, nodes, loss) == pytest.approx(0.25)
+    assert _interp_loss(0.02, nodes, loss) == pytest.approx(4.0)
+    assert _interp_loss(0.01, nodes, loss) == pytest.approx(1.0)      # a node is itself
 
 
 def test_a_fit_at_a_grid_end_has_no_place_on_the_line():
