@@ -1051,6 +1051,9 @@ class OnlineKalman:
         carried = shaft
         if self.last is not None:
             dt = time_s - self.last[0]
+            if abs(dt - self.period_s) > 0.05 * self.period_s:
+                raise ValueError(f"sample {self.base + k} comes {dt:g} s after the last: the "
+                                 f"filter needs evenly sampled input ({self.period_s:g} s)")
             if 0.0 < dt <= 2.0 * self.period_s and self.motor.torque_filter_s:
                 carried = torque_at_speed_instant(shaft, self.last[1], dt,
                                                   self.motor.torque_filter_s)

@@ -283,3 +283,12 @@ def test_fed_sample_by_sample_it_is_the_offline_filter_to_the_bit(cfg, nominal):
 def test_an_online_window_too_small_for_its_reads_back_is_refused(cfg):
     with pytest.raises(ValueError, match="capacity 10"):
         kalman.OnlineKalman(cfg, "boom", 0.01, capacity=10)
+
+
+def test_an_online_sample_out_of_step_is_refused(cfg):
+    """Gaps are the service's to bridge (as for the other modes), not the filter's."""
+    online = kalman.OnlineKalman(cfg, "boom", 0.01)
+    online.update(0.0, 0.0, 0.0, 27.0)
+    online.update(0.01, 0.0, 0.0, 27.0)
+    with pytest.raises(ValueError, match="sample 2 comes 0.05 s after the last"):
+        online.update(0.06, 0.0, 0.0, 27.0)
