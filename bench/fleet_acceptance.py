@@ -10,8 +10,8 @@ store on a local cluster of 2 workers, analysed and scored against its truth fil
   readings, pump leakage and torque gain, count as one);
 - at most one false alarm per 20 machine-months.
 
-The first seed is analysed again on a Dask scheduler and two workers on 127.0.0.1 (separate
-processes): its alarms must equal the local cluster's.
+The first seed (or those given by ``--remote``) is analysed again on a Dask scheduler and two
+workers on 127.0.0.1 (separate processes): its alarms must equal the local cluster's.
 
     python bench/fleet_acceptance.py --seeds 99 2026 7 --fresh 11 12 --root DIR
 
@@ -177,13 +177,15 @@ def main() -> None:
     ap.add_argument("--from-day", type=int, default=10,
                     help="wears crossing the tolerance on this day or later must be warned")
     ap.add_argument("--root", default="/tmp/ddh_fleet_acceptance")
-    ap.add_argument("--no-remote", action="store_true",
-                    help="skip the scheduler + 2 workers comparison")
+    ap.add_argument("--remote", type=int, nargs="*", default=None, metavar="SEED",
+                    help="fleets also analysed on a scheduler + 2 workers (default: the first; "
+                         "none with no seed)")
     args = ap.parse_args()
     cfg = load_config(None)
     root = Path(args.root)
+    remote = (args.seeds + args.fresh)[:1] if args.remote is None else args.remote
     fleets: dict[str, dict] = {}
-    for i, seed in enumerate(args.seeds + args.fresh):
+    for seed in args.seeds + args.fresh:
         logs = root / str(seed) / "logs"
         sim_s = simulate(cfg, seed, logs, args.work_s)
         truth = json.loads((logs / "truth.json").read_text())
@@ -193,7 +195,7 @@ def main() -> None:
                    "simulate (s)": round(sim_s), "ingest and analyse (s)":
                    round(time.perf_counter() - started)}
         figures.update(judge(trends, truth, args.from_day))
-        if i == 0 and not args.no_remote:
+        if seed in remote:
             with scheduler_and_two_workers() as address:
                 remote = analyse(cfg, logs, root / str(seed) / "store_remote", address)
             figures["scheduler + 2 workers: identical alarms"] = \
