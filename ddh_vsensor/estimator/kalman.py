@@ -1058,9 +1058,9 @@ class OnlineKalman:
                 carried = torque_at_speed_instant(shaft, self.last[1], dt,
                                                   self.motor.torque_filter_s)
         self.last = (time_s, shaft)
-        rate = self.rate.update(time_s, oil_temp_c)
         b.time[k, 0], b.speed[k, 0], b.torque[k, 0] = time_s, speed_rpm, carried
-        b.temp[k, 0] = oil_temp_c + self.lag_s * rate if self.lag_s else oil_temp_c
+        b.temp[k, 0] = (oil_temp_c + self.lag_s * self.rate.update(time_s, oil_temp_c)
+                        if self.lag_s else oil_temp_c)
         for sw in b.jobs[0].switches:
             if refs is None or sw.name not in refs:
                 continue
