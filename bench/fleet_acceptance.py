@@ -197,9 +197,9 @@ def main() -> None:
         figures.update(judge(trends, truth, args.from_day))
         if seed in remote:
             with scheduler_and_two_workers() as address:
-                remote = analyse(cfg, logs, root / str(seed) / "store_remote", address)
+                on_cluster = analyse(cfg, logs, root / str(seed) / "store_remote", address)
             figures["scheduler + 2 workers: identical alarms"] = \
-                alarm_days(remote) == alarm_days(trends)
+                alarm_days(on_cluster) == alarm_days(trends)
         fleets[str(seed)] = figures
         print(f"seed {seed}: " + json.dumps({k: v for k, v in figures.items()
                                              if k != "wearing units"}), flush=True)
