@@ -39,7 +39,8 @@ from ddh_vsensor.fleet.report import write_report  # noqa: E402
 from ddh_vsensor.fleet.store import Store  # noqa: E402
 from ddh_vsensor.diagnosis.finding import PRESSURE_SCALE  # noqa: E402
 from ddh_vsensor.diagnosis.trend import DAY_S, expected_error_mm, to_u, unit_trend  # noqa: E402
-from ddh_vsensor.sim.fleet import START_DATE, log_name, plan_fleet, simulate_fleet  # noqa: E402
+from ddh_vsensor.sim.fleet import (START_DATE, day_summary_name, log_name,  # noqa: E402
+                                   plan_fleet, simulate_fleet)
 
 TOLERANCE_MM, HORIZON_DAYS = 3.0, 14.0
 
@@ -191,13 +192,10 @@ def main() -> None:
                       work_s=args.work_s)
     logs_dir, work = Path(args.logs), Path(args.work)
     present = {p.name for p in logs_dir.glob("*.blf")} if logs_dir.is_dir() else set()
-    hours = {m.name: 1000.0 * (int(m.name[1:]) % 3) for m in plan.machines}
 
     def done(m, d: int) -> bool:
-        name = log_name(m.name, d, hours[m.name] + 7.5 * d)
-        day = "_".join(name.split("_")[:2])
-        return name in present and (not args.work_s
-                                    or (logs_dir / f"{day}.summary.json").is_file())
+        return log_name(m.name, d) in present and (
+            not args.work_s or (logs_dir / day_summary_name(m.name, d)).is_file())
 
     missing = [d for d in range(args.days) if not all(done(m, d) for m in plan.machines)]
     if args.part:

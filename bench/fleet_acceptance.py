@@ -42,18 +42,10 @@ from ddh_vsensor.fleet.analysis import analyse_machine  # noqa: E402
 from ddh_vsensor.fleet.cluster import dask_client, run_batched, run_tasks  # noqa: E402
 from ddh_vsensor.fleet.ingest import DEFAULT_NAME_PATTERN, IngestJob, ingest_batch  # noqa: E402
 from ddh_vsensor.fleet.store import Store  # noqa: E402
-from ddh_vsensor.sim.fleet import log_name, plan_fleet, simulate_fleet  # noqa: E402
+from ddh_vsensor.sim.fleet import (day_summary_name, log_name, plan_fleet,  # noqa: E402
+                                   simulate_fleet)
 
 WARNING_DAYS = 7
-
-
-def hours(machine: str) -> float:
-    """A machine's hour meter on day 0, as ``bench/fleet.py`` reads the plan."""
-    return 1000.0 * (int(machine[1:]) % 3)
-
-
-def day_of(machine: str, day: int) -> str:
-    return "_".join(log_name(machine, day, hours(machine) + 7.5 * day).split("_")[:2])
 
 
 def _free_port() -> int:
@@ -107,8 +99,8 @@ def simulate(cfg, seed: int, logs: Path, work_s: float) -> float:
     done = {p.name for p in logs.glob("*")} if logs.is_dir() else set()
 
     def day_done(d: int) -> bool:
-        return all(log_name(m.name, d, hours(m.name) + 7.5 * d) in done
-                   and f"{day_of(m.name, d)}.summary.json" in done for m in plan.machines)
+        return all(log_name(m.name, d) in done and day_summary_name(m.name, d) in done
+                   for m in plan.machines)
     missing = [d for d in range(30) if not day_done(d)]
     if not missing and "truth.json" in done:
         return 0.0

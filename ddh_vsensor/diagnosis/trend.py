@@ -288,12 +288,10 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
     out.times_s = [f.time_s for f in first]
     for i, t_now in enumerate(out.times_s):
         out.reference_error_mm.append(first[i].max_increment_mm)
-        scores, gains = {}, {}
+        scores = {}
         if i + 1 >= MIN_LOGS:
             for cause, fits in by_cause.items():
-                window = fits[max(0, i + 1 - WINDOW):i + 1]
-                scores[cause] = heldout_score(window)
-                gains[cause] = scores[cause] - heldout_score(window, slope=False)
+                scores[cause] = heldout_score(fits[max(0, i + 1 - WINDOW):i + 1])
         out.scores.append(scores)
         candidates = {c: _trend(by_cause[c][max(0, i + 1 - WINDOW):i + 1])
                       for c, score in scores.items() if score >= TREND_SCORE}
@@ -303,10 +301,14 @@ def unit_trend(machine: str, actuator: str, rows: Sequence[dict], tolerance_mm: 
             out.error_projected_mm.append(float("nan"))
             out.alarms.append(None)
             continue
-        # what wears is what changes: a cause that only explains a constant deviation (the
-        # machine's tolerances) well gives way to one that trends and explains some too
+        # what wears is what changes: of the causes that trend, the one whose slope adds most
+        # over a constant deviation (the machine's tolerances), else the best-scoring
         trend_causes = [c for c, tr in candidates.items() if tr.trending]
-        best = (max(trend_causes, key=gains.get) if trend_causes
+
+        def slope_gain(c: str) -> float:
+            return scores[c] - heldout_score(by_cause[c][max(0, i + 1 - WINDOW):i + 1],
+                                             slope=False)
+        best = (max(trend_causes, key=slope_gain) if trend_causes
                 else max(candidates, key=scores.get))
         window = by_cause[best][max(0, i + 1 - WINDOW):i + 1]
         t, u, a, b, se, trending = candidates[best]

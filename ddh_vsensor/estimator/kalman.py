@@ -998,8 +998,7 @@ class OnlineKalman:
         self.capacity = capacity if capacity is not None else 4 * self.keep
         if self.capacity <= self.keep:
             raise ValueError(f"capacity {self.capacity}: more than {self.keep} samples needed")
-        motor = cfg.unit(actuator).motor
-        self.motor, self.lag_s = motor, cfg.hydraulics.oil_temp_lag_s
+        self.motor, self.lag_s = cfg.unit(actuator).motor, cfg.hydraulics.oil_temp_lag_s
         self.rate = TrailingRate()
         self.bank: _Bank | None = None
         self.base = 0                   # global index of the bank's sample 0
@@ -1054,7 +1053,7 @@ class OnlineKalman:
             if abs(dt - self.period_s) > 0.05 * self.period_s:
                 raise ValueError(f"sample {self.base + k} comes {dt:g} s after the last: the "
                                  f"filter needs evenly sampled input ({self.period_s:g} s)")
-            if 0.0 < dt <= 2.0 * self.period_s and self.motor.torque_filter_s:
+            if self.motor.torque_filter_s:
                 carried = torque_at_speed_instant(shaft, self.last[1], dt,
                                                   self.motor.torque_filter_s)
         self.last = (time_s, shaft)

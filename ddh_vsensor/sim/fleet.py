@@ -45,6 +45,7 @@ import numpy as np
 from ddh_vsensor.atomic import output_dir
 from ddh_vsensor.config import Config
 from ddh_vsensor.errors import UserError
+from ddh_vsensor.estimator.day_samples import summary_name
 from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.steady import holding_speed, steady_state, steady_state_at_torque
 from ddh_vsensor.physics.unit import DDHUnit
@@ -308,9 +309,20 @@ def session_start_s(plan: FleetPlan, day: int, session: int) -> float:
     return (START_DATE + dt.timedelta(days=day)).timestamp() + session * spacing_s
 
 
-def log_name(machine: str, day: int, hours: float) -> str:
-    date = (START_DATE + dt.timedelta(days=day)).date().isoformat()
-    return f"{machine}_{date}_{hours:06.1f}h.blf"
+def _date(day: int) -> str:
+    return (START_DATE + dt.timedelta(days=day)).date().isoformat()
+
+
+def log_name(machine: str, day: int) -> str:
+    """A machine-day's log, named by its date and its hour meter at the day's start (each
+    machine starts at 0, 1000 or 2000 h and runs :data:`HOURS_PER_DAY` a day)."""
+    hours = 1000.0 * (int(machine[1:]) % 3) + HOURS_PER_DAY * day
+    return f"{machine}_{_date(day)}_{hours:06.1f}h.blf"
+
+
+def day_summary_name(machine: str, day: int) -> str:
+    """A machine-day's summary file, as the daemon's code names it."""
+    return summary_name(machine, _date(day))
 
 
 def truth_of(plan: FleetPlan) -> dict:
@@ -351,8 +363,7 @@ def simulate_fleet(cfg: Config, plan: FleetPlan, out_dir: str | Path,
             for run in per_unit.values():
                 run.shift_time(session_start_s(plan, day, j))
             if j == 0:
-                hours = 1000.0 * (int(m.name[1:]) % 3) + HOURS_PER_DAY * day
-                path = out / log_name(m.name, day, hours)
+                path = out / log_name(m.name, day)
                 write_blf_inputs(path, per_unit, cfg)            # no position frames
                 written.append(path)
             if summarise is not None and j == sessions - 1:
