@@ -1,10 +1,11 @@
 """The build step pyproject.toml cannot declare stably: the C libraries loaded with ctypes (no
 Python API).
 
-``ddh_vsensor.model._unit``, the unit's dynamics, is required: the simulator runs nothing
-else, so without a C compiler (gcc) the install fails here, saying so. The chamber models'
-steps of the estimator (the dynamic mode's, and the one with entrained air the diagnosis
-fits) are optional: without a compiler the same steps run in Python.
+``ddh_vsensor.model._unit``, the unit's dynamics, and ``ddh_vsensor.estimator._kalman``, the
+Kalman filter's sample with those dynamics compiled in, are required: the simulator and the
+filter run nothing else, so without a C compiler (gcc) the install fails here, saying so.
+The chamber models' steps of the estimator (the dynamic mode's, and the one with entrained
+air the diagnosis fits) are optional: without a compiler the same steps run in Python.
 """
 
 from setuptools import Extension, setup
@@ -28,6 +29,10 @@ class BuildExt(build_ext):
 setup(cmdclass={"build_ext": BuildExt},
       ext_modules=[Extension("ddh_vsensor.model._unit",
                              sources=["ddh_vsensor/model/_unit.c"],
+                             libraries=["m"], extra_compile_args=["-ffp-contract=off"]),
+                   Extension("ddh_vsensor.estimator._kalman",
+                             sources=["ddh_vsensor/estimator/_kalman.c"],
+                             depends=["ddh_vsensor/model/_unit.c"],
                              libraries=["m"], extra_compile_args=["-ffp-contract=off"]),
                    Extension("ddh_vsensor.estimator._chambers",
                              sources=["ddh_vsensor/estimator/_chambers.c"],

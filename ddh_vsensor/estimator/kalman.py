@@ -1,4 +1,4 @@
-"""Research prototype (issue 36): an extended Kalman filter on the unit's own dynamics.
+"""An extended Kalman filter on the unit's own dynamics (``--mode kalman``).
 
 The `dynamic` mode integrates a chamber model and bounds its error by hand (1 % of the travel
 since the last reference plus a hold rate). Where the plant has structure the model lacks,
@@ -62,16 +62,18 @@ comp, disp, tau_stuck (N*m), o_1..o_m (m), c_1..c_m (m)]:
   offset).
 
 Prediction is the simulator's own plant (:class:`ddh_vsensor.model.plant.Plant`, its rows built
-from the configuration with the structure terms it states) in speed mode: the motor follows the
-measured speed (the parabola through the last three samples, over ``substeps`` backward-Euler
-steps per sample) and the plant reports the torque the drive needs, inertia included; the drive
-at its torque limit, the rod on a stop and the relief valves open are the plant's own states,
-so a rod pressed on a stop by the drive at its limit needs no mode of its own. One plant batch
-holds, per filter, the nominal row and one row per perturbed plant state (x, v, dp_a, dp_b,
-F_load, dT): the Jacobian comes from one batched step by finite differences. x is perturbed
-away from the nearer stroke end by :attr:`KalmanSettings.stop_reach` sigma: the slope of a
-stop's clip over the position's spread is the share of rods not yet there, so the spread closes
-as the pumps push the rods behind the mean onto the stop, not when the mean arrives.
+from the configuration with the structure terms it states; its C step, ``model/_unit.c``, is
+compiled into the filter's sample, ``_kalman.c``, which steps the rows itself) in speed mode:
+the motor follows the measured speed (the parabola through the last three samples, over
+``substeps`` backward-Euler steps per sample) and the plant reports the torque the drive needs,
+inertia included; the drive at its torque limit, the rod on a stop and the relief valves open
+are the plant's own states, so a rod pressed on a stop by the drive at its limit needs no mode
+of its own. One plant batch holds, per filter, the nominal row and one row per perturbed plant
+state (x, v, dp_a, dp_b, F_load, dT): the Jacobian comes from one batched step by finite
+differences. x is perturbed away from the nearer stroke end by
+:attr:`KalmanSettings.stop_reach` sigma: the slope of a stop's clip over the position's spread
+is the share of rods not yet there, so the spread closes as the pumps push the rods behind the
+mean onto the stop, not when the mean arrives.
 
 Measurement: the logged motor torque is the plant's torque over the *last* substep plus
 ``tau_off`` plus noise whose variance is physics (the drive's estimate error, the reading's
@@ -132,13 +134,14 @@ from scipy.stats import chi2
 
 from ddh_vsensor.config import DATASHEET_TOLERANCES, Config, HydraulicsConfig, MotorConfig
 from ddh_vsensor.estimator.estimator import ReferenceEvent, RunEstimate
+from ddh_vsensor.estimator import kalman_step
 from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.timing import (shaft_torque_nm, torque_at_speed_instant,
                                           torque_at_speed_instants)
 from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, Debouncer, Switch,
                                               accepted_edges, switches_from_config)
 from ddh_vsensor.measured import Run
-from ddh_vsensor.physics.conversions import BAR_PA, RPM_RAD_S
+from ddh_vsensor.physics.conversions import BAR_PA
 from ddh_vsensor.physics.pump import rating_viscosity_pa_s
 from ddh_vsensor.physics.steady import steady_state_at_torque
 from ddh_vsensor.physics.tank_sensor import TrailingRate, pump_oil_temperature_c
@@ -287,11 +290,6 @@ class _Job:
     torque_offset_sd_nm: float          # what is known of its offset, in the shaft's N*m
 
 
-def _set_mass(plant: Plant, mass_kg: np.ndarray) -> None:
-    """Per-row moving mass (the C step reads it each step)."""
-    plant.mass = mass_kg
-
-
 @functools.lru_cache
 def cusum_threshold(ratio: float, false_alarm: float, cells: int = 200) -> float:
     """The threshold h of the CUSUM g = max(0, g + (1 - 1/ratio) nu^2 / 2 - ln(ratio) / 2)
@@ -375,7 +373,9 @@ def _flags(inconsistent: np.ndarray, not_referenced: np.ndarray, x_mm: np.ndarra
 
 
 class _Bank:
-    """B filters stepped together; arrays are (B, ...) and plant rows b * N_ROWS + j."""
+    """B filters stepped together; arrays are (B, ...) and plant rows b * N_ROWS + j. A sample
+    is the compiled step's (``_kalman.c``: the prediction through the plant's own rows, the
+    torque's update); the Hall edges' updates between its two halves are here."""
 
     def __init__(self, jobs: list[_Job], period_s: float, s: KalmanSettings,
                  debounce_s: float, hydraulics: HydraulicsConfig,
@@ -408,27 +408,19 @@ class _Bank:
         self.time = pad(lambda j: j.run.time_s)
         col = lambda f: np.array([float(f(j)) for j in jobs])  # noqa: E731
         self.stroke = col(lambda j: j.unit.cylinder.stroke_m)
-        self.inertia = col(lambda j: j.unit.motor.inertia_kg_m2)
-        self.speed_limit = col(lambda j: j.unit.motor.speed_limit_rpm)
-        self.mass0 = col(lambda j: j.unit.load.mass_kg)
-        self.mass_per_n = col(lambda j: j.unit.load.mass_per_payload_kg
-                              / j.unit.load.force_per_payload_kg_n
-                              if j.unit.load.force_per_payload_kg_n else 0.0)
-        self.holding = col(lambda j: j.unit.load.holding_force_n)
-        self.oil = jobs[0].unit.oil
-        # rated leakage flow of the larger pump: the scale of the flow noise
-        self.rated_leak = col(lambda j: max(s_.pump.leak_coeff_m3 for s_ in j.unit.sides)
-                              * 250e5 / float(j.unit.oil.dynamic_viscosity_pa_s(40.0)))
         self.area_a = col(lambda j: j.unit.a.area_m2)
-        self.area_b = col(lambda j: j.unit.b.area_m2)
+        self.q_signed_a = col(lambda j: j.unit.a.pump.geometric_flow_m3_s(1.0))
         # per switch an offset state and a clone of the rod's position at its last edge
         m = max((len(j.switches) for j in jobs), default=0)
         self.slot = [{sw.name: N_BASE + i for i, sw in enumerate(j.switches)} for j in jobs]
         self.clone = [{sw.name: N_BASE + m + i for i, sw in enumerate(j.switches)}
                       for j in jobs]
         self.n_states = N_BASE + 2 * m
-        self.leak_a = col(lambda j: j.unit.a.pump.leak_coeff_m3)
-        self.leak_b = col(lambda j: j.unit.b.pump.leak_coeff_m3)
+        if self.n_states > kalman_step.max_states():
+            raise ValueError(f"kalman: {m} Hall switches on one unit; the compiled filter holds "
+                             f"{(kalman_step.max_states() - N_BASE) // 2} at most")
+        leak_a = col(lambda j: j.unit.a.pump.leak_coeff_m3)
+        leak_b = col(lambda j: j.unit.b.pump.leak_coeff_m3)
         # what the valves let a chamber's pressure reach: the anti-cavitation valve's opening
         # less, and the relief's setting plus, the pressure over which each passes the side's
         # largest pump flow (at the speed limit); an update never takes a pressure beyond
@@ -443,29 +435,62 @@ class _Bank:
         self.p_ceiling = np.stack(
             [col(lambda j: j.unit.a.relief.setting_pa) + reach("a", "relief"),
              col(lambda j: j.unit.b.relief.setting_pa) + reach("b", "relief")], axis=1)
-        self.leak_band_a = col(lambda j: j.leak_tolerance_a)
-        self.leak_band_b = col(lambda j: j.leak_tolerance_b)
-        self.q_per_rpm_a = col(lambda j: abs(j.unit.a.pump.geometric_flow_m3_s(1.0)))
-        self.q_per_rpm_b = col(lambda j: abs(j.unit.b.pump.geometric_flow_m3_s(1.0)))
-        self.q_signed_a = col(lambda j: j.unit.a.pump.geometric_flow_m3_s(1.0))
-        # half the pumps' friction band at standstill per Pa: ideal (1/eta - eta) / 2 per side
-        self.band_half = np.array([[sd.pump.sign * sd.pump.speed_ratio
-                                    * sd.pump.displacement_m3_rev / (2.0 * math.pi)
-                                    * (1.0 / sd.pump.eta_hm - sd.pump.eta_hm) / 2.0
-                                    for sd in j.unit.sides] for j in jobs])
-        self.dead = col(lambda j: j.unit.dead_volume_m3)
         # a side's leakage at the rating point, through an orifice: k_lam dp_r / mu_r sqrt(dp/dp_r)
         dp_r = hydraulics.nominal_pressure_bar * BAR_PA
-        mu_r = rating_viscosity_pa_s(self.oil, hydraulics)
-        self.orifice_a = self.leak_a * math.sqrt(dp_r) / mu_r
-        self.orifice_b = self.leak_b * math.sqrt(dp_r) / mu_r
-        self.beta = col(lambda j: j.unit.bulk_modulus_pa)
-        self.phi_t = math.exp(-period_s / s.temp_tau_s)
-        self.flow_sigma = np.zeros(B)
-        # the flow error's variance over the tolerance bands' (>= 1), what the edges imply:
-        # an inverse-gamma posterior's mean from the edges' innovations squared, each
-        # normalised to the bands' spread; and the CUSUM that flags the bands wrong
-        self.flow_scale = np.ones(B)
+        mu_r = rating_viscosity_pa_s(jobs[0].unit.oil, hydraulics)
+        oil = jobs[0].unit.oil
+        self.units = kalman_step.record(
+            "unit", B, stroke_m=self.stroke, area_a_m2=self.area_a,
+            area_b_m2=col(lambda j: j.unit.b.area_m2),
+            inertia_kg_m2=col(lambda j: j.unit.motor.inertia_kg_m2),
+            speed_limit_rpm=col(lambda j: j.unit.motor.speed_limit_rpm),
+            mass_kg=col(lambda j: j.unit.load.mass_kg),
+            mass_per_n_kg=col(lambda j: j.unit.load.mass_per_payload_kg
+                              / j.unit.load.force_per_payload_kg_n
+                              if j.unit.load.force_per_payload_kg_n else 0.0),
+            holding_n=col(lambda j: j.unit.load.holding_force_n),
+            # rated leakage flow of the larger pump: the scale of the flow noise
+            rated_leak_m3_s=col(lambda j: max(s_.pump.leak_coeff_m3 for s_ in j.unit.sides)
+                                * 250e5 / float(oil.dynamic_viscosity_pa_s(40.0))),
+            dead_m3=col(lambda j: j.unit.dead_volume_m3),
+            beta_pa=col(lambda j: j.unit.bulk_modulus_pa),
+            leak_a_m3=leak_a, leak_b_m3=leak_b,
+            leak_band_a=col(lambda j: j.leak_tolerance_a),
+            leak_band_b=col(lambda j: j.leak_tolerance_b),
+            orifice_a=leak_a * math.sqrt(dp_r) / mu_r, orifice_b=leak_b * math.sqrt(dp_r) / mu_r,
+            q_per_rpm_a_m3_s=col(lambda j: abs(j.unit.a.pump.geometric_flow_m3_s(1.0))),
+            q_per_rpm_b_m3_s=col(lambda j: abs(j.unit.b.pump.geometric_flow_m3_s(1.0))),
+            # half the pumps' friction band at standstill per Pa: ideal (1/eta - eta) / 2
+            band_half_nm_per_pa=np.array([[sd.pump.sign * sd.pump.speed_ratio
+                                           * sd.pump.displacement_m3_rev / (2.0 * math.pi)
+                                           * (1.0 / sd.pump.eta_hm - sd.pump.eta_hm) / 2.0
+                                           for sd in j.unit.sides] for j in jobs]),
+            p_floor_pa=self.p_floor, p_ceiling_pa=self.p_ceiling)
+        walther_a, walther_b = oil.walther_coefficients
+        win = max(1, int(round(s.nis_window_s / period_s)))
+        self.edge_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
+        self.settings = kalman_step.record(
+            "settings", 1, period_s=period_s, substep_s=self.plant.h, substeps=s.substeps,
+            nis_window=win, unexplained_gate=int(s.unexplained_gate),
+            nis_bound=float(chi2.ppf(1.0 - s.false_alarm, win)),
+            torque_gate=float(chi2.ppf(1.0 - s.false_alarm, 1)), deltas=DELTAS,
+            stop_reach=s.stop_reach, drive_torque_nm=s.drive_torque_nm,
+            torque_timing_s=s.torque_timing_s, speed_step_rpm=s.speed_step_rpm,
+            limiter_torque_nm=s.limiter_torque_nm, leak_orifice_share=s.orifice_share,
+            trapped_share=s.trapped_share, flow_floor_m3_s=s.flow_floor_m3_s,
+            flow_travel_strokes=s.flow_travel_strokes, flow_tau_s=s.flow_tau_s,
+            temp_sd_c=s.temp_sd_c, temp_bound_c=s.temp_bound_sd * s.temp_sd_c,
+            phi_t=math.exp(-period_s / s.temp_tau_s), load_walk_share=s.load_walk_share,
+            force_noise_n=s.force_noise_n, flow_noise_share=s.flow_noise_share,
+            torque_offset_walk_nm=s.torque_offset_walk_nm, stuck_torque_s=s.stuck_torque_s,
+            huber=s.huber, max_inflation=s.max_inflation,
+            inflate_per_sample=period_s / s.nis_window_s, floor_m=s.floor_mm * 1e-3,
+            walther_intercept=walther_a, walther_slope=walther_b,
+            density_15c_kg_m3=oil.cfg.density_kg_m3_at_15c,
+            expansion_per_k=oil.cfg.thermal_expansion_per_k)
+        # the edges' check of the flow error's bounds: an inverse-gamma posterior's mean from
+        # the edges' innovations squared, each normalised to the bands' spread, and the CUSUM
+        # that flags the bands wrong
         self.edge_sum = np.zeros(B)
         self.edge_n = np.zeros(B)
         self.cusum = np.zeros(B)
@@ -509,166 +534,7 @@ class _Bank:
         constant = [COMP, DISP, STICK, *range(N_BASE, N_BASE + max((len(j.switches)
                                                             for j in self.jobs), default=0))]
         self.prior_var[:, constant] = p0[:, constant]
-        self.load_scale = np.maximum(np.abs(z[:, LOAD]), 1.0)
         return z, P, referenced
-
-    def _flow_sigma(self, z: np.ndarray, temp_c: np.ndarray, speed_rpm: np.ndarray
-                    ) -> np.ndarray:
-        """The unmodelled flow's stationary standard deviation (m^3/s, into chamber A).
-
-        a |q_leak(p, mu)|: the pumps' leakage as the model has it (laminar, 1/mu), off by the
-        datasheet's tolerance and its speed dependence; a' q_rated sqrt(|p| / p_rated): the
-        share of the rating point's leakage that may pass orifice-like gaps, which does not
-        thin with cold oil nor fall linearly with pressure (at -10 degC it is most of the
-        leakage, which the laminar law puts near zero); b |q_displacement(n)|: the delivered
-        flow's own speed dependence (filling, the trapped volume's compression); c: a floor
-        for what bypasses the seals."""
-        s = self.s
-        mu = self.oil.dynamic_viscosity_pa_s(temp_c + z[:, DT])
-        # each side's leakage off by its own band (a pump commissioning measured knows more)
-        leak = (self.leak_band_a * np.abs(self.leak_a * z[:, PA])
-                + self.leak_band_b * np.abs(self.leak_b * z[:, PB])) / mu
-        # the orifice law against the laminar one, per side, at the same rating-point leakage
-        pa, pb = np.abs(z[:, PA]), np.abs(z[:, PB])
-        orifice = (np.abs(self.orifice_a * np.sqrt(pa) - self.leak_a * pa / mu)
-                   + np.abs(self.orifice_b * np.sqrt(pb) - self.leak_b * pb / mu))
-        trapped = s.trapped_share * np.abs(speed_rpm) * (
-            self.q_per_rpm_a * pa + self.q_per_rpm_b * pb) / self.beta
-        # each a bound of a share anywhere within [0, bound] (or +-bound): its RMS is bound/sqrt(3)
-        return (leak + s.orifice_share * orifice + trapped) / SQRT_3 + s.flow_floor_m3_s
-
-    def _compression_travel(self, z: np.ndarray, nom: np.ndarray) -> np.ndarray:
-        """The rod's travel per unit relative error of the chambers' compliance over this step
-        (m): chamber A taking dV = V_a dp_a / beta more oil in compression moves the rod by
-        -dV / A_a, chamber B by +dV / A_b; the rod takes the mean of the two."""
-        x = np.clip(z[:, X], 0.0, self.stroke)
-        va = self.dead + self.area_a * x
-        vb = self.dead + self.area_b * (self.stroke - x)
-        dva = va * (nom[:, PA] - z[:, PA]) / self.beta
-        dvb = vb * (nom[:, PB] - z[:, PB]) / self.beta
-        return -0.5 * (dva / self.area_a - dvb / self.area_b)
-
-    def _process_noise(self, x: np.ndarray) -> np.ndarray:
-        s, T = self.s, self.T
-        n = self.n_states
-        q = np.zeros((self.B, n))
-        mass = self.mass0
-        q[:, V] = (s.force_noise_n / mass) ** 2 * T
-        cap = (self.dead + self.area_a * 0.5 * self.stroke) / self.beta
-        q[:, PA] = q[:, PB] = (s.flow_noise_share * self.rated_leak / cap) ** 2 * T
-        q[:, LOAD] = (s.load_walk_share * self.load_scale) ** 2 * T
-        q[:, DT] = s.temp_sd_c ** 2 * (1.0 - self.phi_t ** 2)
-        q[:, EPS] = 1.0 - self.phi_q ** 2
-        q[:, TOFF] = s.torque_offset_walk_nm ** 2 * T
-        # a stuck motor's torque moves within the band as the drive's controller winds
-        q[:, STICK] = np.where(self.was_stopped, self.prior_var[:, STICK], 0.0) * T \
-            / s.stuck_torque_s
-        Q = np.zeros((self.B, n, n))
-        Q[:, np.arange(n), np.arange(n)] = q
-        return Q
-
-    def _torque_variance(self, k: int) -> np.ndarray:
-        """What the samples cannot tell about the torque at sample k (N*m^2)."""
-        s, T = self.s, self.T
-        tq, n = self.torque, self.speed
-        var = np.full(self.B, s.drive_torque_nm ** 2)
-        if k >= 1:
-            var += (s.torque_timing_s * (tq[k] - tq[k - 1]) / T) ** 2
-        j_per_rpm = self.inertia * RPM_RAD_S / T
-        var += j_per_rpm ** 2 * s.speed_step_rpm ** 2 / 6.0
-        if k >= 2:
-            # the parabola through three samples is the speed's path only as far as its bend
-            # tells: the bend's own inertia torque stays a noise of that size
-            var += (0.5 * j_per_rpm * (n[k] - 2.0 * n[k - 1] + n[k - 2])) ** 2
-        at_limit = np.abs(n[k]) >= self.speed_limit - s.speed_step_rpm
-        if k >= 1:
-            at_limit |= np.abs(n[k - 1]) >= self.speed_limit - s.speed_step_rpm
-        return var + np.where(at_limit, s.limiter_torque_nm ** 2, 0.0)
-
-    def _predict(self, z: np.ndarray, sd_x: np.ndarray, k: int,
-                 discrete: tuple[np.ndarray, ...]
-                 ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray],
-                            tuple[np.ndarray, ...]]:
-        """Step every row from sample k-1 to k: the predicted states, the Jacobian and the
-        torque's value and gradient."""
-        plant, B, s, sub = self.plant, self.B, self.s, self.s.substeps
-        rows = np.repeat(z[:, :N_PLANT], N_ROWS, axis=0).reshape(B, N_ROWS, N_PLANT)
-        # x is perturbed away from the nearer stroke end by stop_reach sigma: the slope of a
-        # stop's clip over the spread is the share of rods not yet there, so the position's
-        # spread closes only once the pumps have pushed the rod stop_reach sigma behind the
-        # mean there too, not when the mean arrives
-        deltas = np.broadcast_to(DELTAS, (B, N_PLANT)).copy()
-        away = np.where(z[:, X] > 0.5 * self.stroke, -1.0, 1.0)
-        deltas[:, X] = away * np.minimum(np.maximum(DELTAS[X], self.s.stop_reach * sd_x),
-                                         0.5 * self.stroke)
-        rows[:, 1:, :] += deltas[:, :, None] * np.eye(N_PLANT)[None, :, :]
-        rows = rows.reshape(B * N_ROWS, N_PLANT)
-        plant.x = np.clip(rows[:, X], 0.0, np.repeat(self.stroke, N_ROWS))
-        plant.v = rows[:, V].copy()
-        plant.dp_a, plant.dp_b = rows[:, PA].copy(), rows[:, PB].copy()
-        plant.load = rows[:, LOAD].copy()
-        payload_force = rows[:, LOAD] - np.repeat(self.holding, N_ROWS)
-        extra = np.maximum(payload_force * np.repeat(self.mass_per_n, N_ROWS), 0.0)
-        _set_mass(plant, np.repeat(self.mass0, N_ROWS) + extra)
-        fs, ra, rb = discrete
-        plant.friction_state = np.repeat(fs, N_ROWS)
-        plant.regime_a, plant.regime_b = np.repeat(ra, N_ROWS), np.repeat(rb, N_ROWS)
-        n0, n1 = self.speed[k - 1], self.speed[k]
-        plant.n = np.repeat(n0, N_ROWS)
-        # the viscosity at the pumps' oil: the tank sensor's reading plus the offset state
-        t_mid = 0.5 * (self.temp[k - 1] + self.temp[k])
-        mu = self.oil.dynamic_viscosity_pa_s(np.repeat(t_mid, N_ROWS) + rows[:, DT])
-        mask = np.ones(B * N_ROWS, dtype=bool)
-        zero = np.zeros(B * N_ROWS)       # torque command: unused in speed mode
-        # the motor's speed over the sample: the parabola through the last three samples (a
-        # speed is smooth, its rotor's inertia sees to it), so the model's torque at the
-        # sample's instant carries the inertia torque of the speed's slope *there*, not of its
-        # mean over the sample, half a sample late (a deceleration's rising torque then read
-        # as a falling pressure, the oil it implies moving the rod ~1 % of the travel)
-        nm = self.speed[k - 2] if k >= 2 else 2.0 * n0 - n1
-        for i in range(sub):
-            tau = (i + 1) / sub
-            n_tau = n0 + tau * (n1 - nm) / 2.0 + tau * tau * (n1 - 2.0 * n0 + nm) / 2.0
-            plant.set_speed_control(mask, np.repeat(n_tau, N_ROWS))
-            plant.step(zero, mu)
-        tq = plant.torque
-        out = np.stack([plant.x, plant.v, plant.dp_a, plant.dp_b], axis=1).reshape(B, N_ROWS, 4)
-        tq = tq.reshape(B, N_ROWS)
-        nom = out[:, 0, :]
-        n = self.n_states
-        F = np.zeros((B, n, n))
-        F[:, :4, :N_PLANT] = np.transpose((out[:, 1:, :] - nom[:, None, :]) / deltas[:, :, None],
-                                          (0, 2, 1))
-        F[:, np.arange(LOAD, n), np.arange(LOAD, n)] = 1.0     # load, offsets: random walks
-        # the flow error forgets as the operating point moves (see flow_travel_strokes)
-        moved = np.abs(nom[:, X] - z[:, X]) / (s.flow_travel_strokes * self.stroke)
-        self.phi_q = np.exp(-(self.T / s.flow_tau_s + moved))
-        F[:, DT, DT], F[:, EPS, EPS] = self.phi_t, self.phi_q
-        # the unmodelled flow moves the rod only: the load sets the pressures, the flows the
-        # speed, so a flow error's lasting trace is a rod-velocity error sigma_q eps / A_a
-        self.flow_sigma = self._flow_sigma(z, t_mid, 0.5 * (n0 + n1)) * np.sqrt(self.flow_scale)
-        # against a stroke end the flow goes into pressure, not travel
-        at_end = (nom[:, X] <= 0.0) | (nom[:, X] >= self.stroke)
-        gain_x = np.where(at_end, 0.0, self.T * self.flow_sigma / self.area_a)
-        F[:, X, EPS] = gain_x
-        # the chambers' compliance off by comp (relative): the compression's travel with it
-        # (against a stroke end it moves nothing)
-        comp_x = np.where(at_end, 0.0, self._compression_travel(z, nom))
-        F[:, X, COMP] = comp_x
-        # the delivered displacement off by disp (relative): the step's travel with it
-        disp_x = np.where(at_end, 0.0, nom[:, X] - z[:, X])
-        F[:, X, DISP] = disp_x
-        H = np.zeros((B, n))
-        H[:, :N_PLANT] = (tq[:, 1:] - tq[:, :1]) / deltas
-        H[:, TOFF] = 1.0
-        z_new = z.copy()
-        z_new[:, :4] = nom
-        z_new[:, X] += gain_x * z[:, EPS] + comp_x * z[:, COMP] + disp_x * z[:, DISP]
-        z_new[:, DT] *= self.phi_t
-        z_new[:, EPS] *= self.phi_q
-        new_discrete = (plant.friction_state[self.nom].copy(), plant.regime_a[self.nom].copy(),
-                        plant.regime_b[self.nom].copy())
-        return z_new, F, (tq[:, 0], H), new_discrete
 
     # --- the loop -------------------------------------------------------------------------
 
@@ -684,175 +550,74 @@ class _Bank:
     def start(self) -> None:
         """The filters before their first sample: states, covariances, the edges each run's
         switches give, and the outputs' arrays."""
-        s, B, N, T = self.s, self.B, self.N, self.T
+        B, N = self.B, self.N
         z, P, referenced = self._initial()
         self.suspect: list[str | None] = [None] * B
-        self.was_stopped = np.zeros(B, dtype=bool)
-        self.edge_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
-        self.torque_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
-        win = max(1, int(round(s.nis_window_s / T)))
-        bound = float(chi2.ppf(1.0 - s.false_alarm, win))
-        out_x, out_v, out_sd = np.empty((N, B)), np.empty((N, B)), np.empty((N, B))
-        out_load, out_dt, out_toff = np.empty((N, B)), np.empty((N, B)), np.empty((N, B))
-        out_dq, out_sq = np.zeros((N, B)), np.zeros((N, B))
-        out_p = np.empty((N, B, 2))
-        nis = np.zeros((N, B))
-        nis_win = np.zeros((N, B))
-        flagged = np.zeros((N, B), dtype=bool)
-        not_ref = np.zeros((N, B), dtype=bool)
+        self.nis, self.nis_win = np.zeros((N, B)), np.zeros((N, B))
+        self.flagged = np.zeros((N, B), dtype=bool)
+        self.not_ref = np.zeros((N, B), dtype=bool)
+        self.out = (np.empty((N, B)), np.empty((N, B)), np.empty((N, B)), np.empty((N, B)),
+                    np.empty((N, B)), np.empty((N, B)), np.zeros((N, B)), np.zeros((N, B)),
+                    np.empty((N, B, 2)))
         # reference edges: edge index -> [(filter, switch, edge time)] (the rod's position
         # then is cloned) and accept index -> [(filter, edge index, rising, switch)]
-        seen: dict[int, list[tuple[int, Switch, float]]] = {}
-        edges: dict[int, list[tuple[int, int, bool, Switch]]] = {}
+        self.seen: dict[int, list[tuple[int, Switch, float]]] = {}
+        self.edges: dict[int, list[tuple[int, int, bool, Switch]]] = {}
         for b, j in enumerate(self.jobs):
             for sw in j.switches:
                 if sw.name not in j.run.refs:
                     continue
                 timed = j.run.ref_edge_s.get(sw.name)
                 for acc, c, rising in accepted_edges(j.run.time_s, j.run.refs[sw.name],
-                                                         self.debounce_s):
+                                                     self.debounce_s):
                     te = float(timed[c]) if timed is not None and np.isfinite(timed[c]) \
                         else math.nan
-                    seen.setdefault(c, []).append((b, sw, te))
-                    edges.setdefault(acc, []).append((b, c, rising, sw))
-        events: list[list[ReferenceEvent]] = [[] for _ in range(B)]
+                    self.seen.setdefault(c, []).append((b, sw, te))
+                    self.edges.setdefault(acc, []).append((b, c, rising, sw))
+        self.events: list[list[ReferenceEvent]] = [[] for _ in range(B)]
         self.edge_innovations: list[list[float]] = [[] for _ in range(B)]
         self.pending: dict[tuple[int, str], tuple[float, float, float]] = {}
-        temp_bound = s.temp_bound_sd * s.temp_sd_c
         # derive the start's discrete states from its state
         self.plant.set_state(np.repeat(z[:, X], N_ROWS), np.repeat(self.speed[0], N_ROWS),
                              np.repeat(z[:, PA], N_ROWS), np.repeat(z[:, PB], N_ROWS))
-        discrete = (self.plant.friction_state[self.nom].copy(),
-                    self.plant.regime_a[self.nom].copy(), self.plant.regime_b[self.nom].copy())
-        inflate_per_sample = T / s.nis_window_s
-        self.z, self.P, self.referenced, self.discrete = z, P, referenced, discrete
-        self.win, self.bound, self.temp_bound = win, bound, temp_bound
-        self.inflate_per_sample = inflate_per_sample
-        self.seen, self.edges, self.events = seen, edges, events
-        self.nis, self.nis_win, self.flagged, self.not_ref = nis, nis_win, flagged, not_ref
-        self.out = (out_x, out_v, out_sd, out_load, out_dt, out_toff, out_dq, out_sq, out_p)
+        self.filters = kalman_step.record(
+            "filter", B, load_scale_n=np.maximum(np.abs(z[:, LOAD]), 1.0), flow_scale=1.0,
+            flow_sigma_m3_s=0.0, phi_q=1.0,
+            friction_state=self.plant.friction_state[self.nom],
+            regime_a=self.plant.regime_a[self.nom], regime_b=self.plant.regime_b[self.nom],
+            was_stopped=0, referenced=referenced, held=0)
+        # views of the records' fields the edges' updates read and set
+        self.referenced, self.flow_scale = self.filters["referenced"], self.filters["flow_scale"]
+        self.z, self.P = z, P
+        out_x, out_v, out_sd, out_load, out_dt, out_toff, out_dq, out_sq, out_p = self.out
+        self.arrays = kalman_step.pointers(
+            speed_rpm=self.speed, torque_nm=self.torque, temp_c=self.temp, nis=self.nis,
+            nis_window=self.nis_win, x_m=out_x, v_m_s=out_v, sd_m=out_sd, load_n=out_load,
+            temp_offset_c=out_dt, torque_offset_nm=out_toff, flow_error_m3_s=out_dq,
+            flow_sigma_m3_s=out_sq, pressures_bar=out_p, flagged=self.flagged,
+            not_referenced=self.not_ref)
+        records = [a.ctypes.data for a in (self.settings, self.units, self.filters, z, P)]
+        params, state, inputs, counters = self.plant.c_pointers()
+        self._predict_args = (*records, self.prior_var.ctypes.data, params, state, inputs,
+                              self.arrays.ctypes.data, counters)
+        self._finish_args = (*records, self.arrays.ctypes.data)
 
     def step(self, k: int) -> None:
         """Sample k of every filter: the prediction from k - 1 and the torque's update
         (k > 0), the edges seen and accepted at k, the outputs at k."""
-        s, B = self.s, self.B
-        z, P, referenced, discrete = self.z, self.P, self.referenced, self.discrete
-        win, bound, temp_bound = self.win, self.bound, self.temp_bound
-        inflate_per_sample = self.inflate_per_sample
-        seen, edges, events = self.seen, self.edges, self.events
-        nis, nis_win, flagged, not_ref = self.nis, self.nis_win, self.flagged, self.not_ref
-        out_x, out_v, out_sd, out_load, out_dt, out_toff, out_dq, out_sq, out_p = self.out
-        if k > 0:
-            x_before = z[:, X].copy()
-            z, F, (tq_model, H), discrete = self._predict(
-                z, np.sqrt(np.maximum(P[:, X, X], 0.0)), k, discrete)
-            Q = self._process_noise(z[:, X])
-            P = F @ P @ np.transpose(F, (0, 2, 1)) + Q
-            if k > 1:
-                ratio = nis_win[k - 1]
-                grow = np.where(ratio > 1.0,
-                                np.minimum(ratio, s.max_inflation) ** inflate_per_sample, 1.0)
-                P = P * grow[:, None, None]
-                # a constant parameter is never less known than its band says: the fading
-                # memory widens what moves, not a bound (scaled as D P D, P stays PSD)
-                diag = np.arange(self.n_states)
-                d = np.sqrt(np.minimum(1.0, self.prior_var / np.maximum(
-                    P[:, diag, diag], 1e-300)))
-                P = d[:, :, None] * P * d[:, None, :]
-            # torque update
-            R = self._torque_variance(k)
-            # a motor standing still is held by the pumps' friction: any torque between
-            # the motoring and the pumping one holds the pressures (uniform over the band,
-            # about its middle)
-            stopped = np.abs(self.speed[k]) < 0.5 * s.speed_step_rpm
-            if stopped.any():
-                half = np.where(stopped[:, None], self.band_half, 0.0)   # (B, 2) per Pa
-                tq_model = tq_model - half[:, 0] * z[:, PA] - half[:, 1] * z[:, PB]
-                H = H.copy()
-                H[:, PA] -= half[:, 0]
-                H[:, PB] -= half[:, 1]
-                # where in the band the motor stuck is one value for the whole stop (the
-                # friction holds it until the drive breaks it loose): a state drawn anew,
-                # uniform over the band, as the motor stops, not a noise of each sample
-                # (a hundred samples of one stuck torque would teach the filter a
-                # hundred times what one does)
-                new = stopped & ~self.was_stopped
-                if new.any():
-                    band_var = (np.abs(half[:, 0] * z[:, PA])
-                                + np.abs(half[:, 1] * z[:, PB])) ** 2 / 3.0
-                    z[new, STICK] = 0.0
-                    P[new, STICK, :] = 0.0
-                    P[new, :, STICK] = 0.0
-                    P[new, STICK, STICK] = band_var[new]
-                    self.prior_var[new, STICK] = band_var[new]
-                H[:, STICK] = stopped
-            self.was_stopped = stopped
-            y = self.torque[k] - (tq_model + z[:, TOFF] + np.where(stopped, z[:, STICK], 0.0))
-            PH = np.einsum("bij,bj->bi", P, H)
-            # never below the measurement's own variance (R > 0): a covariance rounded
-            # off positive definiteness must not give a gain beyond the sample's weight
-            S = np.maximum(np.einsum("bi,bi->b", H, PH), 0.0) + R
-            nis[k] = y * y / S
-            # an innovation far beyond its spread is a linearisation the sample does not
-            # fit (a stop met sooner or later than modelled): Huber's weight, the
-            # innovation's variance widened so it moves the states by at most huber sigma
-            S = S * np.maximum(1.0, np.sqrt(nis[k]) / s.huber)
-            K = PH / S[:, None]
-            if s.unexplained_gate:
-                # beyond the gate the model does not explain the torque (a chamber it has
-                # pressurised holds a void on the plant, a force it lacks): the sample says
-                # nothing it can use, and the travel the model predicted over it is not
-                # known to have happened
-                unexplained = nis[k] > self.torque_gate
-                K[np.ix_(unexplained, SLOW)] = 0.0
-                P[unexplained, X, X] += (z[unexplained, X] - x_before[unexplained]) ** 2
-            # the torque's dependence on the position (the chambers' volumes) is too weak
-            # to trust under structure the model lacks, and at a stroke end any force the
-            # model lacks reads as the stop: the position, the flow error, the
-            # displacement (the travel's scale: only the edges measure it) and what is
-            # position too (the switches' offsets, the positions at pending edges) are
-            # "considered" (Schmidt), not updated; the covariance update then is Joseph's
-            # for that gain
-            K[:, X] = 0.0
-            K[:, EPS] = 0.0
-            K[:, DISP] = 0.0
-            K[:, N_BASE:] = 0.0
-            z = z + K * y[:, None]
-            z[:, [PA, PB]] = np.clip(z[:, [PA, PB]], self.p_floor, self.p_ceiling)
-            KPH = K[:, :, None] * PH[:, None, :]
-            P = (P - KPH - np.transpose(KPH, (0, 2, 1))
-                 + K[:, :, None] * (S[:, None, None] * K[:, None, :]))
-        z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
+        lib = kalman_step.library()
+        lib.kf_predict_update(self.B, self.n_states, k, *self._predict_args)
         # a switch changed: the rod's position at that instant, as known now, is kept
         # (cloned) until the debounce accepts the edge; the stop or anything else met
         # before then cannot be mistaken for the switch's offset
-        for b, sw, te in seen.get(k, ()):
-            self._clone(z, P, b, k, sw, te)
-        for b, c, rising, sw in edges.get(k, ()):
-            self._reference(z, P, b, k, c, rising, sw, referenced, events)
-        # the oil's offset stays within temp_bound_sd of its spread: a value beyond is
-        # another error taken for temperature (and the viscosity law has no meaning there)
-        z[:, DT] = np.clip(z[:, DT], -temp_bound, temp_bound)
-        z[:, X] = np.clip(z[:, X], 0.0, self.stroke)
-        P[:, X, X] = np.maximum(P[:, X, X], (s.floor_mm * 1e-3) ** 2)
-        P = 0.5 * (P + np.transpose(P, (0, 2, 1)))
-        # rounding must not leave a variance negative: the next gain would flip its sign
-        diag = P[:, np.arange(self.n_states), np.arange(self.n_states)]
-        P[:, np.arange(self.n_states), np.arange(self.n_states)] = np.maximum(diag, 0.0)
-        if not (np.isfinite(z).all() and np.isfinite(P).all()):
-            bad = [self.jobs[b].run.source for b in range(B)
-                   if not (np.isfinite(z[b]).all() and np.isfinite(P[b]).all())]
+        for b, sw, te in self.seen.get(k, ()):
+            self._clone(self.z, self.P, b, k, sw, te)
+        for b, c, rising, sw in self.edges.get(k, ()):
+            self._reference(self.z, self.P, b, k, c, rising, sw, self.referenced, self.events)
+        if lib.kf_finish(self.B, self.n_states, k, *self._finish_args):
+            bad = [self.jobs[b].run.source for b in range(self.B)
+                   if not (np.isfinite(self.z[b]).all() and np.isfinite(self.P[b]).all())]
             raise FloatingPointError(f"kalman: non-finite state at sample {k}: {bad}")
-        nis_win[k] = (nis[max(0, k - win + 1):k + 1].sum(axis=0)) / bound
-        flagged[k] = ((nis_win[k] > 1.0) | np.array([n is not None for n in self.suspect])
-                      | (self.cusum > self.cusum_h))
-        not_ref[k] = ~referenced
-        out_x[k], out_v[k] = z[:, X], z[:, V]
-        out_sd[k] = np.sqrt(np.maximum(P[:, X, X], 0.0))
-        out_load[k], out_dt[k], out_toff[k] = z[:, LOAD], z[:, DT], z[:, TOFF]
-        out_dq[k], out_sq[k] = self.flow_sigma * z[:, EPS], self.flow_sigma
-        out_p[k] = z[:, PA:PB + 1] * 1e-5
-        self.z, self.P, self.discrete = z, P, discrete
 
     def results(self, seconds: float) -> list[KalmanResult]:
         """Each filter's outputs over its own run; ``seconds`` the batch's wall time."""
@@ -958,6 +723,7 @@ class _Bank:
         P[b] -= np.outer(K, ph)
         events[b].append(ReferenceEvent(k, c, sw.name, rising, p_mm, -y * 1e3, False,
                                         float(K[X])))
+        self.filters["held"][b] = self.suspect[b] is not None or self.cusum[b] > self.cusum_h
 
 
 @dataclass(frozen=True)

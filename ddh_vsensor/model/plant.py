@@ -104,6 +104,12 @@ class Plant:
     def iterations(self) -> int:
         return int(self._counters["iterations"][0])
 
+    def c_pointers(self) -> tuple[int, int, int, int]:
+        """The rows' params, states, inputs and the counters as C addresses: for C code that
+        steps the rows itself (the Kalman filter's sample)."""
+        return (self.params.ctypes.data, self.state.ctypes.data, self._input.ctypes.data,
+                self._counters.ctypes.data)
+
     def set_speed_control(self, mask: np.ndarray, speed_rpm: np.ndarray | float = 0.0) -> None:
         """Rows in ``mask`` follow ``speed_rpm`` exactly (the drive in speed mode) from the
         next step on; the others are torque-controlled. The torque then reported is the one

@@ -38,6 +38,11 @@ class Oil:
     def __hash__(self) -> int:
         return hash(self.cfg)
 
+    @property
+    def walther_coefficients(self) -> tuple[float, float]:
+        """(a, b) of the D341 line log10 log10(nu_cSt + 0.7) = a + b log10(T / K)."""
+        return self._intercept, self._slope
+
     def kinematic_viscosity_cst(self, temp_c: ArrayLike) -> np.ndarray:
         t = np.log10(np.asarray(temp_c, dtype=float) + KELVIN_OFFSET)
         return 10.0 ** (10.0 ** (self._intercept + self._slope * t)) - _WALTHER_SHIFT_CST
