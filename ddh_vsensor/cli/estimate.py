@@ -54,7 +54,7 @@ def initial_position(run: Run, given: float | None) -> float | None:
 def estimate_run(args: argparse.Namespace, cfg: Config, run: Run,
                  actuator: str) -> tuple[str, RunEstimate]:
     """The mode and the result for one run, as the CLI options say."""
-    if args.mode == "kalman":
+    if (args.mode or cfg.estimator.mode) == "kalman":
         return "kalman", _kalman(args, cfg, run, actuator)
     extension = None
     if getattr(args, "extension", None):
@@ -84,10 +84,10 @@ def _kalman(args: argparse.Namespace, cfg: Config, run: Run, actuator: str) -> R
 def _run(args: argparse.Namespace) -> int:
     given = [name for name, value in (("--tables", args.tables), ("--extension", args.extension),
                                       ("--no-adaptation", args.no_adaptation)) if value]
-    if args.mode == "kalman" and given:
-        raise UserError(f"{', '.join(given)}: not for --mode kalman (it predicts with the "
-                        "unit's own model and learns nothing between runs)")
     cfg = config_from(args)
+    if (args.mode or cfg.estimator.mode) == "kalman" and given:
+        raise UserError(f"{', '.join(given)}: not for the kalman mode (it predicts with the "
+                        "unit's own model and learns nothing between runs)")
     if args.out:
         output_file(args.out, "estimate")
     if args.plot:

@@ -218,7 +218,9 @@ class TablesConfig:
 class EstimatorConfig:
     """How the position is integrated, referenced, adapted, bounded and persisted."""
 
-    mode: Literal["full", "paper", "dynamic"]
+    # full, paper, dynamic: the table estimator's modes; kalman: the Kalman filter on the
+    # unit's dynamics (ddh_vsensor.estimator.kalman_online.KalmanEstimator)
+    mode: Literal["full", "paper", "dynamic", "kalman"]
     dynamic_blend_s: float = field(metadata={"ge": 0.0, "le": 3600.0})
     max_gap_s: float = field(metadata=_positive(ge=0.001, le=1.0))
     inertia_compensation: bool
@@ -294,6 +296,9 @@ class CanConfig:
     position_step_mm: float = field(metadata=_positive(ge=0.0001, le=10.0))
     event_timer_ms: float = field(metadata={"ge": 1.0, "le": 65535.0})
     units: dict[str, CanUnitConfig]
+    # the motor controllers' TPDO period (their event timer): the drive samples its speed and
+    # torque at it, and the Kalman filter steps at it (frames come with the bus's jitter)
+    sevcon_period_ms: float = field(default=10.0, metadata={"ge": 1.0, "le": 1000.0})
     # CiA 301 behaviour of the emulated sensor nodes
     nmt_auto_start: bool = True     # boot to OPERATIONAL; False: PRE-OPERATIONAL, master starts
     emcy_enabled: bool = True       # EMCY producer valid at boot (0x1014 bit 31 clear)

@@ -33,8 +33,10 @@ Params = dict[str, float]
 
 
 def resolve_mode(cfg: Config, mode: str | None) -> str:
-    """The estimator mode a diagnosis runs in: the one asked for, else the configured one."""
-    mode = mode or cfg.estimator.mode
+    """The estimator mode a diagnosis runs in: the one asked for, else the configured one
+    (a machine configured for the Kalman filter: `dynamic`, the table estimator's mode on the
+    same chambers, whose causes the diagnosis fits)."""
+    mode = mode or (cfg.estimator.mode if cfg.estimator.mode != "kalman" else "dynamic")
     if mode not in get_args(Mode):
         raise UserError(f"unknown mode {mode!r} ({', '.join(get_args(Mode))})")
     return mode

@@ -84,8 +84,10 @@ enum { X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP, DISP, STICK, N_BASE };
     F(double, p_ceiling_pa, [2])
 
 /* One filter's state besides z and P: its discrete modes, its noise scales, what Python's
- * edge updates set (referenced, held: a suspect switch or the edges' CUSUM beyond). */
+ * edge updates set (referenced, held: a suspect switch or the edges' CUSUM beyond), and the
+ * sample it (re)started at (after a gap the inputs before are not its sample's past). */
 #define KF_FILTER(F)                                                                         \
+    F(long, since, )                                                                         \
     F(double, load_scale_n, )                                                                \
     F(double, flow_scale, )               /* the flow error's variance over the bands' */    \
     F(double, flow_sigma_m3_s, )                                                             \
@@ -97,8 +99,10 @@ enum { X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP, DISP, STICK, N_BASE };
     F(int, referenced, )                                                                     \
     F(int, held, )
 
-/* The bank's inputs and outputs, (N, B) each (pressures (N, B, 2)). */
+/* The bank's inputs and outputs, (N, B) each (pressures (N, B, 2)); measured: the sample's
+ * torque was read (0: a lost frame's, interpolated). */
 #define KF_ARRAYS(F)                                                                         \
+    F(const unsigned char *, measured, )                                                     \
     F(const double *, speed_rpm, )                                                           \
     F(const double *, torque_nm, )        /* the shaft's, from the drive's reading */        \
     F(const double *, temp_c, )           /* the pumps' oil */                               \
@@ -182,36 +186,33 @@ static double flow_sigma(const struct kf_settings *s, const struct kf_unit *u, c
     return (leak + s->leak_orifice_share * orifice + trapped) / SQRT_3 + s->flow_floor_m3_s;
 }
 
-/* What the samples cannot tell about the torque at sample k (N*m^2): the drive's estimate,
- * the reading's timing within its sample, the speed's resolution read as inertia torque, the
- * speed's bend beyond the parabola through three samples, the limiter at the speed limit. */
+/* What the samples cannot tell about the torque at sample k, the filter's `fresh`-th since
+ * its start (>= 1) (N*m^2): the drive's estimate, the reading's timing within its sample,
+ * the speed's resolution read as inertia torque, the speed's bend beyond the parabola
+ * through three samples, the limiter at the speed limit. */
 static double torque_variance(const struct kf_settings *s, const struct kf_unit *u,
-                              const struct kf_arrays *a, long B, long b, long k)
+                              const struct kf_arrays *a, long B, long b, long k, long fresh)
 {
     const double *tq = a->torque_nm, *n = a->speed_rpm;
     const double T = s->period_s;
     double var = s->drive_torque_nm * s->drive_torque_nm;
-    if (k >= 1) {
-        const double d = s->torque_timing_s * (tq[k * B + b] - tq[(k - 1) * B + b]) / T;
-        var += d * d;
-    }
+    const double d_tq = s->torque_timing_s * (tq[k * B + b] - tq[(k - 1) * B + b]) / T;
+    var += d_tq * d_tq;
     const double j_per_rpm = u->inertia_kg_m2 * RPM_RAD_S / T;
     var += j_per_rpm * j_per_rpm * (s->speed_step_rpm * s->speed_step_rpm) / 6.0;
-    if (k >= 2) {
+    if (fresh >= 2) {
         const double d = 0.5 * j_per_rpm
                          * (n[k * B + b] - 2.0 * n[(k - 1) * B + b] + n[(k - 2) * B + b]);
         var += d * d;
     }
     const double reach = u->speed_limit_rpm - s->speed_step_rpm;
-    int at_limit = fabs(n[k * B + b]) >= reach;
-    if (k >= 1)
-        at_limit |= fabs(n[(k - 1) * B + b]) >= reach;
+    const int at_limit = fabs(n[k * B + b]) >= reach || fabs(n[(k - 1) * B + b]) >= reach;
     return var + (at_limit ? s->limiter_torque_nm * s->limiter_torque_nm : 0.0);
 }
 
-/* One filter from sample k - 1 to k: the rows stepped through the sample with the motor
- * following the measured speed, the Jacobian by finite differences, the covariance, and the
- * torque's update. */
+/* One filter from sample k - 1 to k (k past its start): the rows stepped through the sample
+ * with the motor following the measured speed, the Jacobian by finite differences, the
+ * covariance, and the torque's update. The samples are the drive's, at its fixed period. */
 static void predict_update(long B, long n, long k, const struct kf_settings *s,
                            const struct kf_unit *u, struct kf_filter *f, double *z, double *P,
                            double *prior_var, struct ddh_params *rp, struct ddh_state *rs,
@@ -220,7 +221,8 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
 {
     const double T = s->period_s, stroke = u->stroke_m;
     const double n0 = a->speed_rpm[(k - 1) * B + b], n1 = a->speed_rpm[k * B + b];
-    const double nm = k >= 2 ? a->speed_rpm[(k - 2) * B + b] : 2.0 * n0 - n1;
+    const long fresh = k - f->since;
+    const double nm = fresh >= 2 ? a->speed_rpm[(k - 2) * B + b] : 2.0 * n0 - n1;
     const double t_mid = 0.5 * (a->temp_c[(k - 1) * B + b] + a->temp_c[k * B + b]);
     const double x_before = z[X];
     /* x is perturbed away from the nearer stroke end by stop_reach sigma: the slope of a
@@ -351,7 +353,7 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     f->friction_state = rs[0].friction_state;
     f->regime_a = rs[0].regime_a;
     f->regime_b = rs[0].regime_b;
-    if (k > 1) {
+    if (fresh > 1) {
         /* fading memory by the window's excess; a constant parameter is never less known
          * than its band says (scaled as D P D, P stays PSD) */
         const double ratio = a->nis_window[(k - 1) * B + b];
@@ -369,8 +371,12 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
                 P[i * n + c] = d[i] * P[i * n + c] * d[c];
         }
     }
-    /* the torque's update */
-    const double R = torque_variance(s, u, a, B, b, k);
+    /* the torque's update; a frame the bus lost (its inputs interpolated) measures nothing */
+    if (!a->measured[k * B + b]) {
+        a->nis[k * B + b] = 0.0;
+        return;
+    }
+    const double R = torque_variance(s, u, a, B, b, k, fresh);
     /* a motor standing still is held by the pumps' friction: any torque within the band
      * holds the pressures, one value for the stop (a state drawn anew as the motor stops) */
     const int stopped = fabs(a->speed_rpm[k * B + b]) < 0.5 * s->speed_step_rpm;
@@ -434,7 +440,7 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
 }
 
 /* Sample k of every filter up to its edges: the prediction from k - 1 and the torque's update
- * (k > 0), the position clipped to the stroke. rows: the plant's B * N_ROWS rows. Returns
+ * (k past the filter's start), the position clipped to the stroke. rows: the plant's B * N_ROWS rows. Returns
  * the row steps whose discrete states did not settle. */
 long kf_predict_update(long B, long n, long k, const struct kf_settings *s,
                        const struct kf_unit *units, struct kf_filter *filters, double *z,
@@ -444,7 +450,7 @@ long kf_predict_update(long B, long n, long k, const struct kf_settings *s,
 {
     long before = counters->unconverged;
     for (long b = 0; b < B; b++) {
-        if (k > 0)
+        if (k > filters[b].since)
             predict_update(B, n, k, s, units + b, filters + b, z + b * n, P + b * n * n,
                            prior_var + b * n, rp + b * N_ROWS, rs + b * N_ROWS,
                            ri + b * N_ROWS, a, b, counters);

@@ -124,7 +124,11 @@ class Estimator:
         referenced until a reference or preset, which then sets it and teaches nothing)."""
         ecfg, ucfg = cfg.estimator, cfg.unit(actuator)
         self.cfg, self.actuator = cfg, actuator
-        self.mode: Mode = mode or ecfg.mode
+        self.mode: Mode = mode or ecfg.mode     # type: ignore[assignment]
+        if self.mode == "kalman":
+            raise ValueError("estimator.mode kalman is the Kalman filter's "
+                             "(ddh_vsensor.estimator.kalman_online.KalmanEstimator); this "
+                             "estimator runs full, paper or dynamic")
         self.model = VelocityModel(tables, self.mode)
         self.lower_mm = ecfg.soft_limit_margin_mm
         self.upper_mm = ucfg.stroke_mm - ecfg.soft_limit_margin_mm

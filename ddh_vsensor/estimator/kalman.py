@@ -136,15 +136,14 @@ from ddh_vsensor.config import DATASHEET_TOLERANCES, Config, HydraulicsConfig, M
 from ddh_vsensor.estimator.estimator import ReferenceEvent, RunEstimate
 from ddh_vsensor.estimator import kalman_step
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.estimator.timing import (shaft_torque_nm, torque_at_speed_instant,
-                                          torque_at_speed_instants)
-from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, Debouncer, Switch,
+from ddh_vsensor.estimator.timing import (shaft_torque_nm, torque_at_speed_instants)
+from ddh_vsensor.estimator.references import (DIRECTION_SPEED_MM_S, Switch,
                                               accepted_edges, switches_from_config)
 from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.conversions import BAR_PA
 from ddh_vsensor.physics.pump import rating_viscosity_pa_s
 from ddh_vsensor.physics.steady import steady_state_at_torque
-from ddh_vsensor.physics.tank_sensor import TrailingRate, pump_oil_temperature_c
+from ddh_vsensor.physics.tank_sensor import pump_oil_temperature_c
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.model.plant import Plant, RowSpec
 
@@ -406,6 +405,7 @@ class _Bank:
         self.temp = pad(lambda j: pump_oil_temperature_c(j.run.time_s, j.run.oil_temp_c,
                                                          hydraulics.oil_temp_lag_s))
         self.time = pad(lambda j: j.run.time_s)
+        self.measured = np.ones((self.N, B), dtype=bool)   # False: a lost frame, interpolated
         col = lambda f: np.array([float(f(j)) for j in jobs])  # noqa: E731
         self.stroke = col(lambda j: j.unit.cylinder.stroke_m)
         self.area_a = col(lambda j: j.unit.a.area_m2)
@@ -581,7 +581,7 @@ class _Bank:
         self.plant.set_state(np.repeat(z[:, X], N_ROWS), np.repeat(self.speed[0], N_ROWS),
                              np.repeat(z[:, PA], N_ROWS), np.repeat(z[:, PB], N_ROWS))
         self.filters = kalman_step.record(
-            "filter", B, load_scale_n=np.maximum(np.abs(z[:, LOAD]), 1.0), flow_scale=1.0,
+            "filter", B, since=0, load_scale_n=np.maximum(np.abs(z[:, LOAD]), 1.0), flow_scale=1.0,
             flow_sigma_m3_s=0.0, phi_q=1.0,
             friction_state=self.plant.friction_state[self.nom],
             regime_a=self.plant.regime_a[self.nom], regime_b=self.plant.regime_b[self.nom],
@@ -591,7 +591,8 @@ class _Bank:
         self.z, self.P = z, P
         out_x, out_v, out_sd, out_load, out_dt, out_toff, out_dq, out_sq, out_p = self.out
         self.arrays = kalman_step.pointers(
-            speed_rpm=self.speed, torque_nm=self.torque, temp_c=self.temp, nis=self.nis,
+            measured=self.measured, speed_rpm=self.speed, torque_nm=self.torque,
+            temp_c=self.temp, nis=self.nis,
             nis_window=self.nis_win, x_m=out_x, v_m_s=out_v, sd_m=out_sd, load_n=out_load,
             temp_offset_c=out_dt, torque_offset_nm=out_toff, flow_error_m3_s=out_dq,
             flow_sigma_m3_s=out_sq, pressures_bar=out_p, flagged=self.flagged,
@@ -618,6 +619,52 @@ class _Bank:
             bad = [self.jobs[b].run.source for b in range(self.B)
                    if not (np.isfinite(self.z[b]).all() and np.isfinite(self.P[b]).all())]
             raise FloatingPointError(f"kalman: non-finite state at sample {k}: {bad}")
+
+    # --- the online bank's one filter: what the service does to it -------------------------
+
+    def restart(self, k: int) -> None:
+        """Start again at sample k, after inputs not integrated (the samples before are not
+        its past): the rod's velocity and the chambers' pressures from the steady state at
+        the sample's speed and torque, with the start's spreads; what is slow or constant
+        (position, load, oil, offsets, parameters, switches) is kept."""
+        assert self.B == 1, "the online bank holds one filter"
+        s, j, z, P = self.s, self.jobs[0], self.z[0], self.P[0]
+        st = steady_state_at_torque(j.unit, self.speed[k, 0], self.torque[k, 0],
+                                    self.temp[k, 0])
+        fast = [V, PA, PB, STICK]
+        P[fast, :] = 0.0
+        P[:, fast] = 0.0
+        z[fast] = [float(st.velocity_m_s), float(st.p_a_pa - j.unit.reservoir_pa),
+                   float(st.p_b_pa - j.unit.reservoir_pa), 0.0]
+        P[V, V] = (s.velocity_mm_s * 1e-3) ** 2
+        P[PA, PA] = P[PB, PB] = (s.pressure_bar * 1e5) ** 2
+        self.plant.set_state(np.full(N_ROWS, z[X]), np.full(N_ROWS, self.speed[k, 0]),
+                             np.full(N_ROWS, z[PA]), np.full(N_ROWS, z[PB]))
+        f = self.filters
+        f["since"], f["was_stopped"] = k, 0
+        f["friction_state"], f["regime_a"], f["regime_b"] = (
+            self.plant.friction_state[0], self.plant.regime_a[0], self.plant.regime_b[0])
+
+    def preset(self, position_m: float, sd_m: float) -> None:
+        """The rod is at ``position_m`` within ``sd_m`` (a preset, a restored state): known
+        now, correlated with nothing the filter holds."""
+        z, P = self.z[0], self.P[0]
+        z[X] = min(max(position_m, 0.0), self.stroke[0])
+        P[X, :] = 0.0
+        P[:, X] = 0.0
+        P[X, X] = sd_m ** 2
+
+    def widen(self, sd_m: float) -> None:
+        """The position's spread grows by ``sd_m`` (travel not integrated), its correlations
+        kept (P scaled as D P D)."""
+        P = self.P[0]
+        sd = math.sqrt(max(P[X, X], 0.0))
+        if sd == 0.0:
+            P[X, X] = sd_m ** 2
+            return
+        scale = (sd + sd_m) / sd
+        P[X, :] *= scale
+        P[:, X] *= scale
 
     def results(self, seconds: float) -> list[KalmanResult]:
         """Each filter's outputs over its own run; ``seconds`` the batch's wall time."""
@@ -724,134 +771,3 @@ class _Bank:
         events[b].append(ReferenceEvent(k, c, sw.name, rising, p_mm, -y * 1e3, False,
                                         float(K[X])))
         self.filters["held"][b] = self.suspect[b] is not None or self.cusum[b] > self.cusum_h
-
-
-@dataclass(frozen=True)
-class KalmanSample:
-    """One sample of an online filter: the published position and what the filter knows of
-    the unit's slow states then."""
-
-    index: int                          # samples since the filter's first
-    position_mm: float
-    velocity_mm_s: float
-    uncertainty_mm: float
-    flags: int
-    load_n: float
-    temp_offset_c: float
-    torque_offset_nm: float
-    pressures_bar: tuple[float, float]
-    events: tuple[ReferenceEvent, ...]  # references accepted at this sample (global indices)
-
-
-class OnlineKalman:
-    """One unit's filter fed sample by sample, as a service feeds it: the bank and step
-    :func:`run_many` runs, on inputs kept for the last :attr:`capacity` samples only (older
-    ones are moved out as the window fills). To the bit :func:`run_many`'s where the tank
-    sensor's lag is 0; with a lag, the pumps' oil is the reading plus the lag times the
-    reading's rate over the last minute (:class:`.TrailingRate`), not a minute centred on
-    the sample. The Hall switches are debounced as they come (:class:`.Debouncer`); a
-    switch's change is cloned when it is seen and used once accepted, as offline."""
-
-    def __init__(self, cfg: Config, actuator: str, period_s: float, *,
-                 references: bool = True, initial_position_mm: float | None = None,
-                 settings: KalmanSettings = KalmanSettings(), capacity: int | None = None
-                 ) -> None:
-        self.cfg, self.actuator, self.period_s = cfg, actuator, period_s
-        self.references, self.x0_mm, self.settings = references, initial_position_mm, settings
-        debounce_n = math.ceil(cfg.estimator.debounce_s / period_s)
-        # what a step reads back: the torque window's samples, an edge's, three for the speed
-        self.keep = max(1, int(round(settings.nis_window_s / period_s))) + debounce_n + 3
-        self.capacity = capacity if capacity is not None else 4 * self.keep
-        if self.capacity <= self.keep:
-            raise ValueError(f"capacity {self.capacity}: more than {self.keep} samples needed")
-        self.motor, self.lag_s = cfg.unit(actuator).motor, cfg.hydraulics.oil_temp_lag_s
-        self.rate = TrailingRate()
-        self.bank: _Bank | None = None
-        self.base = 0                   # global index of the bank's sample 0
-        self.k = 0                      # the bank's index of the next sample
-        self.last: tuple[float, float] | None = None      # (time, shaft torque) before
-        self.debouncers: dict[str, Debouncer] = {}
-
-    def _begin(self, time_s: float, speed_rpm: float, torque_nm: float,
-               oil_temp_c: float) -> _Bank:
-        n = self.capacity
-        run = Run(time_s + self.period_s * np.arange(n), np.full(n, speed_rpm),
-                  np.full(n, torque_nm), np.full(n, oil_temp_c), np.full(n, np.nan),
-                  source=f"<online {self.actuator}>")
-        job = _job(self.cfg, self.actuator, DDHUnit.from_config(self.cfg, self.actuator), run,
-                   self.references, self.x0_mm, self.settings)
-        self.debouncers = {sw.name: Debouncer(self.cfg.estimator.debounce_s)
-                           for sw in job.switches}
-        return _Bank([job], self.period_s, self.settings, self.cfg.estimator.debounce_s,
-                     self.cfg.hydraulics, {self.actuator: RowSpec.from_config(
-                         self.cfg, self.actuator)})
-
-    def _rebase(self) -> None:
-        """Move the last :attr:`keep` samples to the window's start."""
-        b, shift = self.bank, self.capacity - self.keep
-        assert b is not None
-        for a in (b.speed, b.torque, b.temp, b.time, b.nis, b.nis_win, b.flagged, b.not_ref,
-                  *b.out):
-            a[:self.keep] = a[shift:self.capacity]
-        b.seen.clear()
-        b.edges.clear()
-        self.base += shift
-        self.k -= shift
-
-    def update(self, time_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float,
-               refs: dict[str, bool] | None = None,
-               ref_edge_s: dict[str, float] | None = None) -> KalmanSample:
-        """One sample: the drive's speed and torque reading, the tank sensor's oil
-        temperature, each Hall switch's state (and the time it changed, where the I/O
-        module timed it)."""
-        first = self.bank is None
-        if first:
-            self.bank = self._begin(time_s, speed_rpm, torque_nm, oil_temp_c)
-        b = self.bank
-        assert b is not None
-        if self.k == self.capacity:
-            self._rebase()
-        k = self.k
-        shaft = float(shaft_torque_nm(torque_nm, speed_rpm, self.motor))
-        carried = shaft
-        if self.last is not None:
-            dt = time_s - self.last[0]
-            if abs(dt - self.period_s) > 0.05 * self.period_s:
-                raise ValueError(f"sample {self.base + k} comes {dt:g} s after the last: the "
-                                 f"filter needs evenly sampled input ({self.period_s:g} s)")
-            if self.motor.torque_filter_s:
-                carried = torque_at_speed_instant(shaft, self.last[1], dt,
-                                                  self.motor.torque_filter_s)
-        self.last = (time_s, shaft)
-        b.time[k, 0], b.speed[k, 0], b.torque[k, 0] = time_s, speed_rpm, carried
-        b.temp[k, 0] = (oil_temp_c + self.lag_s * self.rate.update(time_s, oil_temp_c)
-                        if self.lag_s else oil_temp_c)
-        for sw in b.jobs[0].switches:
-            if refs is None or sw.name not in refs:
-                continue
-            deb, raw = self.debouncers[sw.name], bool(refs[sw.name])
-            starts = deb.state is not None and raw != deb.state and deb.candidate_since_s is None
-            accepted = deb.update(time_s, raw, self.base + k)
-            if starts:
-                te = (ref_edge_s or {}).get(sw.name, math.nan)
-                b.seen.setdefault(k, []).append((0, sw, float(te)))
-            if accepted is not None:
-                c, rising = accepted
-                b.edges.setdefault(k, []).append((0, c - self.base, rising, sw))
-        if first:
-            b.start()
-        before = len(b.events[0])
-        b.step(k)
-        b.seen.pop(k, None)
-        b.edges.pop(k, None)
-        self.k += 1
-        out_x, out_v, out_sd, out_load, out_dt, out_toff, _, _, out_p = b.out
-        x_mm = out_x[k, 0] * 1e3
-        flags = _flags(b.flagged[k], b.not_ref[k], np.array([x_mm]), b.stroke[0] * 1e3)
-        events = tuple(dataclasses.replace(e, index=e.index + self.base,
-                                           edge_index=e.edge_index + self.base)
-                       for e in b.events[0][before:])
-        return KalmanSample(self.base + k, float(x_mm), float(out_v[k, 0] * 1e3),
-                            float(self.settings.coverage * out_sd[k, 0] * 1e3), int(flags[0]),
-                            float(out_load[k, 0]), float(out_dt[k, 0]), float(out_toff[k, 0]),
-                            (float(out_p[k, 0, 0]), float(out_p[k, 0, 1])), events)

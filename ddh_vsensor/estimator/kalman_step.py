@@ -15,15 +15,17 @@ from ddh_vsensor.estimator.compiled import package_library
 from ddh_vsensor.model.unit import STRUCTS, check_layout
 
 KINDS = ("settings", "unit", "filter", "arrays")
-_FORMATS = {"double": np.float64, "int": np.int32, "const double *": np.uintp,
-            "double *": np.uintp, "unsigned char *": np.uintp}
+_FORMATS = {"double": np.float64, "int": np.int32, "long": np.int64, "const double *": np.uintp,
+            "double *": np.uintp, "unsigned char *": np.uintp,
+            "const unsigned char *": np.uintp}
 NOT_BUILT = ("ddh_vsensor.estimator._kalman is not built: the Kalman filter needs it; install "
              "a C compiler (gcc) and reinstall ddh-vsensor")
 
 _LIB: ctypes.CDLL | None = None
 _DTYPES: dict[str, np.dtype] = {}
 _C_TYPES: dict[str, str] = {}          # the arrays' fields: what each pointer points to
-_POINTEE = {"const double *": np.float64, "double *": np.float64, "unsigned char *": np.bool_}
+_POINTEE = {"const double *": np.float64, "double *": np.float64, "unsigned char *": np.bool_,
+            "const unsigned char *": np.bool_}
 
 
 def _dtype(lib: ctypes.CDLL, kind: int) -> np.dtype:

@@ -38,7 +38,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
@@ -63,6 +63,9 @@ from ddh_vsensor.service.sdnotify import SystemdNotifier
 from ddh_vsensor.service.health import load_health, node_health
 from ddh_vsensor.service.summary import HEALTH_FILE, SummaryRecorder
 from ddh_vsensor.service.unit_state import STALE_PERIODS, Unit
+
+if TYPE_CHECKING:
+    from ddh_vsensor.estimator.kalman_online import KalmanEstimator
 
 log = logging.getLogger(__name__)
 
@@ -192,8 +195,14 @@ class Service:
         controller's heartbeat consumer and its sensor node, on its bus's network."""
         cfg, faults = self.cfg, self.faults
         ext = self.options.extensions.get(actuator)
-        est = (Estimator(cfg, actuator, tables) if ext is None
-               else ext.estimator(cfg, tables))
+        est: Estimator | KalmanEstimator
+        if ext is not None:
+            est = ext.estimator(cfg, tables)
+        elif cfg.estimator.mode == "kalman":
+            from ddh_vsensor.estimator.kalman_online import KalmanEstimator
+            est = KalmanEstimator(cfg, actuator)
+        else:
+            est = Estimator(cfg, actuator, tables)
         network = self.networks[cfg.can.units[actuator].bus]
         hb_node = faults.heartbeat_node_ids.get(actuator)  # type: ignore[call-overload]
         hb = None if hb_node is None else HeartbeatConsumer(

@@ -69,4 +69,4 @@ def test_kalman_mode_takes_no_tables_or_extension(tmp_path, capsys):
     assert main(["estimate", "missing.csv", "--actuator", "boom", "--mode", "kalman",
                  "--tables", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "--tables: not for --mode kalman" in err
+    assert err.count("\n") == 0 and "--tables: not for the kalman mode" in err

@@ -154,7 +154,10 @@ def test_every_key_is_described_with_its_type_default_and_comment() -> None:
             if f.default is not dataclasses.MISSING:
                 assert props[f.name]["default"] == f.default
     est = defs["EstimatorConfig"]
-    assert est["properties"]["mode"] == {"type": "string", "enum": ["full", "paper", "dynamic"]}
+    mode = est["properties"]["mode"]
+    assert mode["type"] == "string"
+    assert mode["enum"] == ["full", "paper", "dynamic", "kalman"]
+    assert "Kalman filter" in mode["description"]
     assert est["required"] == [f.name for f in dataclasses.fields(EstimatorConfig)
                                if f.default is dataclasses.MISSING]
     assert "torque limit" in est["properties"]["dynamic_torque_step"]["description"]

@@ -17,6 +17,7 @@ import pytest
 from ddh_vsensor.canbus.dbc import IO_MODULE, OIL_TEMP, FrameCodec, message_name
 from ddh_vsensor.config import Config
 from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.estimator.kalman_online import KalmanEstimator
 from ddh_vsensor.estimator.state import EstimatorState
 from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.steady import holding_speed, steady_state
@@ -130,17 +131,20 @@ class Offline:
 
 def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[can.Message],
                      preset_mm: float | None = None,
-                     state: EstimatorState | None = None) -> Offline:
+                     state: EstimatorState | None = None,
+                     widened: dict[int, float] | None = None) -> Offline:
     """The estimator stepped over the frames as the service received them (arrival order):
     each Sevcon frame with the latest oil temperature and the Hall states at its time (the
     service's :class:`Inputs` lookup: an I/O frame may come from another bus), and after an
     interval longer than the estimator integrates, not referenced (as the service: a feeder
-    stalled under load shows as such a gap in bus-stamped frames)."""
+    stalled under load shows as such a gap in bus-stamped frames). ``widened``: the service's
+    widenings (frames stepped before it -> mm), each applied where the service applied it."""
     codec = FrameCodec(cfg)
     inputs = Inputs(cfg, codec)
     sevcon_id = codec.ids[message_name("sevcon", actuator)]
     oil_id, io_id = codec.ids[OIL_TEMP], codec.ids[IO_MODULE]
-    est = Estimator(cfg, actuator, tables[actuator])
+    est = (KalmanEstimator(cfg, actuator) if cfg.estimator.mode == "kalman"
+           else Estimator(cfg, actuator, tables[actuator]))
     if state is not None:
         est.restore(state)
     else:
@@ -165,6 +169,8 @@ def offline_estimate(cfg: Config, tables: dict, actuator: str, frames: Iterable[
             if positions and msg.timestamp - last_t > est.max_gap_s:
                 est.referenced = False      # the service's gap rule (a feeder stalled)
             last_t = msg.timestamp
+            if widened and len(positions) in widened:
+                est.add_uncertainty(widened[len(positions)])
             s = codec.decode(msg)[1]
             refs = inputs.refs(actuator, msg.timestamp)
             positions.append(est.step(msg.timestamp, s["VelocityActual"], s["TorqueActual"],

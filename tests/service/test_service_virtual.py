@@ -4,6 +4,7 @@ positions out, equal to the offline estimator within one output step."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 
 import can
 import canopen
@@ -37,15 +38,36 @@ async def ticks_after(service, n: int = 2) -> None:
     await until(lambda: service.ticks >= start + n, f"{n} ticks")
 
 
-def test_positions_on_the_bus_equal_the_offline_estimate(cfg, unit_tables, frames) -> None:
+@pytest.mark.parametrize("mode", ["configured", "kalman"])
+def test_positions_on_the_bus_equal_the_offline_estimate(cfg, unit_tables, frames,
+                                                         mode) -> None:
+    """The configured estimator and the Kalman filter (``estimator.mode: kalman``)."""
+    if mode == "kalman":
+        cfg = dataclasses.replace(cfg, estimator=dataclasses.replace(cfg.estimator,
+                                                                     mode="kalman"))
     channel = channel_name()
     recorder = Recorder(channel)
     codec = FrameCodec(cfg)
     sevcon_ids = {codec.ids[message_name("sevcon", a)] for a in cfg.can.units}
     sevcon_frames = sum(m.arbitration_id in sevcon_ids for m in frames)
 
+    # the service's widenings (a host pause between frames at the start): the Kalman filter's
+    # position depends on its spread (its Jacobian's step along x), so its twin applies them
+    widened: dict[str, dict[int, float]] = {a: {} for a in cfg.can.units}
+
+    def record(unit):
+        add = unit.estimator.add_uncertainty
+
+        def recorded(mm: float) -> None:
+            widened[unit.actuator][unit.integrated] = \
+                widened[unit.actuator].get(unit.integrated, 0.0) + mm
+            add(mm)
+        unit.estimator.add_uncertainty = recorded
+
     async def scenario():
         async with running_service(cfg, unit_tables, channel) as service:
+            for unit in service.units.values():
+                record(unit)
             await asyncio.get_running_loop().run_in_executor(
                 None, lambda: commission({"interface": "virtual", "channel": channel}, cfg,
                                          START_MM, diag_ms=10))
@@ -67,7 +89,8 @@ def test_positions_on_the_bus_equal_the_offline_estimate(cfg, unit_tables, frame
     assert stats.frames == len(frames)
     step = cfg.can.position_step_mm
     for actuator in cfg.can.units:
-        offline = offline_estimate(cfg, unit_tables, actuator, seen, preset_mm=START_MM[actuator])
+        offline = offline_estimate(cfg, unit_tables, actuator, seen, preset_mm=START_MM[actuator],
+                                   widened=widened[actuator])
         pairs = [p for p in paired_outputs(cfg, seen, actuator) if p.input_frames > offline.held]
         # however many ticks the machine managed, the last includes every frame
         assert pairs and pairs[-1].input_frames == service.inputs.units[actuator].received
