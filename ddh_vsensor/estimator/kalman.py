@@ -666,6 +666,44 @@ class _Bank:
         P[X, :] *= scale
         P[:, X] *= scale
 
+    def learned(self) -> dict[str, float]:
+        """What outlives a restart: the constant and slow states (the torque offset in N*m,
+        the compliance and displacement relative, each switch's offset in mm), each with its
+        variance (``<name>_var``), and the edges' check of the flow-error bounds."""
+        z, P = self.z[0], self.P[0]
+        out: dict[str, float] = {}
+        for name, (i, scale) in self._learnable().items():
+            out[name] = float(z[i]) * scale
+            out[f"{name}_var"] = float(P[i, i]) * scale ** 2
+        out.update(flow_scale=float(self.flow_scale[0]), edge_sum=float(self.edge_sum[0]),
+                   edge_n=float(self.edge_n[0]), cusum=float(self.cusum[0]))
+        return out
+
+    def teach(self, learned: dict[str, float]) -> None:
+        """Carry on from what :meth:`learned` gave (an earlier run's): each state's value and
+        variance, uncorrelated with the rest; a name this filter does not hold (a switch no
+        longer configured) is passed over, one it holds and the record lacks keeps its
+        prior."""
+        z, P = self.z[0], self.P[0]
+        for name, (i, scale) in self._learnable().items():
+            if name in learned and f"{name}_var" in learned:
+                P[i, :] = 0.0
+                P[:, i] = 0.0
+                z[i] = learned[name] / scale
+                P[i, i] = min(max(learned[f"{name}_var"], 0.0) / scale ** 2,
+                              self.prior_var[0, i])
+        if {"flow_scale", "edge_sum", "edge_n", "cusum"} <= learned.keys():
+            self.flow_scale[0] = max(1.0, learned["flow_scale"])
+            self.edge_sum[0], self.edge_n[0] = learned["edge_sum"], learned["edge_n"]
+            self.cusum[0] = max(0.0, learned["cusum"])
+            self.filters["held"][0] = self.cusum[0] > self.cusum_h
+
+    def _learnable(self) -> dict[str, tuple[int, float]]:
+        """The states :meth:`learned` keeps: name -> (index, scale to its unit)."""
+        return {"torque_offset_nm": (TOFF, 1.0), "compliance": (COMP, 1.0),
+                "displacement": (DISP, 1.0),
+                **{f"switch_offset_mm.{name}": (i, 1e3) for name, i in self.slot[0].items()}}
+
     def results(self, seconds: float) -> list[KalmanResult]:
         """Each filter's outputs over its own run; ``seconds`` the batch's wall time."""
         s, z = self.s, self.z

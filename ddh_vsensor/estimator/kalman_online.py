@@ -104,6 +104,7 @@ class OnlineKalman:
         # before the first sample: a preset's (position, sigma) and whether it is referenced
         self.pending: tuple[float, float] | None = None
         self.pending_referenced: bool | None = None
+        self.pending_learned: dict[str, float] = {}
         self.last_sample: KalmanSample | None = None
 
     # --- what the service reads and sets ---------------------------------------------------
@@ -162,6 +163,17 @@ class OnlineKalman:
             self.pending = (self.position_mm, self.sd_mm + sd_mm)
             return
         self.bank.widen(sd_mm * 1e-3)
+
+    def learned(self) -> dict[str, float]:
+        """What outlives a restart (:meth:`.kalman._Bank.learned`)."""
+        return self.pending_learned if self.bank is None else self.bank.learned()
+
+    def teach(self, learned: dict[str, float]) -> None:
+        """Carry on from an earlier run's :meth:`learned`."""
+        if self.bank is None:
+            self.pending_learned = dict(learned)
+        else:
+            self.bank.teach(learned)
 
     def forget_switch_states(self) -> None:
         """After motion not integrated: a switch state that changed meanwhile is no edge."""
@@ -266,7 +278,9 @@ class OnlineKalman:
                 b.preset(self.pending[0] * 1e-3, self.pending[1] * 1e-3)
             if self.pending_referenced is not None:
                 b.filters["referenced"][0] = self.pending_referenced
+            b.teach(self.pending_learned)
             self.pending = self.pending_referenced = None
+            self.pending_learned = {}
         elif gap:
             b.restart(k)
         before = len(b.events[0])
@@ -369,10 +383,12 @@ class KalmanEstimator:
 
     def snapshot(self) -> EstimatorState:
         return EstimatorState(actuator=self.actuator, config_hash=self.cfg.physics_hash(),
-                              position_mm=self.position_mm, uncertainty_mm=self.uncertainty_mm)
+                              position_mm=self.position_mm, uncertainty_mm=self.uncertainty_mm,
+                              learned=self.filter.learned())
 
     def restore(self, state: EstimatorState) -> None:
         """Carry on from a saved state: trusted for position within its uncertainty, not
-        referenced until the next edge (which then sets it)."""
+        referenced until the next edge (which then sets it); what it learnt taught."""
         self.preset(state.position_mm, state.uncertainty_mm)
         self.referenced = False
+        self.filter.teach(state.learned)

@@ -21,7 +21,7 @@ import math
 import os
 import stat
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 from ddh_vsensor.atomic import atomic_write
@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 STATE_FORMAT = 2
 DEFAULT_MAX_BYTES = 65536
 _REASON_CHARS = 120
+LEARNED_MAX = 128
 
 
 @dataclass
@@ -44,6 +45,9 @@ class EstimatorState:
     saved_at: float = 0.0          # time.time() of the write
     format: int = STATE_FORMAT
     clean: bool = False            # written at a clean stop
+    # what the estimator learnt that outlives a restart, name -> value (the Kalman filter's
+    # constant and slow states, each with its variance)
+    learned: dict[str, float] = field(default_factory=dict)
 
 
 def save_state(path: str | Path, state: EstimatorState) -> None:
@@ -98,6 +102,11 @@ def _parse(raw: bytes) -> EstimatorState:
         raise ValueError("negative uncertainty, gain or time")
     if not isinstance(state.clean, bool):
         raise ValueError("clean must be true or false")
+    learned = state.learned
+    if not isinstance(learned, dict) or len(learned) > LEARNED_MAX or not all(
+            isinstance(k, str) and len(k) <= _REASON_CHARS and isinstance(v, (int, float))
+            and not isinstance(v, bool) and math.isfinite(v) for k, v in learned.items()):
+        raise ValueError(f"learned must map at most {LEARNED_MAX} names to finite numbers")
     return state
 
 

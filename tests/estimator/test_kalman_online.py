@@ -9,6 +9,7 @@ import pytest
 
 from ddh_vsensor.estimator import kalman, kalman_online
 from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.estimator.state import load_state, save_state
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign
 
 
@@ -127,3 +128,30 @@ def test_the_service_face_presets_restores_and_widens(cfg, warm):
     assert again.uncertainty_mm == pytest.approx(state.uncertainty_mm)
     assert not again.referenced                        # until the next edge sets it
     assert again.state_flags() & Flags.NOT_REFERENCED
+
+
+def test_what_the_filter_learnt_outlives_a_restart(cfg, warm, tmp_path):
+    """The warm run with its references: the switches' offsets, the torque offset and the
+    parameters learnt are saved with the position and taught to the next run's filter, which
+    starts where the first ended (the round trip through the state file)."""
+    est = kalman_online.KalmanEstimator(cfg, "boom", initial_position_mm=float(
+        warm.position_mm[0]))
+    for k in range(len(warm.time_s)):
+        est.step(warm.time_s[k], warm.speed_rpm[k], warm.torque_nm[k], warm.oil_temp_c[k],
+                 {n: bool(v[k]) for n, v in warm.refs.items()})
+    learned = est.filter.learned()
+    assert learned["edge_n"] > 0                                    # edges were taken
+    prior = kalman_online.KalmanEstimator(cfg, "boom").filter.learned()
+    assert prior == {}                                              # nothing before a sample
+    offsets = [k for k in learned if k.startswith("switch_offset_mm.") and
+               not k.endswith("_var")]
+    assert offsets and all(learned[f"{k}_var"] > 0.0 for k in offsets)
+    save_state(tmp_path / "boom.json", est.snapshot())
+    state = load_state(tmp_path / "boom.json", "boom", cfg.physics_hash())
+    again = kalman_online.KalmanEstimator(cfg, "boom")
+    again.restore(state)
+    again.step(warm.time_s[-1] + 0.01, 0.0, warm.torque_nm[-1], warm.oil_temp_c[-1])
+    taught = again.filter.learned()
+    for k in ("torque_offset_nm", "compliance", "displacement", *offsets):
+        assert taught[k] == pytest.approx(learned[k], rel=1e-9, abs=1e-12), k
+        assert taught[f"{k}_var"] <= learned[f"{k}_var"] * (1 + 1e-6) + 1e-18, k

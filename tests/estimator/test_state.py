@@ -18,15 +18,20 @@ def _state(**kw):
 
 
 def test_round_trip(tmp_path):
-    save_state(tmp_path / "boom.json", _state())
+    save_state(tmp_path / "boom.json", _state(learned={"compliance": 0.1, "compliance_var": 0.01}))
     back = load_state(tmp_path / "boom.json", "boom", "abc")
     assert back is not None and back.position_mm == 123.4 and back.gain_down == 0.99
+    assert back.learned == {"compliance": 0.1, "compliance_var": 0.01}
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]   # no temp files
 
 
 @pytest.mark.parametrize("content", ["", "{not json", json.dumps({"actuator": "boom"}),
                                      json.dumps({**_state().__dict__, "position_mm": "NaN"}),
-                                     json.dumps({**_state().__dict__, "position_mm": float("nan")})])
+                                     json.dumps({**_state().__dict__, "position_mm": float("nan")}),
+                                     json.dumps({**_state().__dict__, "learned": {"a": "1"}}),
+                                     json.dumps({**_state().__dict__, "learned": [1.0]}),
+                                     json.dumps({**_state().__dict__,
+                                                 "learned": {str(i): 1.0 for i in range(200)}})])
 def test_corrupt_files_are_reported_and_ignored(tmp_path, caplog, content):
     path = tmp_path / "boom.json"
     path.write_text(content)
