@@ -332,7 +332,8 @@ def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool =
              settings: KalmanSettings = KalmanSettings()) -> list[KalmanResult]:
     """Filter many runs (of any units) in lockstep: one plant batch, N_ROWS rows each.
 
-    Every run must be sampled at the same, even rate (the prototype has no input gaps)."""
+    Every run must be sampled at the same, even rate (frames lost or late: feed the run
+    frame by frame, :class:`.kalman_online.OnlineKalman` bridges them)."""
     if not jobs:
         return []
     positions = list(initial_positions_mm) if initial_positions_mm is not None \
@@ -348,8 +349,8 @@ def run_many(cfg: Config, jobs: Sequence[tuple[str, Run]], *, references: bool =
     for j, p in zip(prepared, periods):
         dt = np.diff(j.run.time_s)
         if abs(p - period) > 1e-6 * period or np.max(np.abs(dt - period)) > 0.05 * period:
-            raise ValueError(f"{j.run.source}: the prototype needs evenly sampled runs at one "
-                             "rate")
+            raise ValueError(f"{j.run.source}: the Kalman filter's batch needs evenly sampled "
+                             "runs at one rate")
     return _Bank(prepared, period, settings, cfg.estimator.debounce_s, cfg.hydraulics,
                  {a: RowSpec.from_config(cfg, a) for a in units}).run()
 
