@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from ddh_vsensor.estimator.compiled import package_library
-from ddh_vsensor.model.unit import STRUCTS, check_layout
+from ddh_vsensor.model.unit import check_layouts
 
 KINDS = ("settings", "unit", "filter", "arrays")
 _FORMATS = {"double": np.float64, "int": np.int32, "long": np.int64, "const double *": np.uintp,
@@ -65,12 +65,7 @@ def library() -> ctypes.CDLL:
         lib.kf_struct_size.restype = long_
         lib.kf_max_states.restype = long_
         # the unit model compiled in here is the plant's: its structs checked as the plant's are
-        lib.ddh_field.argtypes = [ctypes.c_int, ctypes.c_int, ptr, ptr]
-        lib.ddh_field.restype = long_
-        lib.ddh_struct_size.argtypes = [ctypes.c_int]
-        lib.ddh_struct_size.restype = long_
-        for kind, structure in enumerate(STRUCTS):
-            check_layout(lib, kind, structure)
+        check_layouts(lib)
         lib.kf_predict_update.argtypes = [long_, long_, long_] + [ptr] * 11
         lib.kf_predict_update.restype = None
         lib.kf_finish.argtypes = [long_, long_, long_] + [ptr] * 6

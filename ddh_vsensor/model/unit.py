@@ -268,6 +268,18 @@ def check_layout(lib: ctypes.CDLL, kind: int, structure: type[ctypes.Structure])
             f"{lib.ddh_struct_size(kind)}")
 
 
+def check_layouts(lib: ctypes.CDLL) -> None:
+    """Raise ImportError unless every struct of the unit model compiled into ``lib`` (this
+    package's ``_unit`` or a library that compiles it in) matches its Python mirror."""
+    ptr, long_ = ctypes.c_void_p, ctypes.c_long
+    lib.ddh_field.argtypes = [ctypes.c_int, ctypes.c_int, ptr, ptr]
+    lib.ddh_field.restype = long_
+    lib.ddh_struct_size.argtypes = [ctypes.c_int]
+    lib.ddh_struct_size.restype = long_
+    for kind, structure in enumerate(STRUCTS):
+        check_layout(lib, kind, structure)
+
+
 def _load() -> ctypes.CDLL:
     """The library from the package's own directory (a library loaded from a writable cache
     or /tmp could be planted by another user), its layouts checked."""
@@ -277,13 +289,8 @@ def _load() -> ctypes.CDLL:
     if path is None:
         raise ImportError(NOT_BUILT)
     lib = ctypes.CDLL(str(path))
+    check_layouts(lib)
     ptr, long_ = ctypes.c_void_p, ctypes.c_long
-    lib.ddh_field.argtypes = [ctypes.c_int, ctypes.c_int, ptr, ptr]
-    lib.ddh_field.restype = long_
-    lib.ddh_struct_size.argtypes = [ctypes.c_int]
-    lib.ddh_struct_size.restype = long_
-    for kind, structure in enumerate(STRUCTS):
-        check_layout(lib, kind, structure)
     lib.ddh_step.argtypes = [ptr, ptr, ptr, ctypes.c_double, ptr]
     lib.ddh_step.restype = ctypes.c_int
     lib.ddh_step_rows.argtypes = [long_, ptr, ptr, ptr, ctypes.c_double, ptr]
