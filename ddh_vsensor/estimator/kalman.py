@@ -161,40 +161,55 @@ SQRT_3 = math.sqrt(3.0)
 
 @dataclass(frozen=True)
 class KalmanSettings:
-    """The filter's noises and choices, each with what it stands for."""
+    """The filter's noises and choices, each with what it stands for (the comments above or
+    beside a field are its meaning; the docs' table of settings is made from them)."""
 
-    substeps: int = 5                   # plant steps per sample (2 ms at 100 Hz)
-    coverage: float = 3.0               # published uncertainty = coverage x sigma
-    floor_mm: float = 0.1               # sigma never below: a stroke end's mechanical tolerance
+    # plant steps per sample (2 ms at 100 Hz)
+    substeps: int = 5
+    # the published uncertainty, in the position's sigmas
+    coverage: float = 3.0
+    # the position's sigma never below it: a stroke end's mechanical tolerance
+    floor_mm: float = 0.1
     # x's finite-difference step, in its sigmas, away from the nearer stroke end: the slope of
     # the stop's clip over the spread (the position's spread closes as the rods behind arrive)
     stop_reach: float = 2.0
-    # measurement
-    # the parameters' bands (the configuration's ``tolerances``; these defaults a datasheet's)
-    # the drive's torque error per sample
+    # the drive's torque error per sample (its estimate from the motor's currents)
     drive_torque_nm: float = DATASHEET_TOLERANCES.torque_noise_nm
-    torque_timing_s: float = 1.0e-3     # when the torque was read within its sample vs speed
-    speed_step_rpm: float = 1.0         # the logged speed's resolution
-    limiter_torque_nm: float = 5.0      # at the speed limit the limiter sets the torque
-    # priors
-    position_mm: float = 0.5            # a known start (the bench's: the truth's first sample)
+    # when the torque was read within its sample against the speed
+    torque_timing_s: float = 1.0e-3
+    # the logged speed's resolution (its inertia torque over a sample is a noise)
+    speed_step_rpm: float = 1.0
+    # the torque's noise at the speed limit, where the drive's limiter sets it
+    limiter_torque_nm: float = 5.0
+    # prior: the position's sigma at a known start (the bench's: the truth's first sample)
+    position_mm: float = 0.5
+    # prior: the rod's velocity's sigma at the start
     velocity_mm_s: float = 1.0
+    # prior: each chamber pressure's sigma at the start (from the steady state there)
     pressure_bar: float = 5.0
-    load_share: float = 0.3             # of |F_load| at the start (payload unknown), at least
-    torque_offset_nm: float = DATASHEET_TOLERANCES.torque_offset_nm   # its calibration
-    # unmodelled flow: a Gauss-Markov error of the rod's flow balance whose stationary sigma
-    # is the RMS of physical bounds (see :meth:`_Bank._flow_sigma`); each bound is a share
-    # anywhere within its band, so its RMS is the bound / sqrt(3)
-    leak_tolerance: float = DATASHEET_TOLERANCES.pump_leakage          # a: the leakage's band, +-
-    orifice_share: float = DATASHEET_TOLERANCES.leakage_orifice_share   # a': its turbulent share
-    # b: the pumps' trapped volumes (up to this share of the displacement) compressed to the
-    # port's pressure every revolution and lost: dq = b |p| / beta |q_displacement|
+    # prior: the load's sigma at the start, as a share of |F_load| (the payload unknown),
+    # at least the cylinder's static friction
+    load_share: float = 0.3
+    # prior: the drive's torque offset's sigma (its calibration)
+    torque_offset_nm: float = DATASHEET_TOLERANCES.torque_offset_nm
+    # the unmodelled flow, a Gauss-Markov error of the rod's flow balance, has a stationary
+    # sigma that is the RMS of physical bounds (``_kalman.c``'s flow_sigma), each a share
+    # anywhere within its band (RMS bound / sqrt(3)): the pumps' leakage's band, +-
+    leak_tolerance: float = DATASHEET_TOLERANCES.pump_leakage
+    # the unmodelled flow's bound: the share of the rating point's leakage that may pass
+    # orifice-like gaps (turbulent: no thinner with cold oil, not linear in pressure)
+    orifice_share: float = DATASHEET_TOLERANCES.leakage_orifice_share
+    # the unmodelled flow's bound: the pumps' trapped volumes (up to this share of the
+    # displacement) compressed to the port's pressure every revolution and lost:
+    # dq = b |p| / beta |q_displacement|
     trapped_share: float = DATASHEET_TOLERANCES.trapped_volume_share
-    flow_floor_m3_s: float = 2e-8       # c: seals' bypass a new cylinder may have (~1 ml/min)
-    # its correlation: it changes as the operating point does, over this much travel in
-    # strokes (a stroke sweeps the speeds, pressures and chamber volumes a cycle has); at a
-    # hold, where nothing moves, it keeps over about a work cycle's longest hold
+    # the unmodelled flow's floor: the seals' bypass a new cylinder may have (~1 ml/min)
+    flow_floor_m3_s: float = 2e-8
+    # the unmodelled flow changes as the operating point does: over this much travel, in
+    # strokes (a stroke sweeps the speeds, pressures and chamber volumes a cycle has)
     flow_travel_strokes: float = 1.0
+    # at a hold, where nothing moves, the unmodelled flow keeps over about a work cycle's
+    # longest hold
     flow_tau_s: float = 30.0
     # the chambers' effective compliance (entrained air, hose walls) off the oil's by up to
     # this share: a state (comp), uniform prior
@@ -204,37 +219,49 @@ class KalmanSettings:
     displacement_tolerance: float = DATASHEET_TOLERANCES.pump_displacement
     # the pumps' oil against the tank sensor: a Gauss-Markov offset (K) on the viscosity. The
     # sensor lags the pumps' oil by its thermal lag (~3 min) while the oil warms at up to
-    # ~1 K/min in work: sigma ~3 K; it wanders as fast as the tank's temperature does
+    # ~1 K/min in work: sigma ~3 K
     temp_sd_c: float = DATASHEET_TOLERANCES.oil_temp_c
-    temp_tau_s: float = 600.0           # the tank's thermal time constant
-    temp_bound_sd: float = 4.0          # the offset's bound, in its sigmas
-    # process noise, per sqrt(s)
-    load_walk_share: float = 0.02       # of the start's |F_load| per sqrt(s): geometry, friction
-    force_noise_n: float = 200.0        # white force (friction not modelled) per sqrt(s)
-    flow_noise_share: float = 0.02      # white flow, share of a pump's rated leakage, per sqrt(s)
-    # the drive's torque offset, and with it what of the drive's reading the model lacks (a
-    # speed-proportional loss, its filter, unless configured): a walk that follows those
-    # between moves
+    # the oil offset wanders as fast as the tank's temperature does: its thermal time constant
+    temp_tau_s: float = 600.0
+    # the oil offset's bound, in its sigmas (beyond, it would be another error taken for
+    # temperature)
+    temp_bound_sd: float = 4.0
+    # process noise: the load's random walk, a share of the start's |F_load| per sqrt(s)
+    # (geometry, friction)
+    load_walk_share: float = 0.02
+    # process noise: a white force (friction not modelled), N per sqrt(s)
+    force_noise_n: float = 200.0
+    # process noise: a white flow, a share of a pump's rated leakage per sqrt(s)
+    flow_noise_share: float = 0.02
+    # process noise: the drive's torque offset's walk, and with it what of the drive's
+    # reading the model lacks (a speed-proportional loss, its filter, unless configured),
+    # N*m per sqrt(s)
     torque_offset_walk_nm: float = 0.05
-    # a motor stuck in its pumps' friction band: its torque is one value within the band
-    # (the stuck torque state), moved across it by the drive's controller within about this
-    # time (a position loop's integral action winding while the rod stands)
+    # a motor stuck in its pumps' friction band: its torque is one value within the band (the
+    # stuck torque state), moved across it by the drive's controller within about this time
+    # (a position loop's integral action winding while the rod stands)
     stuck_torque_s: float = 1.0
-    switch_repeat_mm: float = 0.05      # a Hall switch's switching point from pass to pass
-    huber: float = 3.0                  # torque innovations beyond this many sigma: down-weighted
-    # a torque innovation beyond the chi-square gate at false_alarm: the slow states keep
-    # their values, the position's variance takes the sample's predicted travel
+    # a Hall switch's switching point from pass to pass
+    switch_repeat_mm: float = 0.05
+    # torque innovations beyond this many sigma are down-weighted (Huber)
+    huber: float = 3.0
+    # a torque innovation beyond the chi-square gate at false_alarm leaves the slow states
+    # and gives the position's variance the sample's predicted travel
     unexplained_gate: bool = True
-    # self-check
+    # the self-check's window: the torque's normalised innovations squared summed over it
     nis_window_s: float = 1.0
+    # the self-check's and the gates' false-alarm rate (their chi-square quantile)
     false_alarm: float = 1e-3
-    max_inflation: float = 10.0         # per window: the fading factor's cap
+    # the fading memory's cap per window, beyond the self-check's bound
+    max_inflation: float = 10.0
     # the edges' check of the flow-error bounds: the tolerance bands' weight in the flow
-    # error's variance scale, in edges (an inverse-gamma prior at 1); a CUSUM of the edges'
-    # normalised innovations squared against a variance this many times the predicted one,
-    # its threshold set for this false-alarm rate per edge (mean run length 1 / rate)
+    # error's variance scale, in edges (an inverse-gamma prior at 1)
     edge_prior_edges: float = 2.0
+    # the edges' CUSUM: the edges' normalised innovations squared against a variance this
+    # many times the predicted one
     edge_cusum_ratio: float = 4.0
+    # the edges' CUSUM's threshold: set for this false-alarm rate per edge (mean run length
+    # 1 / rate)
     edge_false_alarm: float = 1e-2
 
 

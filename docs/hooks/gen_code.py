@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import dataclasses
 import io
 import re
 import tokenize
@@ -271,3 +272,50 @@ def commands() -> str:
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     rows = [[f"`ddh-vsensor {a.dest}`", a.help or ""] for a in sub._choices_actions]
     return table(["command", "what it does"], rows)
+
+
+# --- the Kalman filter's settings ----------------------------------------------------------
+
+def _setting_comments(source: str, cls: str) -> dict[str, str]:
+    """The comments of each field of dataclass ``cls`` in ``source``: the lines above it
+    (since the last field) and the one beside it."""
+    body = next(n for n in ast.parse(source).body
+                if isinstance(n, ast.ClassDef) and n.name == cls)
+    lines = source.splitlines()
+    out, after = {}, body.body[0].end_lineno or body.lineno   # past the docstring
+    for node in body.body[1:]:
+        if not isinstance(node, ast.AnnAssign) or not isinstance(node.target, ast.Name):
+            continue
+        above = [ln.strip().lstrip("# ") for ln in lines[after:node.lineno - 1]
+                 if ln.strip().startswith("#")]
+        beside = lines[node.lineno - 1].partition("#")[2].strip()
+        out[node.target.id] = " ".join([*above, beside]).strip()
+        after = node.end_lineno or node.lineno
+    return out
+
+
+def _from_config(source: str, func: str) -> dict[str, str]:
+    """The settings ``func`` takes from the configuration: setting -> the key's path."""
+    node = next(n for n in ast.parse(source).body
+                if isinstance(n, ast.FunctionDef) and n.name == func)
+    out = {}
+    for call in ast.walk(node):
+        if isinstance(call, ast.Call):
+            for kw in call.keywords:
+                if isinstance(kw.value, ast.Attribute):
+                    out[kw.arg] = f"tolerances.{kw.value.attr}"
+    return out
+
+
+def kalman_settings() -> str:
+    """Every setting of the Kalman filter: its default, what it stands for (the comments
+    beside it in the code) and the configuration key that sets it, where one does."""
+    from ddh_vsensor.estimator import kalman
+    source = Path(kalman.__file__).read_text(encoding="utf-8")
+    comments = _setting_comments(source, "KalmanSettings")
+    keys = _from_config(source, "settings_from_config")
+    defaults = kalman.KalmanSettings()
+    rows = [[f"`{f.name}`", f"`{getattr(defaults, f.name)!r}`",
+             f"`{keys[f.name]}`" if f.name in keys else "", prose(comments.get(f.name, ""))]
+            for f in dataclasses.fields(defaults)]
+    return table(["setting", "default", "configuration key", "what it stands for"], rows)

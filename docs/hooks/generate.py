@@ -28,6 +28,7 @@ GENERATORS = {
     "flags": lambda root, arg: gen_code.flag_table(),
     "layers": lambda root, arg: gen_code.layers(root),
     "commands": lambda root, arg: gen_code.commands(),
+    "kalman-settings": lambda root, arg: gen_code.kalman_settings(),
     "bench": lambda root, arg: gen_bench.bench_section(root, arg),
     "accuracy-headline": lambda root, arg: gen_bench.accuracy_headline(root),
 }
