@@ -473,6 +473,16 @@ long kf_finish(long B, long n, long k, const struct kf_settings *s,
         z[DT] = clip(z[DT], -s->temp_bound_c, s->temp_bound_c);
         z[X] = clip(z[X], 0.0, units[b].stroke_m);
         P[X * n + X] = fmax(P[X * n + X], s->floor_m * s->floor_m);
+        /* the rod is within its stroke: no spread beyond half of it (a variable bounded to
+         * [0, L] has a variance of at most L^2 / 4); scaled as D P D, P stays PSD */
+        const double var_max = 0.25 * units[b].stroke_m * units[b].stroke_m;
+        if (P[X * n + X] > var_max) {
+            const double scale = sqrt(var_max / P[X * n + X]);
+            for (long i = 0; i < n; i++) {
+                P[X * n + i] *= scale;
+                P[i * n + X] *= scale;
+            }
+        }
         int finite = 1;
         for (long i = 0; i < n; i++) {
             for (long j = i; j < n; j++) {
