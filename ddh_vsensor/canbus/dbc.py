@@ -17,15 +17,14 @@ from cantools.database.can import Database, Message
 
 from ddh_vsensor.config import Config
 from ddh_vsensor.estimator.flags import Flags
-from ddh_vsensor.canbus.layout import (IO_MODULE, NMT_COMMAND, OIL_TEMP, RESERVED_FLAG_BIT, all_message_names,
-                     flag_signal, frame_ids, machine_database, message_name)
+from ddh_vsensor.canbus.layout import (IO_MODULE, NMT_COMMAND, OIL_TEMP, all_message_names,
+                                       flag_signal, frame_ids, machine_database, message_name)
 
 __all__ = ["IO_MODULE", "NMT_COMMAND", "OIL_TEMP", "FrameCodec", "all_message_names",
            "frame_ids", "message_name"]
 
-# Whole byte -> ((bit signal, flag value) per flag, reserved bit 7's signal)
-_FLAG_BYTES = {whole: (tuple((flag_signal(prefix, f), int(f)) for f in Flags),
-                       prefix + "Reserved")
+# Whole byte -> (bit signal, flag value) per flag: the byte's eight bits
+_FLAG_BYTES = {whole: tuple((flag_signal(prefix, f), int(f)) for f in Flags)
                for whole, prefix in (("Status", "Status"), ("Flags", "Flag"))}
 
 
@@ -66,8 +65,8 @@ class FrameCodec:
         self.ids = {name: m.frame_id for name, m in self.messages.items()}
         self._names = {frame_id: name for name, frame_id in self.ids.items()}
         # messages with flag bytes split into bit signals -> those bytes' names
-        self._flag_bytes = {name: [w for w, (_, reserved) in _FLAG_BYTES.items()
-                                   if any(s.name == reserved for s in m.signals)]
+        self._flag_bytes = {name: [w for w, bits in _FLAG_BYTES.items()
+                                   if any(s.name == bits[0][0] for s in m.signals)]
                             for name, m in self.messages.items()}
 
     def encode(self, name: str, signals: Mapping[str, float],
@@ -76,11 +75,10 @@ class FrameCodec:
         message = self.messages[name]
         signals = dict(signals)
         for whole in self._flag_bytes[name]:
-            bits, reserved = _FLAG_BYTES[whole]
             if whole in signals:
                 byte = int(signals.pop(whole))
-                signals.update({signal: int(bool(byte & value)) for signal, value in bits})
-                signals[reserved] = (byte >> RESERVED_FLAG_BIT) & 1
+                signals.update({signal: int(bool(byte & value))
+                                for signal, value in _FLAG_BYTES[whole]})
         data = message.encode(signals)
         return can.Message(timestamp=timestamp_s, arbitration_id=self.ids[name],
                            is_extended_id=False, data=data)
@@ -95,9 +93,8 @@ class FrameCodec:
         message = self.messages[name]
         signals = message.decode(bytes(msg.data), decode_choices=False)
         for whole in self._flag_bytes[name]:
-            bits, reserved = _FLAG_BYTES[whole]
-            signals[whole] = sum(value for signal, value in bits if signals[signal]) + \
-                (int(signals[reserved]) << RESERVED_FLAG_BIT)
+            signals[whole] = sum(value for signal, value in _FLAG_BYTES[whole]
+                                 if signals[signal])
         return name, signals
 
     def sevcon_decoder(self, actuator: str) -> Callable[[bytes], tuple[float, float]]:

@@ -111,8 +111,10 @@ _FLAG_TEXT = {
                                "switch", ("Confirmed", "Unconfirmed")),
     Flags.CONTROLLER_NOT_OPERATIONAL: ("the motor controller's heartbeat says it is not "
                                        "operational", ("Operational", "NotOperational")),
+    Flags.MODEL_INCONSISTENT: ("the Kalman filter's innovations fail its self-check: its model "
+                               "does not explain the machine (uncertainty widened)",
+                               ("Consistent", "Inconsistent")),
 }
-RESERVED_FLAG_BIT = 7
 _ERROR_REGISTER = (("Generic", "generic error (any fault)"), ("Current", "current"),
                    ("Voltage", "voltage"), ("Temperature", "temperature"),
                    ("Communication", "communication (inputs stale, controller heartbeat)"),
@@ -192,7 +194,7 @@ def _message(frame_id: int, name: str, length: int, signals: list[Signal], comme
 
 
 def _flag_bits(prefix: str, start: int, what: str, *, with_choices: bool) -> list[Signal]:
-    """One bit signal per flag (every Flags member has its text), then the reserved bit 7."""
+    """One bit signal per flag (every Flags member has its text): the byte's eight bits."""
     signals = []
     for flag in Flags:
         text, names = _FLAG_TEXT[flag]
@@ -200,8 +202,6 @@ def _flag_bits(prefix: str, start: int, what: str, *, with_choices: bool) -> lis
         signals.append(_signal(flag_signal(prefix, flag), start + bit, 1,
                                what.format(bit=bit, text=text),
                                choices=dict(enumerate(names)) if with_choices else None))
-    signals.append(_signal(prefix + "Reserved", start + RESERVED_FLAG_BIT, 1,
-                           what.format(bit=RESERVED_FLAG_BIT, text="reserved, 0")))
     return signals
 
 
@@ -362,7 +362,6 @@ def _sensor_messages(cfg: Config, unit: str, ids: _Ids, timers_ms: dict[str, int
                 for bit, (name, text) in enumerate(_ERROR_REGISTER)]
     active = _flag_bits("Active", 32, "Fault still active after this EMCY: flag bit {bit}, "
                         "{text}.", with_choices=False)
-    active[-1] = _signal(active[-1].name, active[-1].start, 1, "Reserved, 0.")
     yield _message(
         frame_id("emcy"), message_name("emcy", unit), 8,
         [_signal("ErrorCode", 0, 16, "CiA 301 emergency error code; 0 = error reset (one fault "

@@ -7,7 +7,7 @@ import enum
 
 
 class Flags(enum.IntFlag):
-    """Why a position is not (yet) a plain, trusted reading; bit 7 is reserved."""
+    """Why a position is not (yet) a plain, trusted reading."""
 
     STALE_INPUT = 0x01                  # input missing or too old: position not integrated
     NOT_REFERENCED = 0x02               # no Hall reference (or a cold start) since power-up
@@ -16,6 +16,7 @@ class Flags(enum.IntFlag):
     TABLE_CLAMPED = 0x10                # an input left the movement table's grid
     PRESET_UNCONFIRMED = 0x20           # set by a preset, not yet confirmed by a reference
     CONTROLLER_NOT_OPERATIONAL = 0x40   # the motor controller's heartbeat says so
+    MODEL_INCONSISTENT = 0x80           # the Kalman filter's torque or edges fail its self-check
 
 
 def flag_text(flags: int) -> str:

@@ -147,7 +147,7 @@ from ddh_vsensor.physics.tank_sensor import pump_oil_temperature_c
 from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.model.plant import Plant, RowSpec
 
-MODEL_INCONSISTENT = 1 << 7     # proposed Flags bit: the torque innovations fail the chi-square
+MODEL_INCONSISTENT = int(Flags.MODEL_INCONSISTENT)
 X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP, DISP, STICK = range(11)
 SLOW = [LOAD, DT, TOFF]          # the slow states: a torque the model cannot explain leaves them
 N_BASE = 11                     # states before the per-switch offsets

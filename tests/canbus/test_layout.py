@@ -48,6 +48,13 @@ REWORDED = {(None, None),                                        # the database'
 ADDED = {"SYNC", "HEALTH_BOOM_TPDO3", "HEALTH_BUCKET_TPDO3"}
 # Value table entries added since: EMCY FF30 maintenance due.
 CHOICES_ADDED = {"ErrorCode": {MAINTENANCE_EMCY[0]: MAINTENANCE_EMCY[1]}}
+# Reserved bits taken into use since, at the same place: the flags' bit 7 (the Kalman
+# filter's self-check), the old name -> the new (its text and value table new).
+RESERVED_NOW = {"StatusReserved": "StatusModelInconsistent",
+                "FlagReserved": "FlagModelInconsistent",
+                "ActiveReserved": "ActiveModelInconsistent"}
+RESERVED_CHOICES = {"StatusReserved": {0: "Consistent", 1: "Inconsistent"},
+                    "FlagReserved": {0: "Consistent", 1: "Inconsistent"}, "ActiveReserved": None}
 REWORDED_NODES = {"NMT_MASTER"}
 # Send types as Vector's interaction layer defines them (hand-written -> generated), and the
 # I/O module's refresh as its cycle time.
@@ -64,7 +71,7 @@ VECTOR_IL_DEFINITIONS = {
 # TPDO2 without a 24-bit object: (start, length) of the re-laid-out diagnostic signals.
 DIAG_LAYOUT = {"Uncertainty": (0, 32), "RejectedFrames": (40, 8), "InputFrames": (48, 16),
                **{"Flag" + "".join(w.capitalize() for w in (f.name or "").split("_")):
-                  (32 + f.bit_length() - 1, 1) for f in Flags}, "FlagReserved": (39, 1)}
+                  (32 + f.bit_length() - 1, 1) for f in Flags}}
 
 
 def test_packaged_dbc_is_a_relative_link_to_the_repo_dbc() -> None:
@@ -103,15 +110,19 @@ def test_nothing_a_tool_relies_on_changed_from_the_hand_written_dbc() -> None:
                                            was.is_extended_frame), was.name
         if now.comment != was.comment:
             reworded.add((was.name, None))
-        assert sorted(s.name for s in now.signals) == sorted(s.name for s in was.signals)
+        assert sorted(s.name for s in now.signals) == \
+            sorted(RESERVED_NOW.get(s.name, s.name) for s in was.signals)
         for old_signal in was.signals:
-            signal = now.get_signal_by_name(old_signal.name)
+            signal = now.get_signal_by_name(RESERVED_NOW.get(old_signal.name, old_signal.name))
             fields = ("byte_order", "is_signed", "scale", "offset", "unit", "receivers",
                       "is_float") + (() if diag else ("start", "length", "minimum", "maximum"))
             assert {f: getattr(signal, f) for f in fields} == \
                 {f: getattr(old_signal, f) for f in fields}, (was.name, signal.name)
             if diag:
                 assert (signal.start, signal.length) == DIAG_LAYOUT[signal.name], signal.name
+            if old_signal.name in RESERVED_NOW:
+                assert _choices(signal) == RESERVED_CHOICES[old_signal.name], signal.name
+                continue
             expected = _choices(old_signal)
             if expected is not None and signal.name in CHOICES_ADDED:
                 expected = {**expected, **CHOICES_ADDED[signal.name]}
