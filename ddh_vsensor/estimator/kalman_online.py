@@ -15,11 +15,13 @@ how many periods it comes after the last:
 - about one: the next sample (the physics takes the period, not the jitter);
 - m >= 2, within ``estimator.max_gap_s``: m - 1 frames were lost; their samples are predicted
   on inputs interpolated between the two frames and measure nothing (no torque update);
-- beyond ``estimator.max_gap_s``: nothing is integrated; the filter starts again at the frame
-  (the rod's velocity and the chambers' pressures from the steady state there; position, load
-  and parameters kept) and the sample is stale: the caller widens the position by the travel
-  it could not integrate (the service: ``Config.max_speed_mm_s`` x the gap);
-- under half a period (a repeated frame, a clock gone back): not a sample; refused.
+- beyond ``estimator.max_gap_s``, or before the last (the frames' clock stepped back):
+  nothing is integrated; the filter starts again at the frame (the rod's velocity and the
+  chambers' pressures from the steady state there; position, load and parameters kept), the
+  switches' states are forgotten and the sample is stale: the caller widens the position by
+  the travel it could not integrate (the service: ``Config.max_speed_mm_s`` x the gap);
+- less than half a period after the last (a repeated frame): not a sample; refused (the
+  service's face keeps the last sample).
 
 :class:`KalmanEstimator` gives the service :class:`.Estimator`'s face (``step``, presets,
 restores and the persisted state, widening, switch states forgotten): the published
@@ -233,10 +235,12 @@ class OnlineKalman:
         carried, gap, lost = shaft, False, 0
         if self.last is not None:
             dt = time_s - self.last[0]
-            if dt < 0.5 * self.period_s:
+            if 0.0 <= dt < 0.5 * self.period_s:
                 raise ValueError(f"a frame {dt:g} s after the last is no new sample of the "
                                  f"drive's ({self.period_s:g} s)")
-            gap = dt > self.max_gap_s
+            gap = dt > self.max_gap_s or dt < 0.0
+            if dt < 0.0:
+                self.rate = TrailingRate()      # its readings' times are another clock's
             if not gap:
                 lost = max(int(round(dt / self.period_s)) - 1, 0)
                 if self.motor.torque_filter_s:
@@ -260,6 +264,8 @@ class OnlineKalman:
                 b.step(k)
                 self.k += 1
         k = self._put(time_s, speed_rpm, carried, temp, True)
+        if gap:
+            self.forget_switch_states()
         for sw in b.jobs[0].switches:
             if refs is None or sw.name not in refs:
                 continue
@@ -319,6 +325,7 @@ class KalmanEstimator:
                                    initial_position_mm=initial_position_mm,
                                    settings=self.settings)
         self.stroke_mm = self.filter.stroke_mm
+        self.lower_mm, self.upper_mm = 0.0, self.stroke_mm     # its estimate's bounds
 
     @property
     def position_mm(self) -> float:
@@ -355,7 +362,7 @@ class KalmanEstimator:
         """One Sevcon frame in, position out (``refs_since_s`` with ``refs_timed``: the
         time the switches' states changed, as the I/O module timed it)."""
         last = self.filter.last
-        if last is not None and t_s - last[0] < 0.5 * self.filter.period_s:
+        if last is not None and 0.0 <= t_s - last[0] < 0.5 * self.filter.period_s:
             # not a new sample of the drive's: the last one stands
             s = self.filter.last_sample
             assert s is not None

@@ -172,3 +172,22 @@ def test_signals_no_plant_gives_are_flagged_and_their_spread_stays_within_the_st
     assert np.mean([bool(o.flags & kalman.MODEL_INCONSISTENT) for o in out]) > 0.5
     assert max(o.uncertainty_mm for o in out) <= 1.5 * stroke * (1 + 1e-9)
     assert all(math.isfinite(o.position_mm) and 0.0 <= o.position_mm <= stroke for o in out)
+
+
+def test_a_frame_clock_stepping_back_restarts_the_filter_stale(cfg, warm):
+    """The frames' clock steps back 2 s mid-run: the frame is not integrated from the last
+    (stale), the filter starts again there and carries on sample by sample from the new
+    clock (each later frame a sample, not a repeat of the last)."""
+    est = kalman_online.KalmanEstimator(cfg, "boom", initial_position_mm=float(
+        warm.position_mm[0]))
+    back = 400
+    steps = []
+    for k in range(len(warm.time_s)):
+        t = warm.time_s[k] - (2.0 if k >= back else 0.0)
+        steps.append(est.step(t, warm.speed_rpm[k], warm.torque_nm[k], warm.oil_temp_c[k]))
+    assert steps[back].flags & Flags.STALE_INPUT
+    assert not any(s.flags & Flags.STALE_INPUT for i, s in enumerate(steps) if i != back)
+    assert est.filter.base + est.filter.k == len(warm.time_s)    # every frame a sample
+    moving = [i for i in range(back + 1, len(steps))
+              if abs(warm.position_mm[i] - warm.position_mm[i - 1]) > 0.5]
+    assert moving and len({steps[i].position_mm for i in moving}) == len(moving)
