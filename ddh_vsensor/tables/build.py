@@ -56,12 +56,16 @@ def _axes(cfg: Config, unit: DDHUnit) -> tuple[Axis, Axis, Axis]:
     return speed, torque, temp
 
 
-def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
-    """Row-wise linear interpolation in mm/s. ``xp`` rows are the ascending breakpoints of a
-    piecewise-linear function that reach beyond ``x``, so each result is exact."""
+def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, out: np.ndarray) -> None:
+    """Row-wise linear interpolation in mm/s, into ``out`` (rows of ``x``'s length): written
+    in place, no temporary the size of a table's slice. ``xp`` rows are the ascending
+    breakpoints of a piecewise-linear function that reach beyond ``x``, so each result is
+    exact."""
     if np.any(xp[:, 0] > x[0]) or np.any(xp[:, -1] < x[-1]):
         raise AssertionError("velocity-torque breakpoints do not span the torque axis")
-    return np.stack([np.interp(x, xr, fr) for xr, fr in zip(xp, fp)]) * 1e3
+    for row, xr, fr in zip(out, xp, fp):
+        row[:] = np.interp(x, xr, fr)
+    out *= 1e3
 
 
 def build_unit_tables(cfg: Config, actuator: str, unit: DDHUnit | None = None,
@@ -93,9 +97,11 @@ def _build(cfg: Config, actuator: str, unit: DDHUnit, progress: Progress | None
     rep = 0.5 * (edges[:-1] + edges[1:])
     paper_speeds = np.concatenate([rep, -rep])                     # [direction*range]
     paper = np.empty((2, 3, temp.count, torque.count))
+    torque_nm, speeds_rpm = torque.values(), speed.values()
+    v_mm_s = np.empty((len(paper_speeds), torque.count))
     for k, t_c in enumerate(temp.values()):
-        full[k] = _interp_rows(torque.values(), *velocity_torque_curve(unit, speed.values(), t_c))
-        v_mm_s = _interp_rows(torque.values(), *velocity_torque_curve(unit, paper_speeds, t_c))
+        _interp_rows(torque_nm, *velocity_torque_curve(unit, speeds_rpm, t_c), full[k])
+        _interp_rows(torque_nm, *velocity_torque_curve(unit, paper_speeds, t_c), v_mm_s)
         paper[:, :, k, :] = (v_mm_s / (paper_speeds[:, None] / 60.0)).reshape(2, 3, -1)
         if progress:
             progress(actuator, (k + 1) / temp.count)
