@@ -1,8 +1,9 @@
 """The build step pyproject.toml cannot declare stably: the C libraries loaded with ctypes (no
 Python API).
 
-``ddh_vsensor.model._unit``, the unit's dynamics, and ``ddh_vsensor.estimator._kalman``, the
-Kalman filter's sample with those dynamics compiled in, are required: the simulator and the
+``ddh_vsensor.model._unit``, the unit's dynamics, ``ddh_vsensor.estimator._kalman``, the
+Kalman filter's sample with those dynamics compiled in, and ``ddh_vsensor.tables._interp``, the
+tables' row-wise interpolation, are required: the simulator and the
 filter run nothing else, so without a C compiler (gcc) the install fails here, saying so.
 The chamber models' steps of the estimator (the dynamic mode's, and the one with entrained
 air the diagnosis fits) are optional: without a compiler the same steps run in Python.
@@ -33,6 +34,9 @@ setup(cmdclass={"build_ext": BuildExt},
                    Extension("ddh_vsensor.estimator._kalman",
                              sources=["ddh_vsensor/estimator/_kalman.c"],
                              depends=["ddh_vsensor/model/_unit.c"],
+                             libraries=["m"], extra_compile_args=["-ffp-contract=off"]),
+                   Extension("ddh_vsensor.tables._interp",
+                             sources=["ddh_vsensor/tables/_interp.c"],
                              libraries=["m"], extra_compile_args=["-ffp-contract=off"]),
                    Extension("ddh_vsensor.estimator._chambers",
                              sources=["ddh_vsensor/estimator/_chambers.c"],

@@ -34,7 +34,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ddh_vsensor.estimator.compiled import package_library
+from ddh_vsensor.compiled import package_library
 from ddh_vsensor.estimator.dynamic import parameters
 from ddh_vsensor.physics.air import log_density_and_compliance
 from ddh_vsensor.physics.conversions import RPM_RAD_S
@@ -51,7 +51,7 @@ A_PA, A_PB, A_V, A_X, A_N, A_TAU, A_RA, A_RB, A_SIZE = range(9)
 def library() -> ctypes.CDLL | None:
     """The compiled step, loaded once; None where the install could not build it (the numpy
     step runs)."""
-    cdll = package_library("_air_chambers")
+    cdll = package_library("ddh_vsensor.estimator._air_chambers")
     if cdll is None:
         return None
     if cdll.air_sizes(1) != A_SIZE:

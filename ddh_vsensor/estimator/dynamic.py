@@ -62,7 +62,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ddh_vsensor.estimator.compiled import package_library
+from ddh_vsensor.compiled import package_library
 from ddh_vsensor.physics.conversions import RPM_RAD_S
 from ddh_vsensor.physics.oil import Oil
 from ddh_vsensor.physics.unit import DDHUnit
@@ -92,7 +92,7 @@ HF_GAIN, LOST_AT, JITTER_SPAN = 0.05, 1.5, 3.6       # as in _chambers.c
 def _library() -> ctypes.CDLL | None:
     """The compiled step, built with the package (an optional extension of pyproject.toml);
     None where it could not be built."""
-    cdll = package_library("_chambers")
+    cdll = package_library("ddh_vsensor.estimator._chambers")
     if cdll is None:
         log.warning("dynamic mode: the compiled chamber step was not built with this install "
                     "(no C compiler?); using the Python step (~50 us per sample, equal results)")

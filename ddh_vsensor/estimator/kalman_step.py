@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ddh_vsensor.estimator.compiled import package_library
+from ddh_vsensor.compiled import package_library
 from ddh_vsensor.model.unit import check_layouts
 
 KINDS = ("settings", "unit", "filter", "arrays")
@@ -55,7 +55,7 @@ def library() -> ctypes.CDLL:
     """The compiled sample (loaded and checked once); ImportError where it was not built."""
     global _LIB
     if _LIB is None:
-        lib = package_library("_kalman")
+        lib = package_library("ddh_vsensor.estimator._kalman")
         if lib is None:
             raise ImportError(NOT_BUILT)
         ptr, long_ = ctypes.c_void_p, ctypes.c_long

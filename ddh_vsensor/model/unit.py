@@ -64,15 +64,14 @@ exports before it hands the library out, so the two cannot drift apart unnoticed
 from __future__ import annotations
 
 import ctypes
-import importlib.machinery
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ddh_vsensor.compiled import package_library
 from ddh_vsensor.config import Config, HydraulicsConfig
 from ddh_vsensor.physics.conversions import BAR_PA
 from ddh_vsensor.physics.pump import rating_viscosity_pa_s
@@ -281,14 +280,10 @@ def check_layouts(lib: ctypes.CDLL) -> None:
 
 
 def _load() -> ctypes.CDLL:
-    """The library from the package's own directory (a library loaded from a writable cache
-    or /tmp could be planted by another user), its layouts checked."""
-    here = Path(__file__).parent
-    found = (here / f"_unit{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES)
-    path = next((f for f in found if f.is_file()), None)
-    if path is None:
+    """The library from the package's own directory, its layouts checked."""
+    lib = package_library("ddh_vsensor.model._unit")
+    if lib is None:
         raise ImportError(NOT_BUILT)
-    lib = ctypes.CDLL(str(path))
     check_layouts(lib)
     ptr, long_ = ctypes.c_void_p, ctypes.c_long
     lib.ddh_step.argtypes = [ptr, ptr, ptr, ctypes.c_double, ptr]

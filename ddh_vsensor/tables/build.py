@@ -7,6 +7,7 @@ whose motor torque is exactly that node's torque (see ``steady_state_at_torque``
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import math
 import time
@@ -15,6 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ddh_vsensor.compiled import package_library
 from ddh_vsensor.version import __version__
 from ddh_vsensor.config import Config
 from ddh_vsensor.physics.steady import velocity_torque_curve
@@ -29,6 +31,7 @@ Progress = Callable[[str, float], None]
 # The diagnosis asks for one unit's tables many times over (each cause's grid, each campaign):
 # the last few built are kept, their arrays read-only since every caller shares them.
 _BUILT: OrderedDict[tuple, UnitTables] = OrderedDict()
+_LIB: ctypes.CDLL | None = None
 BUILT_KEPT = 16
 
 
@@ -56,16 +59,32 @@ def _axes(cfg: Config, unit: DDHUnit) -> tuple[Axis, Axis, Axis]:
     return speed, torque, temp
 
 
+def _interp_library() -> ctypes.CDLL:
+    lib = package_library("ddh_vsensor.tables._interp")
+    if lib is None:
+        raise ImportError("ddh_vsensor.tables._interp is not built: install a C compiler (gcc) "
+                          "and reinstall ddh-vsensor")
+    ptr, long_ = ctypes.c_void_p, ctypes.c_long
+    lib.interp_rows.argtypes = [long_, long_, long_, ptr, ptr, ptr, ctypes.c_double, ptr]
+    lib.interp_rows.restype = None
+    return lib
+
+
 def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, out: np.ndarray) -> None:
-    """Row-wise linear interpolation in mm/s, into ``out`` (rows of ``x``'s length): written
-    in place, no temporary the size of a table's slice. ``xp`` rows are the ascending
-    breakpoints of a piecewise-linear function that reach beyond ``x``, so each result is
-    exact."""
+    """Row-wise linear interpolation in mm/s into ``out`` (rows of ``x``'s length): each row
+    ``numpy.interp``'s to the bit, in C (a table has hundreds of rows a temperature). ``xp``
+    rows are the ascending breakpoints of a piecewise-linear function that reach beyond
+    ``x``, so each result is exact."""
     if np.any(xp[:, 0] > x[0]) or np.any(xp[:, -1] < x[-1]):
         raise AssertionError("velocity-torque breakpoints do not span the torque axis")
-    for row, xr, fr in zip(out, xp, fp):
-        row[:] = np.interp(x, xr, fr)
-    out *= 1e3
+    x, xp, fp = (np.ascontiguousarray(a, dtype=float) for a in (x, xp, fp))
+    if out.shape != (len(xp), len(x)) or not out.flags.c_contiguous or out.dtype != float:
+        raise ValueError("interpolation rows: out must be C-contiguous float rows of x")
+    global _LIB
+    if _LIB is None:
+        _LIB = _interp_library()
+    _LIB.interp_rows(len(xp), xp.shape[1], len(x), xp.ctypes.data, fp.ctypes.data,
+                     x.ctypes.data, 1e3, out.ctypes.data)
 
 
 def build_unit_tables(cfg: Config, actuator: str, unit: DDHUnit | None = None,
