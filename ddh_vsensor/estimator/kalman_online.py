@@ -41,7 +41,7 @@ from ddh_vsensor.config import Config
 from ddh_vsensor.estimator.estimator import ReferenceEvent, Step
 from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.kalman import (MODEL_INCONSISTENT, KalmanSettings, _Bank, _job,
-                                          settings_from_config)
+                                          cusum_threshold, settings_from_config)
 from ddh_vsensor.estimator.references import Debouncer
 from ddh_vsensor.estimator.state import EstimatorState
 from ddh_vsensor.estimator.timing import shaft_torque_nm, torque_at_speed_instant
@@ -95,6 +95,9 @@ class OnlineKalman:
             raise ValueError(f"capacity {self.capacity}: more than "
                              f"{self.keep + math.ceil(self.max_gap_s / period_s)} samples "
                              "needed")
+        # the edges' CUSUM threshold now (a few hundred ms, once a process), not on the first
+        # frame, which a service must integrate while the bus keeps sending
+        cusum_threshold(settings.edge_cusum_ratio, settings.edge_false_alarm)
         self.motor, self.lag_s = cfg.unit(actuator).motor, cfg.hydraulics.oil_temp_lag_s
         self.stroke_mm = cfg.unit(actuator).stroke_mm
         self.rate = TrailingRate()
