@@ -45,6 +45,12 @@ The event loop's own cost is what the socket mode's CPU share adds to this.
 service process's CPU share: the per-frame sample feed and the blocks handed over), then
 the summary worker's own cost (:func:`summary_worker_cost`); results in
 ``daemon_summaries.json``.
+
+``--estimator-mode MODE``: the service on that estimator mode instead of the configuration's
+(``kalman``: the Kalman filter, stepping at ``can.sevcon_period_ms``, set here to the bench's
+Sevcon period, 1 ms at 1 kHz); results in ``daemon_<MODE>.json`` (and ``_<MODE>`` appended
+to the other modes' names), the committed ``daemon.json`` untouched.
+``--saturated-seconds 0``: the nominal load only.
 """
 
 from __future__ import annotations
@@ -973,7 +979,8 @@ def summary_worker_cost(cfg, minutes: int = 10) -> dict[str, object]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=20.0, help="nominal measurement")
-    parser.add_argument("--saturated-seconds", type=float, default=10.0)
+    parser.add_argument("--saturated-seconds", type=float, default=10.0,
+                        help="saturated measurement (0: nominal load only)")
     parser.add_argument("--bus-rate", type=float, default=8200.0,
                         help="total frames/s on the saturated bus (default 8200)")
     parser.add_argument("--modes", default="socket,inproc,remote")
@@ -1011,6 +1018,11 @@ def main() -> None:
     parser.add_argument("--profile", type=int, metavar="MS", default=None,
                         help="only profile MS milliseconds of traffic through the service's "
                              "path (no event loop): results in daemon_profile.json")
+    parser.add_argument("--estimator-mode", choices=("full", "paper", "dynamic", "kalman"),
+                        default=None,
+                        help="the service's estimator mode (default: the configuration's); "
+                             "kalman steps at the Sevcon period (can.sevcon_period_ms set to "
+                             "1000 / input Hz): results in daemon_<mode>.json")
     args = parser.parse_args()
     global REALTIME, COALESCE_S, DIAG_MS
     REALTIME = args.rt
@@ -1020,6 +1032,10 @@ def main() -> None:
     COALESCE_S = None if args.coalesce_ms is None else args.coalesce_ms / 1000.0
     if args.phases is not None and (args.units is None or not 1 <= args.phases <= 50):
         parser.error("--phases: 1 to 50, with --units")
+    if (args.estimator_mode is not None and "remote" in args.modes.split(",")
+            and args.units is None and not args.summaries and args.profile is None):
+        parser.error("--estimator-mode: not with --modes remote (its daemon process runs "
+                     "the default configuration)")
     if args.units is not None and not 1 <= args.units <= 16:
         parser.error("--units: a machine has 1 to 16 units")
     large = args.units is not None and args.units > 2
@@ -1031,16 +1047,26 @@ def main() -> None:
     if args.housekeeping_ms is not None:
         cfg = dataclasses.replace(cfg, faults=dataclasses.replace(
             cfg.faults, housekeeping_tick_ms=args.housekeeping_ms))
+    mode = "" if args.estimator_mode is None else f"_{args.estimator_mode}"   # results' names
+    if args.estimator_mode is not None:
+        cfg = dataclasses.replace(cfg, estimator=dataclasses.replace(
+            cfg.estimator, mode=args.estimator_mode))
+    if cfg.estimator.mode == "kalman":      # the filter steps at the frames' period
+        cfg = dataclasses.replace(cfg, can=dataclasses.replace(
+            cfg.can, sevcon_period_ms=1000.0 / input_hz))
     tables = machine_tables(cfg)
     figures: dict[str, object] = {
         "cpus": os.cpu_count(), "load_avg_1min_at_start": round(os.getloadavg()[0], 2),
+        "estimator_mode": cfg.estimator.mode,
     }
+    if cfg.estimator.mode == "kalman":
+        figures["kalman_step_ms"] = cfg.can.sevcon_period_ms
     if args.profile is not None:
         figures.update(profile(cfg, tables, args.profile, input_hz))
         figures["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
         figures["diag_timer_ms"] = args.diag_ms or cfg.can.event_timer_ms
-        publish("daemon_profile" + ("" if args.diag_ms is None else f"_diag{args.diag_ms}ms"),
-                figures)
+        publish("daemon_profile" + ("" if args.diag_ms is None else f"_diag{args.diag_ms}ms")
+                + mode, figures)
         return
     if args.summaries:
         for label, on in (("off", False), ("on", True)):
@@ -1054,7 +1080,7 @@ def main() -> None:
             - figures["socket_nominal_summaries_off_cpu_share_pct"], 1)
         figures.update(summary_worker_cost(cfg))
         figures["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
-        publish("daemon_summaries", figures)
+        publish("daemon_summaries" + mode, figures)
         return
     if args.units is not None:
         figures.update({"units": len(cfg.unit_names), "input_hz_per_unit": input_hz,
@@ -1075,6 +1101,7 @@ def main() -> None:
             suffix += f"_diag{args.diag_ms}ms"
         if args.phases:
             suffix += f"_phases{args.phases}"
+        suffix += mode
         publish(f"daemon_units{len(cfg.unit_names)}" + ("_rt" if args.rt else "") + suffix,
                 figures)
         return
@@ -1083,19 +1110,18 @@ def main() -> None:
     figures.update({"goal_latency_p99_ms": 2.0, "goal_jitter_p99_ms": 1.0,
                     "goal_cpu_share_pct": 10.0, "goal_lost_at_8000_fps": 0})
     modes = args.modes.split(",")
+    loads = [("nominal", args.seconds, 0.0)] + (
+        [("saturated", args.saturated_seconds, other_hz)] if args.saturated_seconds > 0 else [])
     if "socket" in modes:
-        for name, seconds, other in (("nominal", args.seconds, 0.0),
-                                     ("saturated", args.saturated_seconds, other_hz)):
+        for name, seconds, other in loads:
             result = asyncio.run(run_socket(cfg, tables, seconds, other, input_hz))
             figures.update({f"socket_{name}_{k}": v for k, v in result.items()})
     if "inproc" in modes and not args.rt:       # the feeder shares the process: no RT here
-        for name, seconds, other in (("nominal", args.seconds, 0.0),
-                                     ("saturated", args.saturated_seconds, other_hz)):
+        for name, seconds, other in loads:
             result = asyncio.run(run_inproc(cfg, tables, seconds, other))
             figures.update({f"inproc_{name}_{k}": v for k, v in result.items()})
     if "remote" in modes:
-        for name, seconds, other in (("nominal", args.seconds, 0.0),
-                                     ("saturated", args.saturated_seconds, other_hz)):
+        for name, seconds, other in loads:
             result = run_remote(cfg, seconds, other)
             figures.update({f"remote_{name}_{k}": v for k, v in result.items()})
     figures["load_avg_1min_at_end"] = round(os.getloadavg()[0], 2)
@@ -1109,7 +1135,7 @@ def main() -> None:
     if args.diag_ms is not None:
         figures["diag_timer_ms"] = args.diag_ms
         suffix += f"_diag{args.diag_ms}ms"
-    publish(("daemon_rt" if args.rt else "daemon") + suffix, figures)
+    publish(("daemon_rt" if args.rt else "daemon") + suffix + mode, figures)
 
 
 if __name__ == "__main__":
