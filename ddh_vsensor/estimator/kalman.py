@@ -128,6 +128,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
@@ -148,6 +149,7 @@ from ddh_vsensor.physics.unit import DDHUnit
 from ddh_vsensor.model.plant import Plant, RowSpec
 
 MODEL_INCONSISTENT = int(Flags.MODEL_INCONSISTENT)
+_NOT_REFERENCED, _AT_SOFT_LIMIT = int(Flags.NOT_REFERENCED), int(Flags.AT_SOFT_LIMIT)
 X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP, DISP, STICK = range(11)
 SLOW = [LOAD, DT, TOFF]          # the slow states: a torque the model cannot explain leaves them
 N_BASE = 11                     # states before the per-switch offsets
@@ -391,12 +393,11 @@ def run(cfg: Config, actuator: str, measured: Run, *, references: bool = True,
                     initial_positions_mm=[initial_position_mm], settings=settings)[0].estimate
 
 
-def _flags(inconsistent: np.ndarray, not_referenced: np.ndarray, x_mm: np.ndarray,
-           stroke_mm: float) -> np.ndarray:
-    return (np.where(inconsistent, MODEL_INCONSISTENT, 0)
-            | np.where(not_referenced, int(Flags.NOT_REFERENCED), 0)
-            | np.where((x_mm <= 0.0) | (x_mm >= stroke_mm), int(Flags.AT_SOFT_LIMIT), 0)
-            ).astype(np.uint8)
+def sample_flags(inconsistent: Any, not_referenced: Any, x_mm: Any, stroke_mm: float) -> Any:
+    """The flags of a filter's samples (arrays) or of one sample (its values): model
+    inconsistent, not referenced, at a stroke end."""
+    return (MODEL_INCONSISTENT * inconsistent | _NOT_REFERENCED * not_referenced
+            | _AT_SOFT_LIMIT * ((x_mm <= 0.0) | (x_mm >= stroke_mm)))
 
 
 class _Bank:
@@ -407,7 +408,7 @@ class _Bank:
     def __init__(self, jobs: list[_Job], period_s: float, s: KalmanSettings,
                  debounce_s: float, hydraulics: HydraulicsConfig,
                  rows: dict[str, RowSpec]) -> None:
-        self.jobs, self.T, self.s, self.debounce_s = jobs, period_s, s, debounce_s
+        self.jobs, self.s, self.debounce_s = jobs, s, debounce_s
         self.B = B = len(jobs)
         self.lengths = np.array([len(j.run.time_s) for j in jobs])
         self.N = int(self.lengths.max())
@@ -630,11 +631,12 @@ class _Bank:
         self._predict_args = (*records, self.prior_var.ctypes.data, params, state, inputs,
                               self.arrays.ctypes.data, counters)
         self._finish_args = (*records, self.arrays.ctypes.data)
+        self._lib = kalman_step.library()
 
     def step(self, k: int) -> None:
         """Sample k of every filter: the prediction from k - 1 and the torque's update
         (k > 0), the edges seen and accepted at k, the outputs at k."""
-        lib = kalman_step.library()
+        lib = self._lib
         lib.kf_predict_update(self.B, self.n_states, k, *self._predict_args)
         # a switch changed: the rod's position at that instant, as known now, is kept
         # (cloned) until the debounce accepts the edge; the stop or anything else met
@@ -742,7 +744,8 @@ class _Bank:
         for b, j in enumerate(self.jobs):
             n = int(self.lengths[b])
             x_mm = out_x[:n, b] * 1e3
-            flags = _flags(flagged[:n, b], not_ref[:n, b], x_mm, self.stroke[b] * 1e3)
+            flags = sample_flags(flagged[:n, b], not_ref[:n, b], x_mm,
+                                 self.stroke[b] * 1e3).astype(np.uint8)
             est = RunEstimate(x_mm, out_v[:n, b] * 1e3, s.coverage * out_sd[:n, b] * 1e3, flags,
                               events[b])
             offsets = {name: float(z[b, i]) * 1e3 for name, i in self.slot[b].items()}

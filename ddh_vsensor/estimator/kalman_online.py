@@ -41,7 +41,8 @@ from ddh_vsensor.config import Config
 from ddh_vsensor.estimator.estimator import ReferenceEvent, Step
 from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.kalman import (MODEL_INCONSISTENT, KalmanSettings, _Bank, _job,
-                                          cusum_threshold, settings_from_config)
+                                          cusum_threshold, sample_flags,
+                                          settings_from_config)
 from ddh_vsensor.estimator.references import Debouncer
 from ddh_vsensor.estimator.state import EstimatorState
 from ddh_vsensor.estimator.timing import shaft_torque_nm, torque_at_speed_instant
@@ -50,8 +51,7 @@ from ddh_vsensor.model.plant import RowSpec
 from ddh_vsensor.physics.tank_sensor import TrailingRate
 from ddh_vsensor.physics.unit import DDHUnit
 
-_NOT_REFERENCED, _AT_SOFT_LIMIT, _STALE_INPUT = (
-    int(f) for f in (Flags.NOT_REFERENCED, Flags.AT_SOFT_LIMIT, Flags.STALE_INPUT))
+_STALE_INPUT = int(Flags.STALE_INPUT)
 
 
 @dataclass(frozen=True)
@@ -102,6 +102,7 @@ class OnlineKalman:
         self.stroke_mm = cfg.unit(actuator).stroke_mm
         self.rate = TrailingRate()
         self.bank: _Bank | None = None
+        self.end_mm = math.nan          # the bank's stroke end (mm), set with the bank
         self.base = 0                   # global index of the bank's sample 0
         self.k = 0                      # the bank's index of the next sample
         self.last: tuple[float, float] | None = None      # (time, shaft torque) before
@@ -187,6 +188,11 @@ class OnlineKalman:
 
     # --- the samples -----------------------------------------------------------------------
 
+    def repeats(self, time_s: float) -> bool:
+        """Whether a frame at ``time_s`` is no new sample: within half a period after the
+        last."""
+        return self.last is not None and 0.0 <= time_s - self.last[0] < 0.5 * self.period_s
+
     def _begin(self, time_s: float, speed_rpm: float, torque_nm: float,
                oil_temp_c: float) -> _Bank:
         n = self.capacity
@@ -238,7 +244,7 @@ class OnlineKalman:
         carried, gap, lost = shaft, False, 0
         if self.last is not None:
             dt = time_s - self.last[0]
-            if 0.0 <= dt < 0.5 * self.period_s:
+            if self.repeats(time_s):
                 raise ValueError(f"a frame {dt:g} s after the last is no new sample of the "
                                  f"drive's ({self.period_s:g} s)")
             gap = dt > self.max_gap_s or dt < 0.0
@@ -254,6 +260,7 @@ class OnlineKalman:
                 if self.lag_s else oil_temp_c)
         if first:
             self.bank = self._begin(time_s, speed_rpm, carried, temp)
+            self.end_mm = float(self.bank.stroke[0]) * 1e3
         b = self.bank
         assert b is not None
         if lost:
@@ -299,10 +306,8 @@ class OnlineKalman:
         self.k += 1
         out_x, out_v, out_sd, out_load, out_dt, out_toff, _, _, out_p = b.out
         x_mm = float(out_x[k, 0]) * 1e3
-        flags = ((MODEL_INCONSISTENT if b.flagged[k, 0] else 0)
-                 | (_NOT_REFERENCED if b.not_ref[k, 0] else 0)
-                 | (_AT_SOFT_LIMIT if x_mm <= 0.0 or x_mm >= b.stroke[0] * 1e3 else 0)
-                 | (_STALE_INPUT if gap else 0))
+        flags = (int(sample_flags(bool(b.flagged[k, 0]), bool(b.not_ref[k, 0]), x_mm,
+                                  self.end_mm)) | (_STALE_INPUT if gap else 0))
         events = tuple(dataclasses.replace(e, index=e.index + self.base,
                                            edge_index=e.edge_index + self.base)
                        for e in b.events[0][before:])
@@ -353,19 +358,16 @@ class KalmanEstimator:
     def state_flags(self) -> int:
         """The flags that follow from the filter's state alone."""
         s = self.filter.last_sample
-        flags = 0 if self.referenced and not self.reference_suspect else _NOT_REFERENCED
-        if s is not None:
-            flags |= s.flags & MODEL_INCONSISTENT
-        x = self.position_mm
-        return flags | (_AT_SOFT_LIMIT if x <= 0.0 or x >= self.stroke_mm else 0)
+        return int(sample_flags(s is not None and bool(s.flags & MODEL_INCONSISTENT),
+                                not self.referenced or self.reference_suspect,
+                                self.position_mm, self.stroke_mm))
 
     def step(self, t_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float,
              refs: Mapping[str, bool] | None = None, refs_since_s: float | None = None,
              refs_timed: bool = False) -> Step:
         """One Sevcon frame in, position out (``refs_since_s`` with ``refs_timed``: the
         time the switches' states changed, as the I/O module timed it)."""
-        last = self.filter.last
-        if last is not None and 0.0 <= t_s - last[0] < 0.5 * self.filter.period_s:
+        if self.filter.repeats(t_s):
             # not a new sample of the drive's: the last one stands
             s = self.filter.last_sample
             assert s is not None

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ctypes
 import dataclasses
+import functools
 import math
 import time
 from collections import OrderedDict
@@ -31,7 +32,6 @@ Progress = Callable[[str, float], None]
 # The diagnosis asks for one unit's tables many times over (each cause's grid, each campaign):
 # the last few built are kept, their arrays read-only since every caller shares them.
 _BUILT: OrderedDict[tuple, UnitTables] = OrderedDict()
-_LIB: ctypes.CDLL | None = None
 BUILT_KEPT = 16
 
 
@@ -59,6 +59,7 @@ def _axes(cfg: Config, unit: DDHUnit) -> tuple[Axis, Axis, Axis]:
     return speed, torque, temp
 
 
+@functools.cache
 def _interp_library() -> ctypes.CDLL:
     lib = package_library("ddh_vsensor.tables._interp")
     if lib is None:
@@ -80,10 +81,7 @@ def _interp_rows(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, out: np.ndarray)
     x, xp, fp = (np.ascontiguousarray(a, dtype=float) for a in (x, xp, fp))
     if out.shape != (len(xp), len(x)) or not out.flags.c_contiguous or out.dtype != float:
         raise ValueError("interpolation rows: out must be C-contiguous float rows of x")
-    global _LIB
-    if _LIB is None:
-        _LIB = _interp_library()
-    _LIB.interp_rows(len(xp), xp.shape[1], len(x), xp.ctypes.data, fp.ctypes.data,
+    _interp_library().interp_rows(len(xp), xp.shape[1], len(x), xp.ctypes.data, fp.ctypes.data,
                      x.ctypes.data, 1e3, out.ctypes.data)
 
 
