@@ -424,8 +424,14 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         const double moved_x = z[X] - x_before;
         P[X * n + X] += moved_x * moved_x;
     }
-    /* what is position is considered (Schmidt), not updated */
+    /* what is position is considered (Schmidt), not updated; and while the rod slides, the
+     * oil in the chambers: their pressures are then what the forces on the rod make them, so
+     * the torque corrects the forces (load, offsets), and an update of a pressure at a fixed
+     * position would be oil made or lost that the next step turns into travel. Standing
+     * (friction, a stop), a chamber is a closed volume whose oil the torque reads. */
     K[X] = K[EPS] = K[DISP] = 0.0;
+    if (f->friction_state != F_STUCK)
+        K[PA] = K[PB] = 0.0;
     for (long i = N_BASE; i < n; i++)
         K[i] = 0.0;
     for (long i = 0; i < n; i++)
