@@ -691,16 +691,13 @@ class _Bank:
         P[X, X] = sd_m ** 2
 
     def widen(self, sd_m: float) -> None:
-        """The position's spread grows by ``sd_m`` (travel not integrated), its correlations
-        kept (P scaled as D P D)."""
+        """The position's sigma grows by ``sd_m`` (travel not integrated): an error of its
+        own, independent of what the filter holds (scaling x's row instead would claim the
+        untracked travel a multiple of, say, a switch's offset, which the next edge would
+        then "learn")."""
         P = self.P[0]
         sd = math.sqrt(max(P[X, X], 0.0))
-        if sd == 0.0:
-            P[X, X] = sd_m ** 2
-            return
-        scale = (sd + sd_m) / sd
-        P[X, :] *= scale
-        P[:, X] *= scale
+        P[X, X] += (sd + sd_m) ** 2 - sd ** 2
 
     def learned(self) -> dict[str, float]:
         """What outlives a restart: the constant and slow states (the torque offset in N*m,
@@ -806,10 +803,12 @@ class _Bank:
         """A debounced edge accepted at k, seen at c: the rod's position at the edge's
         instant (the clone) minus the switch's offset is the switching position."""
         x_c, v_c, timing_var = self.pending.pop((b, sw.name))
-        # the direction of travel at the edge: the rod's velocity then, or where the filter
-        # has it still (at a stop it reached early) the way the pumps drive it
-        if abs(v_c) * 1e3 < DIRECTION_SPEED_MM_S:
-            v_c = self.speed[c, b] * self.q_signed_a[b] / self.area_a[b]
+        # the direction of travel at the edge: the way the pumps drive the rod (the measured
+        # speed through their displacement; the filter's velocity is an estimate, and after a
+        # restart a guess), unless they turn too slowly to say: then the rod's velocity
+        v_pumps = self.speed[c, b] * self.q_signed_a[b] / self.area_a[b]
+        if abs(v_pumps) * 1e3 >= DIRECTION_SPEED_MM_S:
+            v_c = v_pumps
         p_mm = sw.edge_position_mm(rising, v_c * 1e3, x_c * 1e3)
         o, i = self.slot[b][sw.name], self.clone[b][sw.name]
         y = p_mm * 1e-3 + z[b, o] - z[b, i]

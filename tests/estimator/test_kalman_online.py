@@ -130,6 +130,25 @@ def test_the_service_face_presets_restores_and_widens(cfg, warm):
     assert again.state_flags() & Flags.NOT_REFERENCED
 
 
+def test_widening_is_an_error_of_its_own(cfg, warm):
+    """Travel not integrated is independent of what the filter holds: the position's sigma
+    grows by what the service says, its covariances with the switches' offsets stay (scaled
+    with it, the next edge would take the untracked travel for an offset and "learn" it)."""
+    est = kalman_online.KalmanEstimator(cfg, "boom", initial_position_mm=float(
+        warm.position_mm[0]))
+    for k in range(len(warm.time_s)):
+        est.step(warm.time_s[k], warm.speed_rpm[k], warm.torque_nm[k], warm.oil_temp_c[k],
+                 {n: bool(v[k]) for n, v in warm.refs.items()})
+    bank = est.filter.bank
+    offsets = list(bank.slot[0].values())
+    before = bank.P[0][kalman.X, offsets].copy()
+    assert np.abs(before).max() > 0.0                  # the edges tied x to the offsets
+    sd_mm = est.uncertainty_mm / 3.0
+    est.add_uncertainty(6.0)
+    assert est.uncertainty_mm == pytest.approx(3.0 * (sd_mm + 2.0), rel=1e-9)
+    assert np.array_equal(bank.P[0][kalman.X, offsets], before)
+
+
 def test_what_the_filter_learnt_outlives_a_restart(cfg, warm, tmp_path):
     """The warm run with its references: the switches' offsets, the torque offset and the
     parameters learnt are saved with the position and taught to the next run's filter, which
