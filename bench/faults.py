@@ -48,15 +48,12 @@ from _results import publish  # noqa: E402
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name  # noqa: E402
 from ddh_vsensor.config import Config, load_config  # noqa: E402
-from ddh_vsensor.estimator.flags import Flags  # noqa: E402
+from ddh_vsensor.estimator.flags import EXPLAINING  # noqa: E402
 from ddh_vsensor.service import Service, ServiceOptions  # noqa: E402
 from ddh_vsensor.master.replay import machine_frames  # noqa: E402
 from ddh_vsensor.sim import RunSpec, simulate_with_truth  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
-EXPLAINING = (Flags.STALE_INPUT | Flags.NOT_REFERENCED | Flags.PRESET_UNCONFIRMED
-              | Flags.CONTROLLER_NOT_OPERATIONAL | Flags.TABLE_CLAMPED
-              | Flags.MODEL_INCONSISTENT)
 CHECK_S = 0.01
 # Frame stamps: the frames' clock starts here, never at or below 0 (an interface without
 # timestamps, to the service: it stamps such a frame with the wall clock).

@@ -52,15 +52,13 @@ from daemon import SocketPairBus, kernel_stamp
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.config import Config, load_config
-from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.estimator.flags import EXPLAINING, Flags
 from ddh_vsensor.master.replay import machine_frames
 from ddh_vsensor.service import Service, ServiceOptions
 from ddh_vsensor.service.sdnotify import SystemdNotifier
 from ddh_vsensor.sim import RunSpec, simulate_with_truth
 from ddh_vsensor.tables.build import build_unit_tables
 
-EXPLAINING = int(Flags.STALE_INPUT | Flags.NOT_REFERENCED | Flags.PRESET_UNCONFIRMED
-                 | Flags.CONTROLLER_NOT_OPERATIONAL | Flags.TABLE_CLAMPED)
 LATENCY_S = 0.1            # as tests/faults/harness.py: an output may stand for frames this old
 TOLERANCE_MM = 0.05        # the diagnostic frame's quantisation, both values
 SETTLE_S = 1.0             # after a lap's start (or its first reference): not judged

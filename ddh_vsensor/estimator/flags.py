@@ -19,6 +19,13 @@ class Flags(enum.IntFlag):
     MODEL_INCONSISTENT = 0x80           # the Kalman filter's torque or edges fail its self-check
 
 
+# The flags that warn a position may be off by more than its uncertainty: a consumer must not
+# take it plainly. The others say where the rod is (a stroke end) or what the estimator does.
+EXPLAINING = (Flags.STALE_INPUT | Flags.NOT_REFERENCED | Flags.TABLE_CLAMPED
+              | Flags.PRESET_UNCONFIRMED | Flags.CONTROLLER_NOT_OPERATIONAL
+              | Flags.MODEL_INCONSISTENT)
+
+
 def flag_text(flags: int) -> str:
     """``stale_input,not_referenced`` or ``ok``: the flags as logs and the CLI print them."""
     return ",".join((f.name or "").lower() for f in Flags if flags & f) or "ok"

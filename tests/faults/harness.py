@@ -25,11 +25,8 @@ import yaml
 
 from ddh_vsensor.canbus.dbc import FrameCodec, message_name
 from ddh_vsensor.config import Config
-from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.estimator.flags import EXPLAINING
 
-# The flags that say why a position may be off: stale input, not referenced, unconfirmed
-# preset, controller not operational, model outside its table.
-EXPLAINING = Flags.STALE_INPUT | Flags.NOT_REFERENCED | Flags.PRESET_UNCONFIRMED | Flags.CONTROLLER_NOT_OPERATIONAL | Flags.TABLE_CLAMPED
 # Published position and uncertainty are quantised to 0.01 mm each; truth interpolated.
 TOLERANCE_MM = 0.05
 # An output may reflect frames up to this old (handling latency on a loaded machine); beyond
