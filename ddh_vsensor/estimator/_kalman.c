@@ -522,3 +522,14 @@ long kf_finish(long B, long n, long k, const struct kf_settings *s,
     }
     return bad;
 }
+
+/* A sample at which no switch changed and no edge was accepted (nearly every one):
+ * kf_predict_update and kf_finish in one call. Returns kf_finish's. */
+long kf_sample(long B, long n, long k, const struct kf_settings *s,
+               const struct kf_unit *units, struct kf_filter *filters, double *z, double *P,
+               double *prior_var, struct ddh_params *rp, struct ddh_state *rs,
+               struct ddh_input *ri, const struct kf_arrays *a, struct ddh_counters *counters)
+{
+    kf_predict_update(B, n, k, s, units, filters, z, P, prior_var, rp, rs, ri, a, counters);
+    return kf_finish(B, n, k, s, units, filters, z, P, a);
+}

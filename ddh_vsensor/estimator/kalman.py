@@ -643,15 +643,21 @@ class _Bank:
         """Sample k of every filter: the prediction from k - 1 and the torque's update
         (k > 0), the edges seen and accepted at k, the outputs at k."""
         lib = self._lib
-        lib.kf_predict_update(self.B, self.n_states, k, *self._predict_args)
-        # a switch changed: the rod's position at that instant, as known now, is kept
-        # (cloned) until the debounce accepts the edge; the stop or anything else met
-        # before then cannot be mistaken for the switch's offset
-        for b, sw, te in self.seen.get(k, ()):
-            self._clone(self.z, self.P, b, k, sw, te)
-        for b, c, rising, sw in self.edges.get(k, ()):
-            self._reference(self.z, self.P, b, k, c, rising, sw, self.referenced, self.events)
-        if lib.kf_finish(self.B, self.n_states, k, *self._finish_args):
+        seen, edges = self.seen.get(k), self.edges.get(k)
+        if not seen and not edges:
+            bad = lib.kf_sample(self.B, self.n_states, k, *self._predict_args)
+        else:
+            lib.kf_predict_update(self.B, self.n_states, k, *self._predict_args)
+            # a switch changed: the rod's position at that instant, as known now, is kept
+            # (cloned) until the debounce accepts the edge; the stop or anything else met
+            # before then cannot be mistaken for the switch's offset
+            for b, sw, te in seen or ():
+                self._clone(self.z, self.P, b, k, sw, te)
+            for b, c, rising, sw in edges or ():
+                self._reference(self.z, self.P, b, k, c, rising, sw, self.referenced,
+                                self.events)
+            bad = lib.kf_finish(self.B, self.n_states, k, *self._finish_args)
+        if bad:
             bad = [self.jobs[b].run.source for b in range(self.B)
                    if not (np.isfinite(self.z[b]).all() and np.isfinite(self.P[b]).all())]
             raise FloatingPointError(f"kalman: non-finite state at sample {k}: {bad}")

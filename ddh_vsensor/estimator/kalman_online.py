@@ -54,10 +54,11 @@ from ddh_vsensor.physics.unit import DDHUnit
 _STALE_INPUT = int(Flags.STALE_INPUT)
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class KalmanSample:
     """One sample of an online filter: the published position and what the filter knows of
-    the unit's slow states then."""
+    the unit's slow states then (made once a frame, not changed after; slotted as
+    :class:`.Step` is)."""
 
     index: int                          # samples since the filter's first (lost ones too)
     position_mm: float
@@ -305,17 +306,18 @@ class OnlineKalman:
         b.edges.pop(k, None)
         self.k += 1
         out_x, out_v, out_sd, out_load, out_dt, out_toff, _, _, out_p = b.out
-        x_mm = float(out_x[k, 0]) * 1e3
-        flags = (int(sample_flags(bool(b.flagged[k, 0]), bool(b.not_ref[k, 0]), x_mm,
+        x_mm = out_x.item(k, 0) * 1e3
+        flags = (int(sample_flags(b.flagged.item(k, 0), b.not_ref.item(k, 0), x_mm,
                                   self.end_mm)) | (_STALE_INPUT if gap else 0))
+        taken = b.events[0][before:]
         events = tuple(dataclasses.replace(e, index=e.index + self.base,
                                            edge_index=e.edge_index + self.base)
-                       for e in b.events[0][before:])
+                       for e in taken) if taken else ()
         self.last_sample = KalmanSample(
-            self.base + k, x_mm, float(out_v[k, 0]) * 1e3,
-            self.settings.coverage * float(out_sd[k, 0]) * 1e3, flags,
-            float(out_load[k, 0]), float(out_dt[k, 0]), float(out_toff[k, 0]),
-            (float(out_p[k, 0, 0]), float(out_p[k, 0, 1])), events)
+            self.base + k, x_mm, out_v.item(k, 0) * 1e3,
+            self.settings.coverage * out_sd.item(k, 0) * 1e3, flags,
+            out_load.item(k, 0), out_dt.item(k, 0), out_toff.item(k, 0),
+            (out_p.item(k, 0, 0), out_p.item(k, 0, 1)), events)
         return self.last_sample
 
 

@@ -70,6 +70,8 @@ def library() -> ctypes.CDLL:
         lib.kf_predict_update.restype = None
         lib.kf_finish.argtypes = [long_, long_, long_] + [ptr] * 6
         lib.kf_finish.restype = long_
+        lib.kf_sample.argtypes = [long_, long_, long_] + [ptr] * 11
+        lib.kf_sample.restype = long_
         for kind, name in enumerate(KINDS):
             _DTYPES[name] = _dtype(lib, kind)
         _LIB = lib
