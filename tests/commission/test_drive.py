@@ -16,6 +16,7 @@ from ddh_vsensor.commission.programme import calibration_cycle
 from ddh_vsensor.commission.switches import SPREAD_FACTOR
 from ddh_vsensor.config import Config
 from ddh_vsensor.estimator import kalman
+from ddh_vsensor.estimator.flags import EXPLAINING
 from ddh_vsensor.measured import Run
 from ddh_vsensor.sim.effects import UnitEffects
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign
@@ -119,10 +120,11 @@ def test_without_logged_pressures_nothing_is_measured(cfg, calibration) -> None:
 
 def test_the_filter_given_the_measured_drive_errs_less(cfg, runs) -> None:
     """The paper cycle at 27 degC with 1040 kg on that drive, no references. Measured: worst
-    boom / bucket 0.67 / 3.29 mm with the drive's reading taken as the shaft's torque, 0.12 /
-    0.47 mm with its measured gain, offsets and filter (0.24 / 1.82 mm with the gain left at
-    1; the bucket's own error on the nominal plant is 0.3-0.5 mm); none beyond its
-    uncertainty unflagged either way."""
+    boom / bucket 0.15 / 0.62 mm with the drive's reading taken as the shaft's torque, 0.11 /
+    0.50 mm with its measured gain, offsets and filter (the bucket's own error on the nominal
+    plant is 0.3-0.5 mm; while the rod slides the torque corrects the forces, not the
+    chambers' oil, so the drive's error moves the load's estimate more than the position);
+    none beyond its uncertainty unflagged either way."""
     measured = dataclasses.replace(cfg, units={n: dataclasses.replace(u, motor=dataclasses.replace(
         u.motor, torque_gain=GAIN, torque_offset_nm=1.5, torque_speed_offset_nm=SPEED_OFFSET,
         torque_filter_s=0.003, torque_offset_tolerance_nm=0.05)) for n, u in cfg.units.items()})
@@ -134,8 +136,9 @@ def test_the_filter_given_the_measured_drive_errs_less(cfg, runs) -> None:
                               settings=kalman.settings_from_config(c))
         errors = [np.abs(x.estimate.position_mm - r.position_mm) for (_, r), x in zip(jobs, res)]
         worst[name] = [float(e.max()) for e in errors]
-        assert all(not ((e > x.estimate.uncertainty_mm) & (x.estimate.flags == 0)).any()
+        assert all(not ((e > x.estimate.uncertainty_mm)
+                        & ((x.estimate.flags & EXPLAINING) == 0)).any()
                    for e, x in zip(errors, res))
     (boom_exact, bucket_exact), (boom, bucket) = worst["exact"], worst["measured"]
-    assert boom_exact > 0.5 and boom < 0.2
-    assert bucket_exact > 1.0 and bucket < 0.6
+    assert boom < 0.9 * boom_exact and boom < 0.2
+    assert bucket < 0.9 * bucket_exact and bucket < 0.6
