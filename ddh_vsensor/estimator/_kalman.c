@@ -285,6 +285,17 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     /* the unmodelled flow, the chambers' compliance and the delivered displacement move the
      * rod (against a stroke end they move nothing) */
     const int at_end = nom[X] <= 0.0 || nom[X] >= stroke;
+    if (at_end && a->measured[k * B + b]) {
+        /* on a stop or short of it: the nominal row is on it (the stop carries the load, the
+         * chambers are closed volumes) and the spread's row short of it floats on the oil;
+         * the spread closes by the rods on the stop only as far as the torque says the rod
+         * is on it (the two rows' torques as the modes' likelihoods, even odds) */
+        const double S = torque_variance(s, u, a, B, b, k, fresh) + P[TOFF * n + TOFF];
+        const double tq = a->torque_nm[k * B + b] - z[TOFF];
+        const double y0 = tq - rs[0].torque_nm, y1 = tq - rs[1].torque_nm;
+        const double on = 1.0 / (1.0 + exp((y0 * y0 - y1 * y1) / (2.0 * S)));
+        Fp[X][X] = on * Fp[X][X] + (1.0 - on);
+    }
     double gain_x = 0.0, comp_x = 0.0, disp_x = 0.0;
     if (!at_end) {
         gain_x = T * f->flow_sigma_m3_s / u->area_a_m2;

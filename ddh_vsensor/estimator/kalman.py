@@ -73,7 +73,12 @@ state (x, v, dp_a, dp_b, F_load, dT): the Jacobian comes from one batched step b
 differences. x is perturbed away from the nearer stroke end by
 :attr:`KalmanSettings.stop_reach` sigma: the slope of a stop's clip over the position's spread
 is the share of rods not yet there, so the spread closes as the pumps push the rods behind the
-mean onto the stop, not when the mean arrives.
+mean onto the stop, not when the mean arrives; and only as far as the torque says the rod is
+on the stop: the nominal row's torque (on the stop: closed chambers, the stop carrying the
+load) and the perturbed row's (short of it, floating on the oil) are the two modes'
+likelihoods of the sample's torque, at even odds, and the slope is weighed by the first's
+share (a model whose leakage is off pushes its rods onto the stop while the machine holds
+the rod a millimetre short: the torque says which).
 
 Measurement: the logged motor torque is the plant's torque over the *last* substep plus
 ``tau_off`` plus noise whose variance is physics (the drive's estimate error, the reading's
