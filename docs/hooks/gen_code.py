@@ -22,7 +22,7 @@ from ddh_vsensor.cli.main import build_parser
 from ddh_vsensor.config import load_config
 from ddh_vsensor.config.schema import DEFAULT_CONFIG
 from ddh_vsensor.estimator import flags as flags_module
-from ddh_vsensor.estimator.flags import Flags
+from ddh_vsensor.estimator.flags import EXPLAINING, Flags
 
 
 def prose(text: str) -> str:
@@ -239,9 +239,11 @@ def flag_table() -> str:
     comments = _flag_comments()
     emcy = {flag: code for flag, (code, _) in EMCY_CODES.items()}
     rows = [[f"0x{int(f):02X}", f"`{(f.name or '').lower()}`", comments.get(f.name or "", ""),
-             f"fault: EMCY 0x{emcy[f]:04X}" if f in emcy else "state (no EMCY)"]
+             f"fault: EMCY 0x{emcy[f]:04X}" if f in emcy else "state (no EMCY)",
+             "yes" if f & EXPLAINING else "no"]
             for f in Flags]
-    return table(["bit", "name (logs, `status`)", "meaning", "kind"], rows)
+    return table(["bit", "name (logs, `status`)", "meaning", "kind",
+                  "warns the value may be off"], rows)
 
 
 # --- architecture ------------------------------------------------------------------------
