@@ -293,7 +293,8 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         const double S = torque_variance(s, u, a, B, b, k, fresh) + P[TOFF * n + TOFF];
         const double tq = a->torque_nm[k * B + b] - z[TOFF];
         const double y0 = tq - rs[0].torque_nm, y1 = tq - rs[1].torque_nm;
-        const double on = 1.0 / (1.0 + exp((y0 * y0 - y1 * y1) / (2.0 * S)));
+        const double odds = (y0 * y0 - y1 * y1) / (2.0 * S);
+        const double on = isnan(odds) ? 1.0 : 1.0 / (1.0 + exp(odds));
         Fp[X][X] = on * Fp[X][X] + (1.0 - on);
     }
     double gain_x = 0.0, comp_x = 0.0, disp_x = 0.0;
@@ -436,13 +437,22 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         P[X * n + X] += moved_x * moved_x;
     }
     /* what is position is considered (Schmidt), not updated; and while the rod slides, the
-     * oil in the chambers: their pressures are then what the forces on the rod make them, so
-     * the torque corrects the forces (load, offsets), and an update of a pressure at a fixed
-     * position would be oil made or lost that the next step turns into travel. Standing
-     * (friction, a stop), a chamber is a closed volume whose oil the torque reads. */
+     * force the chambers' pressures put on it: that force is what the forces on the rod make
+     * it, so the torque corrects those (load, offsets), and a pressure update that changed it
+     * at a fixed position would be oil made or lost that the next step turns into travel.
+     * The pressures move only together, as the areas balance (the gain's part along
+     * (A_a, -A_b) taken out), and not at all while a valve holds one of them (open to the
+     * reservoir or relieving: that chamber's pressure is the valve's). Standing (friction,
+     * a stop), the chambers are closed volumes whose oil the torque reads. */
     K[X] = K[EPS] = K[DISP] = 0.0;
-    if (f->friction_state != F_STUCK)
-        K[PA] = K[PB] = 0.0;
+    if (f->friction_state != F_STUCK) {
+        const int held = f->regime_a == 0 || f->regime_a == 3 || f->regime_b == 0
+                         || f->regime_b == 3;
+        const double aa = u->area_a_m2, ab = u->area_b_m2;
+        const double along = held ? 0.0 : (aa * K[PA] - ab * K[PB]) / (aa * aa + ab * ab);
+        K[PA] = held ? 0.0 : K[PA] - along * aa;
+        K[PB] = held ? 0.0 : K[PB] + along * ab;
+    }
     for (long i = N_BASE; i < n; i++)
         K[i] = 0.0;
     for (long i = 0; i < n; i++)
