@@ -436,23 +436,8 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         const double moved_x = z[X] - x_before;
         P[X * n + X] += moved_x * moved_x;
     }
-    /* what is position is considered (Schmidt), not updated; and while the rod slides, the
-     * force the chambers' pressures put on it: that force is what the forces on the rod make
-     * it, so the torque corrects those (load, offsets), and a pressure update that changed it
-     * at a fixed position would be oil made or lost that the next step turns into travel.
-     * The pressures move only together, as the areas balance (the gain's part along
-     * (A_a, -A_b) taken out), and not at all while a valve holds one of them (open to the
-     * reservoir or relieving: that chamber's pressure is the valve's). Standing (friction,
-     * a stop), the chambers are closed volumes whose oil the torque reads. */
+    /* what is position is considered (Schmidt), not updated */
     K[X] = K[EPS] = K[DISP] = 0.0;
-    if (f->friction_state != F_STUCK) {
-        const int held = f->regime_a == 0 || f->regime_a == 3 || f->regime_b == 0
-                         || f->regime_b == 3;
-        const double aa = u->area_a_m2, ab = u->area_b_m2;
-        const double along = held ? 0.0 : (aa * K[PA] - ab * K[PB]) / (aa * aa + ab * ab);
-        K[PA] = held ? 0.0 : K[PA] - along * aa;
-        K[PB] = held ? 0.0 : K[PB] + along * ab;
-    }
     for (long i = N_BASE; i < n; i++)
         K[i] = 0.0;
     for (long i = 0; i < n; i++)

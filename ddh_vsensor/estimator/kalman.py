@@ -95,14 +95,7 @@ does not confirm. The torque
 does not update what is position (x, the flow error, the displacement, the switches' offsets
 and the clones: a Schmidt "consider" update, Joseph's covariance):
 mid-stroke its dependence on x (the chambers' volumes) is too weak to trust, and near a
-stroke end any force the model lacks reads as the stop. Nor, while the rod slides, the force the
-chambers' pressures put on it: that is what the forces on the rod make it, so the torque
-corrects those (load, offsets); a pressure update that changed it at a fixed position would
-be oil made or lost, which the next step turns into travel (each sample's torque noise a step
-of a random walk in x). The pressures move only together, as the areas balance (both
-chambers' level, which the torque reads and the load cannot explain), and not at all while a
-valve holds one of them. While the rod stands (static friction, a stop) the chambers are
-closed volumes and their pressures the oil the flows put in: there the torque updates them.
+stroke end any force the model lacks reads as the stop.
 
 Hall switch edges (debounced as the estimator does, taken when accepted) measure c_i - o_i:
 the rod at the edge's instant (its time from the I/O module where logged, else anywhere

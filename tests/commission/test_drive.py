@@ -120,11 +120,10 @@ def test_without_logged_pressures_nothing_is_measured(cfg, calibration) -> None:
 
 def test_the_filter_given_the_measured_drive_errs_less(cfg, runs) -> None:
     """The paper cycle at 27 degC with 1040 kg on that drive, no references. Measured: worst
-    boom / bucket 0.15 / 0.62 mm with the drive's reading taken as the shaft's torque, 0.11 /
-    0.50 mm with its measured gain, offsets and filter (the bucket's own error on the nominal
-    plant is 0.3-0.5 mm; while the rod slides the torque corrects the forces, not the
-    chambers' oil, so the drive's error moves the load's estimate more than the position);
-    none beyond its uncertainty unflagged either way."""
+    boom / bucket 0.67 / 3.29 mm with the drive's reading taken as the shaft's torque, 0.12 /
+    0.47 mm with its measured gain, offsets and filter (0.24 / 1.82 mm with the gain left at
+    1; the bucket's own error on the nominal plant is 0.3-0.5 mm); none beyond its
+    uncertainty without a warning flag either way."""
     measured = dataclasses.replace(cfg, units={n: dataclasses.replace(u, motor=dataclasses.replace(
         u.motor, torque_gain=GAIN, torque_offset_nm=1.5, torque_speed_offset_nm=SPEED_OFFSET,
         torque_filter_s=0.003, torque_offset_tolerance_nm=0.05)) for n, u in cfg.units.items()})
@@ -140,5 +139,5 @@ def test_the_filter_given_the_measured_drive_errs_less(cfg, runs) -> None:
                         & ((x.estimate.flags & EXPLAINING) == 0)).any()
                    for e, x in zip(errors, res))
     (boom_exact, bucket_exact), (boom, bucket) = worst["exact"], worst["measured"]
-    assert boom < 0.9 * boom_exact and boom < 0.2
-    assert bucket < 0.9 * bucket_exact and bucket < 0.6
+    assert boom_exact > 0.5 and boom < 0.2
+    assert bucket_exact > 1.0 and bucket < 0.6

@@ -180,7 +180,10 @@ def test_signals_no_plant_gives_are_flagged_and_their_spread_stays_within_the_st
     """Speed and torque that no unit's physics links (independent random walks): the filter
     finds them inconsistent and widens, but the rod is within its stroke, so its sigma never
     passes half the stroke (the published 3 sigma at most 1.5 strokes), and nothing goes
-    non-finite."""
+    non-finite. Measured: 43 % of the samples flagged (asserted: over 30 %); 88 % before a
+    stroke end's spread closed only as far as the torque says the rod is on it: these speeds
+    hold the rod at its ends much of the time, where not knowing whether it is pressed is
+    itself a wide spread of torques."""
     rng = np.random.default_rng(3)
     n = 3000
     speed = np.clip(np.cumsum(rng.normal(0.0, 60.0, n)), -2500.0, 2500.0)
@@ -188,7 +191,7 @@ def test_signals_no_plant_gives_are_flagged_and_their_spread_stays_within_the_st
     online = kalman_online.OnlineKalman(cfg, "boom", 0.01, initial_position_mm=100.0)
     out = [online.update(0.01 * k, speed[k], torque[k], 40.0) for k in range(n)]
     stroke = cfg.unit("boom").stroke_mm
-    assert np.mean([bool(o.flags & kalman.MODEL_INCONSISTENT) for o in out]) > 0.5
+    assert np.mean([bool(o.flags & kalman.MODEL_INCONSISTENT) for o in out]) > 0.3
     assert max(o.uncertainty_mm for o in out) <= 1.5 * stroke * (1 + 1e-9)
     assert all(math.isfinite(o.position_mm) and 0.0 <= o.position_mm <= stroke for o in out)
 
