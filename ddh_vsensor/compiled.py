@@ -19,3 +19,13 @@ def package_library(module: str) -> ctypes.CDLL | None:
     found = (here / f"{stem}{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES)
     path = next((f for f in found if f.is_file()), None)
     return None if path is None else ctypes.CDLL(str(path))
+
+
+def required_library(module: str) -> ctypes.CDLL:
+    """:func:`package_library` of a library the package cannot run without: ImportError,
+    saying what to do, where the install could not build it."""
+    lib = package_library(module)
+    if lib is None:
+        raise ImportError(f"{module} was not built: install a C compiler (gcc) and reinstall "
+                          "ddh-vsensor (in a checkout: python setup.py build_ext --inplace)")
+    return lib

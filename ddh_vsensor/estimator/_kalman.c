@@ -285,12 +285,14 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     /* the unmodelled flow, the chambers' compliance and the delivered displacement move the
      * rod (against a stroke end they move nothing) */
     const int at_end = nom[X] <= 0.0 || nom[X] >= stroke;
-    if (at_end && a->measured[k * B + b]) {
+    const int measured = a->measured[k * B + b];
+    const double R = measured ? torque_variance(s, u, a, B, b, k, fresh) : 0.0;
+    if (at_end && measured) {
         /* on a stop or short of it: the nominal row is on it (the stop carries the load, the
          * chambers are closed volumes) and the spread's row short of it floats on the oil;
          * the spread closes by the rods on the stop only as far as the torque says the rod
          * is on it (the two rows' torques as the modes' likelihoods, even odds) */
-        const double S = torque_variance(s, u, a, B, b, k, fresh) + P[TOFF * n + TOFF];
+        const double S = R + P[TOFF * n + TOFF];
         const double tq = a->torque_nm[k * B + b] - z[TOFF];
         const double y0 = tq - rs[0].torque_nm, y1 = tq - rs[1].torque_nm;
         const double odds = (y0 * y0 - y1 * y1) / (2.0 * S);
@@ -384,11 +386,10 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         }
     }
     /* the torque's update; a frame the bus lost (its inputs interpolated) measures nothing */
-    if (!a->measured[k * B + b]) {
+    if (!measured) {
         a->nis[k * B + b] = 0.0;
         return;
     }
-    const double R = torque_variance(s, u, a, B, b, k, fresh);
     /* a motor standing still is held by the pumps' friction: any torque within the band
      * holds the pressures, one value for the stop (a state drawn anew as the motor stops) */
     const int stopped = fabs(a->speed_rpm[k * B + b]) < 0.5 * s->speed_step_rpm;

@@ -11,15 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from ddh_vsensor.compiled import package_library
+from ddh_vsensor.compiled import required_library
 from ddh_vsensor.model.unit import check_layouts
 
 KINDS = ("settings", "unit", "filter", "arrays")
 _FORMATS = {"double": np.float64, "int": np.int32, "long": np.int64, "const double *": np.uintp,
             "double *": np.uintp, "unsigned char *": np.uintp,
             "const unsigned char *": np.uintp}
-NOT_BUILT = ("ddh_vsensor.estimator._kalman is not built: the Kalman filter needs it; install "
-             "a C compiler (gcc) and reinstall ddh-vsensor")
 
 _LIB: ctypes.CDLL | None = None
 _DTYPES: dict[str, np.dtype] = {}
@@ -55,9 +53,7 @@ def library() -> ctypes.CDLL:
     """The compiled sample (loaded and checked once); ImportError where it was not built."""
     global _LIB
     if _LIB is None:
-        lib = package_library("ddh_vsensor.estimator._kalman")
-        if lib is None:
-            raise ImportError(NOT_BUILT)
+        lib = required_library("ddh_vsensor.estimator._kalman")
         ptr, long_ = ctypes.c_void_p, ctypes.c_long
         lib.kf_field.argtypes = [ctypes.c_int, ctypes.c_int, ptr, ptr, ptr]
         lib.kf_field.restype = long_

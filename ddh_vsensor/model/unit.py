@@ -71,14 +71,12 @@ from typing import Any
 
 import numpy as np
 
-from ddh_vsensor.compiled import package_library
+from ddh_vsensor.compiled import required_library
 from ddh_vsensor.config import Config, HydraulicsConfig
 from ddh_vsensor.physics.conversions import BAR_PA
 from ddh_vsensor.physics.pump import rating_viscosity_pa_s
 from ddh_vsensor.physics.unit import DDHUnit
 
-NOT_BUILT = ("ddh_vsensor.model._unit was not built: install a C compiler (gcc) and reinstall "
-             "(in a checkout: python setup.py build_ext --inplace)")
 # friction states
 F_DOWN, F_STUCK, F_UP, F_IMPACT = -1, 0, 1, 2
 # motor states
@@ -281,9 +279,7 @@ def check_layouts(lib: ctypes.CDLL) -> None:
 
 def _load() -> ctypes.CDLL:
     """The library from the package's own directory, its layouts checked."""
-    lib = package_library("ddh_vsensor.model._unit")
-    if lib is None:
-        raise ImportError(NOT_BUILT)
+    lib = required_library("ddh_vsensor.model._unit")
     check_layouts(lib)
     ptr, long_ = ctypes.c_void_p, ctypes.c_long
     lib.ddh_step.argtypes = [ptr, ptr, ptr, ctypes.c_double, ptr]

@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ddh_vsensor.compiled import package_library
+from ddh_vsensor.compiled import required_library
 from ddh_vsensor.version import __version__
 from ddh_vsensor.config import Config
 from ddh_vsensor.physics.steady import velocity_torque_curve
@@ -61,10 +61,7 @@ def _axes(cfg: Config, unit: DDHUnit) -> tuple[Axis, Axis, Axis]:
 
 @functools.cache
 def _interp_library() -> ctypes.CDLL:
-    lib = package_library("ddh_vsensor.tables._interp")
-    if lib is None:
-        raise ImportError("ddh_vsensor.tables._interp is not built: install a C compiler (gcc) "
-                          "and reinstall ddh-vsensor")
+    lib = required_library("ddh_vsensor.tables._interp")
     ptr, long_ = ctypes.c_void_p, ctypes.c_long
     lib.interp_rows.argtypes = [long_, long_, long_, ptr, ptr, ptr, ctypes.c_double, ptr]
     lib.interp_rows.restype = None
