@@ -17,6 +17,7 @@ enum { M_LIM_NEG = -2, M_NEG = -1, M_STUCK = 0, M_POS = 1, M_LIM_POS = 2, M_SPEE
 #define MAX_ITERATIONS 16
 #define AIR_PASSES 8                /* secant bulk-modulus updates per step at most (with air) */
 #define AIR_TOLERANCE_PA 1.0        /* ... until the pressures move less than this between them */
+#define AIR_SPLITS 4                /* ... else the step is halved, at most this many times */
 #define ORIFICE_LAMINAR_PA 1.0e5    /* below this an orifice leak path flows laminar (linear) */
 #define ATMOSPHERE_PA 101325.0      /* physics/air.py's mixture law */
 #define POLYTROPIC_EXPONENT 1.4
@@ -181,6 +182,14 @@ static double secant_compliance(const struct ddh_params *p, double p0, double p1
     return (log_density(p, p1) - log_density(p, p0)) / dp;
 }
 
+/* The oil a chamber of volume_m3 takes in per pascal at gauge pressure dp (m^3/Pa): the oil's
+ * (and its entrained air's) compression and the hoses' walls. */
+double ddh_chamber_compliance(const struct ddh_params *p, double volume_m3, double dp)
+{
+    return volume_m3 * (p->air_fraction > 0.0 ? compliance(p, dp) : 1.0 / p->bulk_modulus_pa)
+           + p->dead_volume_m3 * p->hose_compliance_per_pa;
+}
+
 /* motor torque per pascal's table row: the direction of turning, or in speed mode of the
  * command */
 static int direction(int mm, double speed_rpm)
@@ -218,9 +227,10 @@ void ddh_settle_rows(long rows, const struct ddh_params *p, struct ddh_state *s,
 /* One step of length h (s). Each element is piecewise linear, so for given discrete states
  * the step is a 2x2 linear solve in (n, v); the states start from the last step's and follow
  * the solution until they are self-consistent. Returns 1 when they are, 0 when
- * MAX_ITERATIONS ran out (the last solution is kept). */
-int ddh_step(const struct ddh_params *p, struct ddh_state *s, const struct ddh_input *in,
-             double h, struct ddh_counters *counters)
+ * MAX_ITERATIONS ran out (the last solution is kept). *air_settled: 0 when the air's secant
+ * compression had not settled within AIR_PASSES. */
+static int step_once(const struct ddh_params *p, struct ddh_state *s, const struct ddh_input *in,
+                     double h, struct ddh_counters *counters, int *air_settled)
 {
     const double x = s->x_m, v0 = s->v_m_s, pa0 = s->dp_a_pa, pb0 = s->dp_b_pa;
     const double n0 = s->n_rpm, stroke = p->stroke_m, lim = p->speed_limit_rpm;
@@ -243,11 +253,10 @@ int ddh_step(const struct ddh_params *p, struct ddh_state *s, const struct ddh_i
     const double qa = h * p->flow_a_m3_s_per_rpm * ratio * filled;
     const double qb = h * p->flow_b_m3_s_per_rpm * ratio * filled;
     /* oil taken in per pascal: the oil's (and air's) compression and the hoses' walls */
-    const double inv_beta = 1.0 / p->bulk_modulus_pa;
     const int has_air = p->air_fraction > 0.0;
     const double hose_c = p->dead_volume_m3 * p->hose_compliance_per_pa;
-    double ca = va * (has_air ? compliance(p, pa0) : inv_beta) + hose_c;
-    double cb = vb * (has_air ? compliance(p, pb0) : inv_beta) + hose_c;
+    double ca = ddh_chamber_compliance(p, va, pa0);
+    double cb = ddh_chamber_compliance(p, vb, pb0);
     double gca = ca + ga, gcb = cb + gb;
     /* oil passing a scored piston (m^3), explicit: slow next to the step */
     const double cross = fabs(x / stroke - 0.5) < 1.0 / 6.0
@@ -272,7 +281,7 @@ int ddh_step(const struct ddh_params *p, struct ddh_state *s, const struct ddh_i
         mm = sign(n0);
     double x_stop = x, v_fix = 0.0, x_new = x, n = n0, v = v0, pa = pa0, pb = pb0;
     int air_passes = has_air ? AIR_PASSES : 0, first_pass = 1, converged = 0;
-    double pa_prev = 0.0, pb_prev = 0.0;
+    double pa_prev = 0.0, pb_prev = 0.0, air_gap = 0.0;
     for (int it = 0; it < MAX_ITERATIONS; it++) {
         const double den_a = gca + h * p->valve_g_a_m3_s_pa[ra];
         const double den_b = gcb + h * p->valve_g_b_m3_s_pa[rb];
@@ -330,8 +339,8 @@ int ddh_step(const struct ddh_params *p, struct ddh_state *s, const struct ddh_i
             || (mm == M_STUCK && (psi > t_pos || psi < t_neg))
             || (mm == M_LIM_POS && jp * lim + t_pos > psi)
             || (mm == M_LIM_NEG && -jp * lim + t_neg < psi);
-        if (air_passes > 0
-            && (first_pass || fmax(fabs(pa - pa_prev), fabs(pb - pb_prev)) > AIR_TOLERANCE_PA)) {
+        air_gap = first_pass ? INFINITY : fmax(fabs(pa - pa_prev), fabs(pb - pb_prev));
+        if (air_passes > 0 && air_gap > AIR_TOLERANCE_PA) {
             /* secant bulk modulus over the step, iterated until the pressures it gives agree
              * with the ones it was taken over: the compression is then exact */
             first_pass = 0;
@@ -386,6 +395,7 @@ int ddh_step(const struct ddh_params *p, struct ddh_state *s, const struct ddh_i
     }
     if (!converged)
         counters->unconverged++;
+    *air_settled = !has_air || air_gap <= AIR_TOLERANCE_PA;
 
     /* the motor's actual torque: the command, unless the speed is imposed (limit, speed
      * mode): then the one that holds it */
@@ -404,6 +414,33 @@ int ddh_step(const struct ddh_params *p, struct ddh_state *s, const struct ddh_i
     s->friction_state = mf == F_IMPACT ? F_STUCK : mf;
     s->motor_state = mm;
     return converged;
+}
+
+/* One step of length h (s), returning 1 when its discrete states settled. Near vacuum the
+ * air's compliance changes by orders of magnitude within a step, and where its secant
+ * compression does not settle the step is taken as two halves (down to h / 2^AIR_SPLITS),
+ * the speed command of a speed-controlled motor at the halfway point of its ramp. */
+static int step_split(const struct ddh_params *p, struct ddh_state *s,
+                      const struct ddh_input *in, double h, struct ddh_counters *counters,
+                      int splits)
+{
+    const struct ddh_state start = *s;
+    int air_settled;
+    const int converged = step_once(p, s, in, h, counters, &air_settled);
+    if (air_settled || splits == 0)
+        return converged;
+    *s = start;
+    struct ddh_input half = *in;
+    if (in->speed_controlled)
+        half.speed_rpm = 0.5 * (start.n_rpm + in->speed_rpm);
+    const int first = step_split(p, s, &half, 0.5 * h, counters, splits - 1);
+    return step_split(p, s, in, 0.5 * h, counters, splits - 1) && first;
+}
+
+int ddh_step(const struct ddh_params *p, struct ddh_state *s, const struct ddh_input *in,
+             double h, struct ddh_counters *counters)
+{
+    return step_split(p, s, in, h, counters, AIR_SPLITS);
 }
 
 /* ddh_step over a batch of independent rows; returns how many did not settle */

@@ -37,7 +37,9 @@ again the one that takes.
 Effects that are plant changes enter per row: pump leakage and displacement through the
 ``DDHUnit`` (``unit.with_pumps``), entrained air through the effective bulk modulus
 (:func:`ddh_vsensor.physics.air.compliance`; secant over the step, iterated with the
-pressures, so the compression is exact), belt slip as a speed-ratio drop proportional to
+pressures, so the compression is exact; near vacuum the air's compliance changes by orders of
+magnitude within a step, and where the iteration does not settle the step is taken as two
+halves, recursively), belt slip as a speed-ratio drop proportional to
 |motor torque| (the torque of the previous step: slip is slow, this keeps the step linear),
 the pumps' fill loss at speed, a scored bore passing oil across the piston in the stroke's
 middle third.
