@@ -278,7 +278,10 @@ def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
     # start inside the bounds, off the shares' and gain's lower bound (a zero gradient there)
     start = dict(datasheet, orifice_share=min(datasheet["orifice_share"] + 0.05, 0.85),
                  speed_gain=min(datasheet["speed_gain"] + 0.05, 1.95))
-    scale = {s: max(float(np.std(side_balances[s].y_m3)), 1e-12) for s in sides}
+    # each side's spread to start; a side of one window has none, and takes the unit's
+    pooled = max(float(np.std(np.concatenate([side_balances[s].y_m3 for s in sides]))), 1e-12)
+    scale = {s: float(np.std(side_balances[s].y_m3)) if len(side_balances[s].y_m3) > 1
+             else pooled for s in sides}
 
     def values(p: np.ndarray) -> dict[str, float]:
         """The parameters; a side whose leakage the runs cannot show leaks like the other
@@ -298,12 +301,15 @@ def fit_unit(cfg: Config, unit_name: str, side_balances: dict[str, Balance],
     lo, hi = zip(*bounds)
     fit = least_squares(residuals, np.array([start[n] for n in names]), bounds=(lo, hi),
                         x_scale="jac")
-    # refit with each side's rows scaled by its own residual level: the sides weigh by
-    # their noise
+    # refit with each side's rows scaled by its own residual level, the sides weighing by
+    # their noise; a side's level is shrunk toward the unit's over MIN_LOADED_WINDOWS
+    # windows (a side of a few windows, fitted exactly, would otherwise weigh without bound)
     rows = np.cumsum([0] + [len(side_balances[s].y_m3) for s in sides])
+    unit_ms = float(np.mean(fit.fun ** 2))
     for i, s in enumerate(sides):
         part = fit.fun[rows[i]:rows[i + 1]]
-        scale[s] *= max(float(np.sqrt(np.mean(part ** 2))), 1e-9)
+        scale[s] *= max(math.sqrt((float(part @ part) + MIN_LOADED_WINDOWS * unit_ms)
+                                  / (len(part) + MIN_LOADED_WINDOWS)), 1e-9)
     fit = least_squares(residuals, fit.x, bounds=(lo, hi), x_scale="jac")
     dof = max(len(fit.fun) - len(fit.x), 1)
     info = fit.jac.T @ fit.jac
