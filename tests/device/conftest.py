@@ -26,6 +26,9 @@ from ddh_vsensor.master.client import clients
 from ddh_vsensor.device.objects import Published
 
 WAIT_S = 10.0          # bound of every wait: generous, a loaded machine only makes it slower
+# receive timeout of the test's bus readers: only how long stopping one may wait for it (a
+# frame ends a receive at once)
+NOTIFIER_CYCLE_S = 0.05
 
 
 def wait_for(predicate: Callable[[], Any], what: str, timeout_s: float = WAIT_S) -> Any:
@@ -133,6 +136,7 @@ def service_thread(cfg: Config, tables: dict, channel: str,
 def master_on(cfg: Config, channel: str) -> Iterator[Master]:
     """A canopen master network with one RemoteNode per sensor (the shipped EDS)."""
     network = canopen.Network()
+    network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S      # canopen's 1 s: a second per disconnect
     frames = Frames()
     network.listeners.append(frames)
     network.connect(interface="virtual", channel=channel)

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 
 import can
 
-from .conftest import Feeder, Frames, wait_for
+from .conftest import NOTIFIER_CYCLE_S, Feeder, Frames, wait_for
 
 SYNC_PERIOD_S = 0.01
 EVERY_NTH_SYNC = 2
@@ -23,7 +23,7 @@ def _tap(channel: str) -> Iterator[Frames]:
     """Every frame on the bus as a third node sees it, the master's SYNCs included."""
     frames = Frames()
     with can.Bus(interface="virtual", channel=channel) as tap:
-        notifier = can.Notifier(tap, [frames])
+        notifier = can.Notifier(tap, [frames], NOTIFIER_CYCLE_S)
         try:
             yield frames
         finally:

@@ -59,7 +59,8 @@ def test_three_seconds_of_sevcon_frames_missing_while_the_boom_rises(cfg, cfg_ra
     # classified by what the service had received (its input counter), not by wall time:
     # a loaded machine delays the feeder and the service, never the counter
     boom = outputs(cfg, row.frames, "boom")
-    n_before = sum(1 for m in paper.segment(T0, T1) if m.arbitration_id == _sevcon(cfg, "boom")
+    boom_sevcon = _sevcon(cfg, "boom")                  # a codec per frame cost 25 s
+    n_before = sum(1 for m in paper.segment(T0, T1) if m.arbitration_id == boom_sevcon
                    and m.timestamp < 5.3)
     last_seen = next(o.t_wall for o in boom if o.input_frames == n_before)
     during = [o for o in boom if o.input_frames == n_before and o.t_wall >= last_seen + 0.3]

@@ -66,6 +66,8 @@ PLAN = FleetPlan([MachinePlan(MACHINE, {a: {"pump_leakage": 1.0, "displacement":
 CROSSING_DAY = 14
 LEAD_DAYS = 7
 WAIT_S = 120.0          # bound of every wait on the service, its worker or a process
+# the master's bus reader's receive timeout, which its disconnect waits out (canopen: 1 s)
+NOTIFIER_CYCLE_S = 0.05
 
 
 class ReplayClock:
@@ -196,6 +198,7 @@ def replayed(cfg, unit_tables, tmp_path_factory) -> Replayed:
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(unit_state, "read_wall_offset", clock.wall_offset)
         network = canopen.Network()
+        network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         network.connect(interface="virtual", channel=channel)
         try:
             nodes = {u: c.node for u, c in clients(network, cfg).items()}
@@ -367,6 +370,7 @@ def test_a_killed_daemon_publishes_the_health_at_once_after_its_restart(cfg, rep
     want = {u: list(health_values(h)[1:6]) for u, h in node_health(replayed.doc).items()}
     assert want[WORN][1] & HEALTH_ALARM and want[WORN][0] == CAUSE_NAMES.index(WEAR.effect)
     network = canopen.Network()
+    network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
     network.connect(interface="remote", channel=hub)
     try:
         nodes = {u: c.node for u, c in clients(network, cfg).items()}
