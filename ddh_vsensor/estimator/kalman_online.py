@@ -43,7 +43,7 @@ from ddh_vsensor.estimator.flags import Flags
 from ddh_vsensor.estimator.kalman import (MODEL_INCONSISTENT, KalmanSettings, _Bank, _job,
                                           cusum_threshold, sample_flags,
                                           settings_from_config)
-from ddh_vsensor.estimator.references import Debouncer
+from ddh_vsensor.estimator.references import Debouncer, Switch
 from ddh_vsensor.estimator.state import EstimatorState
 from ddh_vsensor.estimator.timing import shaft_torque_nm, torque_at_speed_instant
 from ddh_vsensor.measured import Run
@@ -70,6 +70,12 @@ class KalmanSample:
     torque_offset_nm: float
     pressures_bar: tuple[float, float]
     events: tuple[ReferenceEvent, ...]  # references accepted at this sample (global indices)
+
+
+def _flat(a: np.ndarray) -> memoryview:
+    """A C-contiguous array's elements in order, as a memoryview: an element read or set per
+    frame is a Python float or bool without numpy's indexing (half the time or less)."""
+    return memoryview(a).cast("B").cast(a.dtype.char)
 
 
 class OnlineKalman:
@@ -108,6 +114,12 @@ class OnlineKalman:
         self.k = 0                      # the bank's index of the next sample
         self.last: tuple[float, float] | None = None      # (time, shaft torque) before
         self.debouncers: dict[str, Debouncer] = {}
+        # per switch of the filter: (name, switch, its debouncer), set with the bank
+        self._switches: list[tuple[str, Switch, Debouncer]] = []
+        # flat views (:func:`_flat`) of the bank's inputs and outputs, set with the bank: its
+        # one filter's arrays are (N, 1), sample k element k (the pressures' (N, 1, 2): 2k, 2k + 1)
+        self._inputs: tuple[memoryview, ...] = ()
+        self._outputs: tuple[memoryview, ...] = ()
         # before the first sample: a preset's (position, sigma) and whether it is referenced
         self.pending: tuple[float, float] | None = None
         self.pending_referenced: bool | None = None
@@ -140,14 +152,14 @@ class OnlineKalman:
         if self.bank is None:
             return (self.pending_referenced if self.pending_referenced is not None
                     else self.x0_mm is not None or self.pending is not None)
-        return bool(self.bank.filters["referenced"][0])
+        return bool(self.bank.referenced[0])
 
     @referenced.setter
     def referenced(self, value: bool) -> None:
         if self.bank is None:
             self.pending_referenced = bool(value)
         else:
-            self.bank.filters["referenced"][0] = bool(value)
+            self.bank.referenced[0] = bool(value)
 
     @property
     def reference_suspect(self) -> bool:
@@ -205,6 +217,7 @@ class OnlineKalman:
                    self.references, x0, self.settings)
         self.debouncers = {sw.name: Debouncer(self.cfg.estimator.debounce_s)
                            for sw in job.switches}
+        self._switches = [(sw.name, sw, self.debouncers[sw.name]) for sw in job.switches]
         return _Bank([job], self.period_s, self.settings, self.cfg.estimator.debounce_s,
                      self.cfg.hydraulics, {self.actuator: RowSpec.from_config(
                          self.cfg, self.actuator)})
@@ -225,13 +238,12 @@ class OnlineKalman:
     def _put(self, time_s: float, speed_rpm: float, torque_nm: float, temp_c: float,
              measured: bool) -> int:
         """The next sample's inputs into the window; its index there."""
-        b = self.bank
-        assert b is not None
         if self.k == self.capacity:
             self._rebase()
         k = self.k
-        b.time[k, 0], b.speed[k, 0], b.torque[k, 0] = time_s, speed_rpm, torque_nm
-        b.temp[k, 0], b.measured[k, 0] = temp_c, measured
+        times, speeds, torques, temps, measureds = self._inputs
+        times[k], speeds[k], torques[k], temps[k], measureds[k] = (
+            time_s, speed_rpm, torque_nm, temp_c, measured)
         return k
 
     def update(self, time_s: float, speed_rpm: float, torque_nm: float, oil_temp_c: float,
@@ -260,8 +272,10 @@ class OnlineKalman:
         temp = (oil_temp_c + self.lag_s * self.rate.update(time_s, oil_temp_c)
                 if self.lag_s else oil_temp_c)
         if first:
-            self.bank = self._begin(time_s, speed_rpm, carried, temp)
-            self.end_mm = float(self.bank.stroke[0]) * 1e3
+            self.bank = b = self._begin(time_s, speed_rpm, carried, temp)
+            self.end_mm = float(b.stroke[0]) * 1e3
+            self._inputs = tuple(_flat(a) for a in (b.time, b.speed, b.torque, b.temp,
+                                                    b.measured))
         b = self.bank
         assert b is not None
         if lost:
@@ -277,20 +291,25 @@ class OnlineKalman:
         k = self._put(time_s, speed_rpm, carried, temp, True)
         if gap:
             self.forget_switch_states()
-        for sw in b.jobs[0].switches:
-            if refs is None or sw.name not in refs:
+        for name, sw, deb in self._switches if refs is not None else ():
+            if name not in refs:
                 continue
-            deb, raw = self.debouncers[sw.name], bool(refs[sw.name])
+            raw = bool(refs[name])
+            if raw == deb.state and deb.candidate_since_s is None:
+                continue            # no change: the debouncer has nothing to do
             starts = deb.state is not None and raw != deb.state and deb.candidate_since_s is None
             accepted = deb.update(time_s, raw, self.base + k)
             if starts:
-                te = (ref_edge_s or {}).get(sw.name, math.nan)
+                te = (ref_edge_s or {}).get(name, math.nan)
                 b.seen.setdefault(k, []).append((0, sw, float(te)))
             if accepted is not None:
                 c, rising = accepted
                 b.edges.setdefault(k, []).append((0, c - self.base, rising, sw))
         if first:
             b.start()
+            out_x, out_v, out_sd, out_load, out_dt, out_toff, _, _, out_p = b.out
+            self._outputs = tuple(_flat(a) for a in (out_x, out_v, out_sd, out_load, out_dt,
+                                                     out_toff, out_p, b.flagged, b.not_ref))
             if self.pending is not None:
                 b.preset(self.pending[0] * 1e-3, self.pending[1] * 1e-3)
             if self.pending_referenced is not None:
@@ -305,19 +324,18 @@ class OnlineKalman:
         b.seen.pop(k, None)
         b.edges.pop(k, None)
         self.k += 1
-        out_x, out_v, out_sd, out_load, out_dt, out_toff, _, _, out_p = b.out
-        x_mm = out_x.item(k, 0) * 1e3
-        flags = (int(sample_flags(b.flagged.item(k, 0), b.not_ref.item(k, 0), x_mm,
-                                  self.end_mm)) | (_STALE_INPUT if gap else 0))
-        taken = b.events[0][before:]
+        out_x, out_v, out_sd, out_load, out_dt, out_toff, out_p, flagged, not_ref = \
+            self._outputs
+        x_mm = out_x[k] * 1e3
+        flags = (int(sample_flags(flagged[k], not_ref[k], x_mm, self.end_mm))
+                 | (_STALE_INPUT if gap else 0))
         events = tuple(dataclasses.replace(e, index=e.index + self.base,
                                            edge_index=e.edge_index + self.base)
-                       for e in taken) if taken else ()
+                       for e in b.events[0][before:]) if len(b.events[0]) > before else ()
         self.last_sample = KalmanSample(
-            self.base + k, x_mm, out_v.item(k, 0) * 1e3,
-            self.settings.coverage * out_sd.item(k, 0) * 1e3, flags,
-            out_load.item(k, 0), out_dt.item(k, 0), out_toff.item(k, 0),
-            (out_p.item(k, 0, 0), out_p.item(k, 0, 1)), events)
+            self.base + k, x_mm, out_v[k] * 1e3, self.settings.coverage * out_sd[k] * 1e3,
+            flags, out_load[k], out_dt[k], out_toff[k], (out_p[2 * k], out_p[2 * k + 1]),
+            events)
         return self.last_sample
 
 
@@ -374,7 +392,7 @@ class KalmanEstimator:
             s = self.filter.last_sample
             assert s is not None
             return Step(s.position_mm, s.velocity_mm_s, self.uncertainty_mm, s.flags)
-        edge_s = ({name: refs_since_s for name in refs} if refs and refs_timed
+        edge_s = (dict.fromkeys(refs, refs_since_s) if refs and refs_timed
                   and refs_since_s is not None else None)
         s = self.filter.update(t_s, speed_rpm, torque_nm, oil_temp_c, refs, edge_s)
         if not s.events:
