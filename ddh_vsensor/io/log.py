@@ -13,6 +13,7 @@ from pathlib import Path
 import can
 import cantools
 import numpy as np
+from can.io.player import MESSAGE_READERS
 
 from ddh_vsensor.config import Config, ConfigError
 from ddh_vsensor.atomic import atomic_path
@@ -210,6 +211,14 @@ def write_blf(path: str | Path, runs: Mapping[str, Run], cfg: Config) -> None:
         raise MeasuredDataError(str(path), f"cannot write: {exc.strerror or exc}") from None
 
 
+def _log_kind(path: Path) -> str:
+    """The log format python-can reads a file as: its extension, less a .gz."""
+    suffixes = [x.lower() for x in path.suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        suffixes.pop()
+    return suffixes[-1] if suffixes else ""
+
+
 def _frames(path: str | Path) -> Iterator[can.Message]:
     """Frames of any log python-can reads; any reader failure means the file is unreadable.
     A BLF goes through the project's one truncation check first (:func:`.blf.whole_part`):
@@ -217,6 +226,13 @@ def _frames(path: str | Path) -> Iterator[can.Message]:
     source = str(path)
     if Path(path).is_dir():
         raise MeasuredDataError(source, "cannot read CAN log: a directory, not a file")
+    kind = _log_kind(Path(path))
+    if kind not in MESSAGE_READERS:
+        if not Path(path).exists():
+            raise MeasuredDataError(source, "cannot read: no such file")
+        raise MeasuredDataError(source, f"cannot read CAN log: its extension ({kind or 'none'}) "
+                                f"is no log format's ({', '.join(sorted(MESSAGE_READERS))}, "
+                                "each also .gz)")
     if Path(path).suffix.lower() == ".blf":
         from ddh_vsensor.io.blf import read_blf_bytes, whole_part
         raw = whole_part(source, read_blf_bytes(path))

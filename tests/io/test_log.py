@@ -118,6 +118,17 @@ def test_unreadable_log_names_the_file(tmp_path: Path, cfg: Config, content: byt
         read_can_log(path, "boom", cfg)
 
 
+@pytest.mark.parametrize("name", ["passwd", "run.bin", "run.blf.zip"])
+def test_a_file_of_no_log_format_says_which_formats_are(tmp_path: Path, cfg: Config,
+                                                        name: str) -> None:
+    """python-can's own words were 'No read support for unknown log format ""'."""
+    path = tmp_path / name
+    path.write_bytes(b"root:x:0:0::/root:/bin/sh\n")
+    with pytest.raises(MeasuredDataError, match=rf"{name}: cannot read CAN log: its extension "
+                                                r"\(.*\) is no log format's \(\.asc, \.blf, "):
+        read_can_log(path, "boom", cfg)
+
+
 def test_log_without_the_actuator_names_the_file(tmp_path: Path, cfg: Config) -> None:
     write_blf(tmp_path / "boom_only.blf", {"boom": make_run("boom")}, cfg)
     with pytest.raises(MeasuredDataError, match=r"boom_only\.blf: no SEVCON_BUCKET_TPDO1"):
