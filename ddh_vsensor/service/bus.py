@@ -13,8 +13,8 @@ every frame received before the tick, at a fraction of the wake-ups. Other inter
 in batches (one ``call_soon_threadsafe`` per batch, not per frame). No ``can.Notifier``: its
 listener chain stops at the first listener that raises, and its error path leaves a dead
 reader behind; here a receive error closes the bus and a new one is opened after a back-off
-(0.1 s doubling to 5 s), the service's state untouched. Every log line here is rate-limited (``log_interval_s``): error frames at
-thousands per second are counted, not each written.
+(0.1 s doubling to 5 s), the service's state untouched. Every log line here is rate-limited
+(``log_interval_s``): error frames at thousands per second are counted, not each written.
 
 Kernel filters (``can_filters``) are set on socketcan, the interface that applies them in
 the kernel; elsewhere python-can would filter in Python anyway, so all frames are delivered
@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 
 KERNEL_FILTER_INTERFACES = frozenset({"socketcan"})
 BATCH_MAX = 512            # frames handed over per wake, at most
+# the reader thread's receive timeout: how long a stop waits for it (an idle bus wakes it as
+# often; a frame ends a receive at once)
+READ_TIMEOUT_S = 0.05
 BACKOFF_START_S = 0.1
 BACKOFF_MAX_S = 5.0
 CAN_ERR_BUSOFF = 0x40      # error class bit of a SocketCAN error frame's ID
@@ -256,7 +259,7 @@ class BusLink:
                 # the bus is watched from here: a frame this recv returns arrived after it
                 # (however long a busy host keeps this thread from running meanwhile)
                 watched_s = time.monotonic()
-                msg = bus.recv(0.2)
+                msg = bus.recv(READ_TIMEOUT_S)
                 if msg is None:
                     continue
                 batch = [msg]
