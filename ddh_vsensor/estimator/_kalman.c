@@ -283,8 +283,10 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     f->phi_q = exp(-(T / s->flow_tau_s + moved));
     f->flow_sigma_m3_s = flow_sigma(s, u, z, t_mid, 0.5 * (n0 + n1)) * sqrt(f->flow_scale);
     /* the unmodelled flow, the chambers' compliance and the delivered displacement move the
-     * rod (against a stroke end they move nothing) */
+     * rod (against a stroke end the compliance and displacement nothing, the flow as far as
+     * the rod floats) */
     const int at_end = nom[X] <= 0.0 || nom[X] >= stroke;
+    double floating = !at_end;   /* the odds that the rod floats on the oil, not on a stop */
     const int measured = a->measured[k * B + b];
     const double R = measured ? torque_variance(s, u, a, B, b, k, fresh) : 0.0;
     if (at_end && measured) {
@@ -298,10 +300,11 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         const double odds = (y0 * y0 - y1 * y1) / (2.0 * S);
         const double on = isnan(odds) ? 1.0 : 1.0 / (1.0 + exp(odds));
         Fp[X][X] = on * Fp[X][X] + (1.0 - on);
+        floating = 1.0 - on;
     }
-    double gain_x = 0.0, comp_x = 0.0, disp_x = 0.0;
+    /* the unmodelled flow moves a floating rod, one on a stop not at all */
+    double gain_x = floating * T * f->flow_sigma_m3_s / u->area_a_m2, comp_x = 0.0, disp_x = 0.0;
     if (!at_end) {
-        gain_x = T * f->flow_sigma_m3_s / u->area_a_m2;
         const double x = clip(z[X], 0.0, stroke);
         const double va = u->dead_m3 + u->area_a_m2 * x;
         const double vb = u->dead_m3 + u->area_b_m2 * (stroke - x);

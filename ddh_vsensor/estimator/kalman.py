@@ -37,7 +37,9 @@ comp, disp, tau_stuck (N*m), o_1..o_m (m), c_1..c_m (m)]:
   (x += T dq / A_a), not the chambers' balance: the load sets the pressures, the flows the
   speed, so a flow error's lasting trace is a rod-velocity error; entered as a chamber flow
   it would shift the pressures and give the torque a hold on it that it does not have on the
-  real plant. Against a stroke end it moves nothing;
+  real plant. At a stroke end it moves the rod as far as the rod floats on the oil (the
+  torque's odds below): a rod held a millimetre short of the stop by a leakage the model
+  lacks is there by the flow error, one pressed on the stop not at all;
 - ``comp`` the chambers' compliance off the model's (entrained air, hose walls; relative,
   constant, uniform prior over +-:attr:`KalmanSettings.compliance_tolerance`): a full chamber
   holds millimetres of travel in compression, so the signed oil volume the model's pressures
