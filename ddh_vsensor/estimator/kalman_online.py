@@ -113,7 +113,6 @@ class OnlineKalman:
         self.base = 0                   # global index of the bank's sample 0
         self.k = 0                      # the bank's index of the next sample
         self.last: tuple[float, float] | None = None      # (time, shaft torque) before
-        self.debouncers: dict[str, Debouncer] = {}
         # per switch of the filter: (name, switch, its debouncer), set with the bank
         self._switches: list[tuple[str, Switch, Debouncer]] = []
         # flat views (:func:`_flat`) of the bank's inputs and outputs, set with the bank: its
@@ -196,7 +195,7 @@ class OnlineKalman:
 
     def forget_switch_states(self) -> None:
         """After motion not integrated: a switch state that changed meanwhile is no edge."""
-        for deb in self.debouncers.values():
+        for _, _, deb in self._switches:
             deb.state, deb.candidate_since_s = None, None
 
     # --- the samples -----------------------------------------------------------------------
@@ -215,9 +214,8 @@ class OnlineKalman:
         x0 = self.pending[0] if self.pending is not None else self.x0_mm
         job = _job(self.cfg, self.actuator, DDHUnit.from_config(self.cfg, self.actuator), run,
                    self.references, x0, self.settings)
-        self.debouncers = {sw.name: Debouncer(self.cfg.estimator.debounce_s)
-                           for sw in job.switches}
-        self._switches = [(sw.name, sw, self.debouncers[sw.name]) for sw in job.switches]
+        self._switches = [(sw.name, sw, Debouncer(self.cfg.estimator.debounce_s))
+                          for sw in job.switches]
         return _Bank([job], self.period_s, self.settings, self.cfg.estimator.debounce_s,
                      self.cfg.hydraulics, {self.actuator: RowSpec.from_config(
                          self.cfg, self.actuator)})

@@ -440,7 +440,10 @@ static int step_split(const struct ddh_params *p, struct ddh_state *s,
 int ddh_step(const struct ddh_params *p, struct ddh_state *s, const struct ddh_input *in,
              double h, struct ddh_counters *counters)
 {
-    return step_split(p, s, in, h, counters, AIR_SPLITS);
+    if (p->air_fraction > 0.0)
+        return step_split(p, s, in, h, counters, AIR_SPLITS);
+    int settled;                      /* without air there is no compression to settle */
+    return step_once(p, s, in, h, counters, &settled);
 }
 
 /* ddh_step over a batch of independent rows; returns how many did not settle */
