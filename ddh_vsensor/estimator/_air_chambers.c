@@ -23,13 +23,14 @@ static void mixture(double p_gauge, double air, double beta, double reservoir, d
                     double *comp)
 {
     double p = p_gauge + reservoir + ATMOSPHERE_PA;
+    const double below = p < MIN_ABSOLUTE_PA ? p - MIN_ABSOLUTE_PA : 0.0;   /* a cavity */
     if (p < MIN_ABSOLUTE_PA)
         p = MIN_ABSOLUTE_PA;
     double oil = (1.0 - air) * exp(-(p - ATMOSPHERE_PA) / beta);
     double gas = air * pow(ATMOSPHERE_PA / p, 1.0 / POLYTROPIC_EXPONENT);
     double mix = oil + gas;
-    *log_d = -log(mix);
     *comp = (oil / beta + gas / (POLYTROPIC_EXPONENT * p)) / mix;
+    *log_d = -log(mix) + *comp * below;
 }
 
 /* Secant compliance over [p0, p1] (the tangent where the step is tiny): exact compression. */

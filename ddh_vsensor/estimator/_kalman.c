@@ -97,7 +97,8 @@ enum { X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP, DISP, STICK, N_BASE };
     F(int, regime_b, )                                                                       \
     F(int, was_stopped, )                                                                    \
     F(int, referenced, )                                                                     \
-    F(int, held, )
+    F(int, held, )                                                                           \
+    F(double, p_pa, [2])                  /* the chambers' gauge pressures: the oil z holds */
 
 /* The bank's inputs and outputs, (N, B) each (pressures (N, B, 2)); measured: the sample's
  * torque was read (0: a lost frame's, interpolated). */
@@ -173,12 +174,12 @@ static double viscosity_pa_s(const struct kf_settings *s, double temp_c)
  * pass orifice-like gaps (the orifice law against the laminar one), the trapped volumes'
  * compression, each a bound whose RMS is bound / sqrt(3), and a floor for the seals. */
 static double flow_sigma(const struct kf_settings *s, const struct kf_unit *u, const double *z,
-                         double temp_c, double speed_rpm)
+                         const double *p_pa, double temp_c, double speed_rpm)
 {
     const double mu = viscosity_pa_s(s, temp_c + z[DT]);
-    const double leak = (u->leak_band_a * fabs(u->leak_a_m3 * z[PA])
-                         + u->leak_band_b * fabs(u->leak_b_m3 * z[PB])) / mu;
-    const double pa = fabs(z[PA]), pb = fabs(z[PB]);
+    const double pa = fabs(p_pa[0]), pb = fabs(p_pa[1]);
+    const double leak = (u->leak_band_a * fabs(u->leak_a_m3 * p_pa[0])
+                         + u->leak_band_b * fabs(u->leak_b_m3 * p_pa[1])) / mu;
     const double orifice = fabs(u->orifice_a * sqrt(pa) - u->leak_a_m3 * pa / mu)
                            + fabs(u->orifice_b * sqrt(pb) - u->leak_b_m3 * pb / mu);
     const double trapped = s->trapped_share * fabs(speed_rpm)
@@ -225,6 +226,12 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     const double nm = fresh >= 2 ? a->speed_rpm[(k - 2) * B + b] : 2.0 * n0 - n1;
     const double t_mid = 0.5 * (a->temp_c[(k - 1) * B + b] + a->temp_c[k * B + b]);
     const double x_before = z[X];
+    /* the chambers' states are the oil they hold (ddh_stored_pa, the pressure itself without
+     * air): the rows start from the pressures holding it, a perturbed one by that much oil */
+    f->p_pa[0] = ddh_pressure_pa(rp, z[PA], f->p_pa[0]);
+    f->p_pa[1] = ddh_pressure_pa(rp, z[PB], f->p_pa[1]);
+    const double per_pa[2] = {ddh_stored_per_pa(rp, f->p_pa[0]),
+                              ddh_stored_per_pa(rp, f->p_pa[1])};
     /* x is perturbed away from the nearer stroke end by stop_reach sigma: the slope of a
      * stop's clip over the spread is the share of rods not yet there */
     double deltas[N_PLANT];
@@ -244,8 +251,8 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         struct ddh_input *in = ri + j;
         st->x_m = clip(row[X], 0.0, stroke);
         st->v_m_s = row[V];
-        st->dp_a_pa = row[PA];
-        st->dp_b_pa = row[PB];
+        st->dp_a_pa = j - 1 == PA ? f->p_pa[0] + deltas[PA] / per_pa[0] : f->p_pa[0];
+        st->dp_b_pa = j - 1 == PB ? f->p_pa[1] + deltas[PB] / per_pa[1] : f->p_pa[1];
         p->load_n = row[LOAD];
         /* the moving mass follows from the payload the load implies */
         p->mass_kg = u->mass_kg + fmax((row[LOAD] - u->holding_n) * u->mass_per_n_kg, 0.0);
@@ -266,12 +273,14 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
             ddh_step(rp + j, rs + j, ri + j, s->substep_s, counters);
         }
     }
-    const double nom[4] = {rs[0].x_m, rs[0].v_m_s, rs[0].dp_a_pa, rs[0].dp_b_pa};
+    const double nom[4] = {rs[0].x_m, rs[0].v_m_s, ddh_stored_pa(rp, rs[0].dp_a_pa),
+                           ddh_stored_pa(rp, rs[0].dp_b_pa)};
     double Fp[4][N_PLANT];            /* d(x, v, dp_a, dp_b) / d(plant state) */
     double H[KF_MAX_STATES] = {0.0};
     for (int j = 0; j < N_PLANT; j++) {
-        const double out[4] = {rs[j + 1].x_m, rs[j + 1].v_m_s, rs[j + 1].dp_a_pa,
-                               rs[j + 1].dp_b_pa};
+        const double out[4] = {rs[j + 1].x_m, rs[j + 1].v_m_s,
+                               ddh_stored_pa(rp, rs[j + 1].dp_a_pa),
+                               ddh_stored_pa(rp, rs[j + 1].dp_b_pa)};
         for (int i = 0; i < 4; i++)
             Fp[i][j] = (out[i] - nom[i]) / deltas[j];
         H[j] = (rs[j + 1].torque_nm - rs[0].torque_nm) / deltas[j];
@@ -281,7 +290,8 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     /* the flow error forgets as the operating point moves, and at a hold over flow_tau_s */
     const double moved = fabs(nom[X] - z[X]) / (s->flow_travel_strokes * stroke);
     f->phi_q = exp(-(T / s->flow_tau_s + moved));
-    f->flow_sigma_m3_s = flow_sigma(s, u, z, t_mid, 0.5 * (n0 + n1)) * sqrt(f->flow_scale);
+    f->flow_sigma_m3_s = flow_sigma(s, u, z, f->p_pa, t_mid, 0.5 * (n0 + n1))
+                         * sqrt(f->flow_scale);
     /* the unmodelled flow, the chambers' compliance and the delivered displacement move the
      * rod (against a stroke end the compliance and displacement nothing, the flow as far as
      * the rod floats) */
@@ -367,6 +377,8 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     z[X] += gain_x * z_eps + comp_x * z_comp + disp_x * z_disp;
     z[DT] *= s->phi_t;
     z[EPS] *= f->phi_q;
+    f->p_pa[0] = rs[0].dp_a_pa;
+    f->p_pa[1] = rs[0].dp_b_pa;
     f->friction_state = rs[0].friction_state;
     f->regime_a = rs[0].regime_a;
     f->regime_b = rs[0].regime_b;
@@ -398,11 +410,11 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     const int stopped = fabs(a->speed_rpm[k * B + b]) < 0.5 * s->speed_step_rpm;
     if (stopped) {
         const double h0 = u->band_half_nm_per_pa[0], h1 = u->band_half_nm_per_pa[1];
-        tq_model = tq_model - h0 * z[PA] - h1 * z[PB];
-        H[PA] -= h0;
-        H[PB] -= h1;
+        tq_model = tq_model - h0 * f->p_pa[0] - h1 * f->p_pa[1];
+        H[PA] -= h0 / ddh_stored_per_pa(rp, f->p_pa[0]);
+        H[PB] -= h1 / ddh_stored_per_pa(rp, f->p_pa[1]);
         if (!f->was_stopped) {
-            const double w = fabs(h0 * z[PA]) + fabs(h1 * z[PB]);
+            const double w = fabs(h0 * f->p_pa[0]) + fabs(h1 * f->p_pa[1]);
             const double band_var = w * w / 3.0;
             z[STICK] = 0.0;
             for (long i = 0; i < n; i++)
@@ -446,8 +458,9 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         K[i] = 0.0;
     for (long i = 0; i < n; i++)
         z[i] += K[i] * y;
-    z[PA] = clip(z[PA], u->p_floor_pa[0], u->p_ceiling_pa[0]);
-    z[PB] = clip(z[PB], u->p_floor_pa[1], u->p_ceiling_pa[1]);
+    for (int c = 0; c < 2; c++)
+        z[PA + c] = clip(z[PA + c], ddh_stored_pa(rp, u->p_floor_pa[c]),
+                         ddh_stored_pa(rp, u->p_ceiling_pa[c]));
     /* Joseph's form for that gain */
     for (long i = 0; i < n; i++) {
         for (long j = 0; j < n; j++)
@@ -456,8 +469,8 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
 }
 
 /* Sample k of every filter up to its edges: the prediction from k - 1 and the torque's update
- * (k past the filter's start), the position clipped to the stroke. rows: the plant's B * N_ROWS rows. Returns
- * the row steps whose discrete states did not settle. */
+ * (k past the filter's start), the position clipped to the stroke. rows: the plant's
+ * B * N_ROWS rows. Returns the row steps whose discrete states did not settle. */
 long kf_predict_update(long B, long n, long k, const struct kf_settings *s,
                        const struct kf_unit *units, struct kf_filter *filters, double *z,
                        double *P, double *prior_var, struct ddh_params *rp,
@@ -479,12 +492,12 @@ long kf_predict_update(long B, long n, long k, const struct kf_settings *s,
  * non-negative, the self-check's window and the outputs. Returns 0, or 1 + the first filter
  * whose state is not finite. */
 long kf_finish(long B, long n, long k, const struct kf_settings *s,
-               const struct kf_unit *units, const struct kf_filter *filters, double *Z,
-               double *PP, const struct kf_arrays *a)
+               const struct kf_unit *units, struct kf_filter *filters, double *Z,
+               double *PP, const struct ddh_params *rp, const struct kf_arrays *a)
 {
     long bad = 0;
     for (long b = 0; b < B; b++) {
-        const struct kf_filter *f = filters + b;
+        struct kf_filter *f = filters + b;
         double *z = Z + b * n, *P = PP + b * n * n;
         z[DT] = clip(z[DT], -s->temp_bound_c, s->temp_bound_c);
         z[X] = clip(z[X], 0.0, units[b].stroke_m);
@@ -527,8 +540,10 @@ long kf_finish(long B, long n, long k, const struct kf_settings *s,
         a->torque_offset_nm[o] = z[TOFF];
         a->flow_error_m3_s[o] = f->flow_sigma_m3_s * z[EPS];
         a->flow_sigma_m3_s[o] = f->flow_sigma_m3_s;
-        a->pressures_bar[2 * o] = z[PA] * 1e-5;
-        a->pressures_bar[2 * o + 1] = z[PB] * 1e-5;
+        f->p_pa[0] = ddh_pressure_pa(rp + b * N_ROWS, z[PA], f->p_pa[0]);
+        f->p_pa[1] = ddh_pressure_pa(rp + b * N_ROWS, z[PB], f->p_pa[1]);
+        a->pressures_bar[2 * o] = f->p_pa[0] * 1e-5;
+        a->pressures_bar[2 * o + 1] = f->p_pa[1] * 1e-5;
     }
     return bad;
 }
@@ -541,5 +556,5 @@ long kf_sample(long B, long n, long k, const struct kf_settings *s,
                struct ddh_input *ri, const struct kf_arrays *a, struct ddh_counters *counters)
 {
     kf_predict_update(B, n, k, s, units, filters, z, P, prior_var, rp, rs, ri, a, counters);
-    return kf_finish(B, n, k, s, units, filters, z, P, a);
+    return kf_finish(B, n, k, s, units, filters, z, P, rp, a);
 }

@@ -6,8 +6,14 @@ that bound does not follow the error. This filter asks instead how well the samp
 rod down under the model *and* what the model is known not to know, and checks its own
 innovations to see when the model does not fit.
 
-State z = [x (m), v (m/s), dp_a (Pa), dp_b (Pa), F_load (N), dT (K), eps, tau_off (N*m),
+State z = [x (m), v (m/s), q_a (Pa), q_b (Pa), F_load (N), dT (K), eps, tau_off (N*m),
 comp, disp, tau_stuck (N*m), o_1..o_m (m), c_1..c_m (m)]:
+
+- ``q_a``, ``q_b`` the oil each chamber holds, as the gauge pressure at which air-free oil
+  would hold as much (``ddh_stored_pa`` of the unit model; without air, the pressure itself):
+  with entrained air a pascal near vacuum is a share of the chamber, and a state, a
+  perturbation or a spread in pressure there is no amount of oil at all. The rows run on the
+  pressure holding it (``ddh_pressure_pa``), kept with the filter;
 
 - ``F_load`` the external load (random walk; the moving mass follows from the payload it
   implies), ``tau_off`` an offset of the drive's torque estimate (random walk);
@@ -502,6 +508,10 @@ class _Bank:
                                            * (1.0 / sd.pump.eta_hm - sd.pump.eta_hm) / 2.0
                                            for sd in j.unit.sides] for j in jobs]),
             p_floor_pa=self.p_floor, p_ceiling_pa=self.p_ceiling)
+        # the chambers' states are the oil they hold (the pressure itself without air)
+        self.stored_floor = np.stack([self._stored(self.p_floor[:, i]) for i in (0, 1)], axis=1)
+        self.stored_ceiling = np.stack([self._stored(self.p_ceiling[:, i]) for i in (0, 1)],
+                                       axis=1)
         walther_a, walther_b = oil.walther_coefficients
         win = max(1, int(round(s.nis_window_s / period_s)))
         self.edge_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
@@ -534,6 +544,14 @@ class _Bank:
 
     # --- pieces ---------------------------------------------------------------------------
 
+    def _stored(self, dp_pa: np.ndarray) -> np.ndarray:
+        """Per filter, the oil its chamber holds at gauge pressure ``dp_pa``, as a pressure."""
+        return self.plant.stored_pa(np.repeat(dp_pa, N_ROWS))[self.nom]
+
+    def _pressure(self, stored_pa: np.ndarray) -> np.ndarray:
+        """Per filter, the gauge pressure at which its chamber holds ``stored_pa``."""
+        return self.plant.pressure_pa(np.repeat(stored_pa, N_ROWS))[self.nom]
+
     def _initial(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         s, B = self.s, self.B
         n = self.n_states
@@ -563,6 +581,7 @@ class _Bank:
             # a switch mounted off is off by the same on every pass: uniform over its tolerance
             for sw in j.switches:
                 p0[b, self.slot[b][sw.name]] = (sw.tolerance_mm * 1e-3) ** 2 / 3.0
+        z[:, PA], z[:, PB] = self._stored(z[:, PA]), self._stored(z[:, PB])
         P = np.zeros((B, n, n))
         P[:, np.arange(n), np.arange(n)] = p0
         # the constant parameters' prior variances (their bands') cap their variance
@@ -614,14 +633,15 @@ class _Bank:
         self.edge_innovations: list[list[float]] = [[] for _ in range(B)]
         self.pending: dict[tuple[int, str], tuple[float, float, float]] = {}
         # derive the start's discrete states from its state
+        p_a, p_b = self._pressure(z[:, PA]), self._pressure(z[:, PB])
         self.plant.set_state(np.repeat(z[:, X], N_ROWS), np.repeat(self.speed[0], N_ROWS),
-                             np.repeat(z[:, PA], N_ROWS), np.repeat(z[:, PB], N_ROWS))
+                             np.repeat(p_a, N_ROWS), np.repeat(p_b, N_ROWS))
         self.filters = kalman_step.record(
             "filter", B, since=0, load_scale_n=np.maximum(np.abs(z[:, LOAD]), 1.0), flow_scale=1.0,
             flow_sigma_m3_s=0.0, phi_q=1.0,
             friction_state=self.plant.friction_state[self.nom],
             regime_a=self.plant.regime_a[self.nom], regime_b=self.plant.regime_b[self.nom],
-            was_stopped=0, referenced=referenced, held=0)
+            was_stopped=0, referenced=referenced, held=0, p_pa=np.stack([p_a, p_b], axis=1))
         # views of the records' fields the edges' updates read and set
         self.referenced, self.flow_scale = self.filters["referenced"], self.filters["flow_scale"]
         self.z, self.P = z, P
@@ -637,7 +657,7 @@ class _Bank:
         params, state, inputs, counters = self.plant.c_pointers()
         self._predict_args = (*records, self.prior_var.ctypes.data, params, state, inputs,
                               self.arrays.ctypes.data, counters)
-        self._finish_args = (*records, self.arrays.ctypes.data)
+        self._finish_args = (*records, params, self.arrays.ctypes.data)
         self._lib = kalman_step.library()
 
     def step(self, k: int) -> None:
@@ -677,13 +697,15 @@ class _Bank:
         fast = [V, PA, PB, STICK]
         P[fast, :] = 0.0
         P[:, fast] = 0.0
-        z[fast] = [float(st.velocity_m_s), float(st.p_a_pa - j.unit.reservoir_pa),
-                   float(st.p_b_pa - j.unit.reservoir_pa), 0.0]
+        p_a, p_b = float(st.p_a_pa - j.unit.reservoir_pa), float(st.p_b_pa - j.unit.reservoir_pa)
+        z[fast] = [float(st.velocity_m_s), float(self._stored(np.array([p_a]))[0]),
+                   float(self._stored(np.array([p_b]))[0]), 0.0]
         P[V, V] = (s.velocity_mm_s * 1e-3) ** 2
         P[PA, PA] = P[PB, PB] = (s.pressure_bar * 1e5) ** 2
         self.plant.set_state(np.full(N_ROWS, z[X]), np.full(N_ROWS, self.speed[k, 0]),
-                             np.full(N_ROWS, z[PA]), np.full(N_ROWS, z[PB]))
+                             np.full(N_ROWS, p_a), np.full(N_ROWS, p_b))
         f = self.filters
+        f["p_pa"] = [p_a, p_b]
         f["since"], f["was_stopped"] = k, 0
         f["friction_state"], f["regime_a"], f["regime_b"] = (
             self.plant.friction_state[0], self.plant.regime_a[0], self.plant.regime_b[0])
@@ -847,7 +869,7 @@ class _Bank:
         s_ = max(float(h @ ph), 0.0) + r
         K = ph / s_
         z[b] += K * y
-        z[b, [PA, PB]] = np.clip(z[b, [PA, PB]], self.p_floor[b], self.p_ceiling[b])
+        z[b, [PA, PB]] = np.clip(z[b, [PA, PB]], self.stored_floor[b], self.stored_ceiling[b])
         P[b] -= np.outer(K, ph)
         events[b].append(ReferenceEvent(k, c, sw.name, rising, p_mm, -y * 1e3, False,
                                         float(K[X])))

@@ -64,7 +64,7 @@ def library() -> ctypes.CDLL:
         check_layouts(lib)
         lib.kf_predict_update.argtypes = [long_, long_, long_] + [ptr] * 11
         lib.kf_predict_update.restype = None
-        lib.kf_finish.argtypes = [long_, long_, long_] + [ptr] * 6
+        lib.kf_finish.argtypes = [long_, long_, long_] + [ptr] * 7
         lib.kf_finish.restype = long_
         lib.kf_sample.argtypes = [long_, long_, long_] + [ptr] * 11
         lib.kf_sample.restype = long_

@@ -21,7 +21,9 @@ enum { M_LIM_NEG = -2, M_NEG = -1, M_STUCK = 0, M_POS = 1, M_LIM_POS = 2, M_SPEE
 #define ORIFICE_LAMINAR_PA 1.0e5    /* below this an orifice leak path flows laminar (linear) */
 #define ATMOSPHERE_PA 101325.0      /* physics/air.py's mixture law */
 #define POLYTROPIC_EXPONENT 1.4
-#define MIN_ABSOLUTE_PA 1000.0
+#define MIN_ABSOLUTE_PA 1000.0      /* below it the gas fills a cavity (deep cavitation) */
+#define STORED_ITERATIONS 60        /* ddh_pressure_pa's Newton steps at most */
+#define STORED_TOLERANCE_PA 1e-6    /* ... until the stored oil is this close (Pa) */
 #define RPM_RAD_S (2.0 * 3.141592653589793 / 60.0)
 
 /* One row's constants. Valve tables per regime (0 anti-cavitation open, 1 closed below the
@@ -166,11 +168,14 @@ static double compliance(const struct ddh_params *p, double dp)
     return (oil / p->bulk_modulus_pa + air / (POLYTROPIC_EXPONENT * abs_pa)) / (oil + air);
 }
 
+/* -ln of the mixture's specific volume; below the floor the cavity grows at the floor's
+ * compliance (the law's derivative stays its compliance, the pressure barely moves) */
 static double log_density(const struct ddh_params *p, double dp)
 {
     double abs_pa, oil, air;
     mixture(p, dp, &abs_pa, &oil, &air);
-    return -log(oil + air);
+    const double below = dp + p->reservoir_pa + ATMOSPHERE_PA - MIN_ABSOLUTE_PA;
+    return -log(oil + air) + (below < 0.0 ? compliance(p, dp) * below : 0.0);
 }
 
 /* mean compliance over [p0, p1]: the exact compression between the two pressures */
@@ -188,6 +193,46 @@ double ddh_chamber_compliance(const struct ddh_params *p, double volume_m3, doub
 {
     return volume_m3 * (p->air_fraction > 0.0 ? compliance(p, dp) : 1.0 / p->bulk_modulus_pa)
            + p->dead_volume_m3 * p->hose_compliance_per_pa;
+}
+
+/* The oil a chamber holds, as a pressure (Pa): the gauge pressure at which air-free oil would
+ * hold as much, beta x the change of -ln V from the reservoir's pressure. Unlike the pressure
+ * it measures oil near vacuum too, where a pascal is a share of the chamber. Without air it is
+ * the pressure itself. */
+double ddh_stored_pa(const struct ddh_params *p, double dp)
+{
+    if (!(p->air_fraction > 0.0))
+        return dp;
+    return p->bulk_modulus_pa * (log_density(p, dp) - log_density(p, 0.0));
+}
+
+/* d ddh_stored_pa / d dp (>= 1: air only adds compliance) */
+double ddh_stored_per_pa(const struct ddh_params *p, double dp)
+{
+    return p->air_fraction > 0.0 ? p->bulk_modulus_pa * compliance(p, dp) : 1.0;
+}
+
+/* The gauge pressure at which a chamber holds stored_pa (ddh_stored_pa's inverse): Newton from
+ * guess_pa, bisecting where it leaves the bracket, which is [min(stored, 0), max(stored, 0)]
+ * as the slope is at least 1. */
+double ddh_pressure_pa(const struct ddh_params *p, double stored_pa, double guess_pa)
+{
+    if (!(p->air_fraction > 0.0))
+        return stored_pa;
+    double lo = fmin(stored_pa, 0.0), hi = fmax(stored_pa, 0.0);
+    double dp = fmin(fmax(guess_pa, lo), hi);
+    for (int it = 0; it < STORED_ITERATIONS; it++) {
+        const double f = ddh_stored_pa(p, dp) - stored_pa;
+        if (fabs(f) <= STORED_TOLERANCE_PA)
+            break;
+        if (f > 0.0)
+            hi = dp;
+        else
+            lo = dp;
+        const double next = dp - f / ddh_stored_per_pa(p, dp);
+        dp = next > lo && next < hi ? next : 0.5 * (lo + hi);
+    }
+    return dp;
 }
 
 /* motor torque per pascal's table row: the direction of turning, or in speed mode of the

@@ -128,6 +128,22 @@ class Plant:
         self._lib.ddh_settle_rows(self.size, self.params.ctypes.data, s.ctypes.data,
                                   self._input.ctypes.data)
 
+    def stored_pa(self, dp_pa: np.ndarray) -> np.ndarray:
+        """Per row, the oil a chamber at gauge pressure ``dp_pa`` holds, as the pressure at
+        which air-free oil would hold as much (the pressure itself without air)."""
+        dp = np.broadcast_to(np.asarray(dp_pa, dtype=float), (self.size,))
+        row = self.params.ctypes.data
+        return np.array([self._lib.ddh_stored_pa(row + i * self.params.itemsize, float(dp[i]))
+                         for i in range(self.size)])
+
+    def pressure_pa(self, stored_pa: np.ndarray) -> np.ndarray:
+        """Per row, the gauge pressure at which a chamber holds ``stored_pa``
+        (:meth:`stored_pa`'s inverse)."""
+        q = np.broadcast_to(np.asarray(stored_pa, dtype=float), (self.size,))
+        row = self.params.ctypes.data
+        return np.array([self._lib.ddh_pressure_pa(row + i * self.params.itemsize, float(q[i]),
+                                                   float(q[i])) for i in range(self.size)])
+
     def pump_torque(self, dp_a: np.ndarray, dp_b: np.ndarray, n: np.ndarray) -> np.ndarray:
         """Pump torque at the motor for given pressures and speeds (physics' efficiency law)."""
         s = self.state.copy()

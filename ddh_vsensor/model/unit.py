@@ -292,6 +292,10 @@ def _load() -> ctypes.CDLL:
     lib.ddh_settle.restype = None
     lib.ddh_settle_rows.argtypes = [long_, ptr, ptr, ptr]
     lib.ddh_settle_rows.restype = None
+    lib.ddh_stored_pa.argtypes = [ptr, ctypes.c_double]
+    lib.ddh_stored_pa.restype = ctypes.c_double
+    lib.ddh_pressure_pa.argtypes = [ptr, ctypes.c_double, ctypes.c_double]
+    lib.ddh_pressure_pa.restype = ctypes.c_double
     return lib
 
 

@@ -9,6 +9,11 @@ so the effective bulk modulus -V dp/dV collapses at low pressure, where the air 
 compressed, and tends to the oil's own at high pressure. ``log_density`` (= -ln V) is what a
 chamber balance needs: the oil a chamber of fixed size takes in between two pressures is its
 volume times the change of -ln V. X = 0 is the nominal oil of the configuration.
+
+Below an absolute pressure of 1 kPa the oil cavitates: the gas fills a cavity while the
+pressure stays put. The law holds the floor's compliance there, so -ln V goes on falling
+with it and the pressure a chamber shows below the floor is its cavity's volume over that
+compliance (a hundred pascals per percent of the chamber with 0.5 % of air).
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from numpy.typing import ArrayLike
 
 ATMOSPHERE_PA = 101325.0        # absolute pressure at which the air fraction is stated
 POLYTROPIC_EXPONENT = 1.4       # fast compression: adiabatic air
-MIN_ABSOLUTE_PA = 1000.0        # floor of the absolute pressure (deep cavitation)
+MIN_ABSOLUTE_PA = 1000.0        # below it the gas fills a cavity (deep cavitation)
 
 
 def _parts(p_gauge_pa: ArrayLike, air_fraction: ArrayLike, beta_oil_pa: float,
@@ -31,11 +36,19 @@ def _parts(p_gauge_pa: ArrayLike, air_fraction: ArrayLike, beta_oil_pa: float,
     return p, oil, air
 
 
+def _cavity(p_gauge_pa: ArrayLike, reservoir_pa: float) -> np.ndarray:
+    """How far below the floor a gauge pressure is (Pa, <= 0): there the gas fills a cavity
+    that grows at the floor's compliance, so log_density's slope stays the compliance."""
+    return np.minimum(np.asarray(p_gauge_pa, dtype=float) + reservoir_pa + ATMOSPHERE_PA
+                      - MIN_ABSOLUTE_PA, 0.0)
+
+
 def log_density(p_gauge_pa: ArrayLike, air_fraction: ArrayLike, beta_oil_pa: float,
                 reservoir_pa: float = 0.0) -> np.ndarray:
     """-ln of the mixture's specific volume relative to atmospheric pressure."""
-    _, oil, air = _parts(p_gauge_pa, air_fraction, beta_oil_pa, reservoir_pa)
-    return -np.log(oil + air)
+    p, oil, air = _parts(p_gauge_pa, air_fraction, beta_oil_pa, reservoir_pa)
+    comp = (oil / beta_oil_pa + air / (POLYTROPIC_EXPONENT * p)) / (oil + air)
+    return -np.log(oil + air) + comp * _cavity(p_gauge_pa, reservoir_pa)
 
 
 def compliance(p_gauge_pa: ArrayLike, air_fraction: ArrayLike, beta_oil_pa: float,
@@ -51,7 +64,8 @@ def log_density_and_compliance(p_gauge_pa: ArrayLike, air_fraction: ArrayLike,
     """Both of the above from one evaluation of the law (the chamber model's inner loop)."""
     p, oil, air = _parts(p_gauge_pa, air_fraction, beta_oil_pa, reservoir_pa)
     mix = oil + air
-    return -np.log(mix), (oil / beta_oil_pa + air / (POLYTROPIC_EXPONENT * p)) / mix
+    comp = (oil / beta_oil_pa + air / (POLYTROPIC_EXPONENT * p)) / mix
+    return -np.log(mix) + comp * _cavity(p_gauge_pa, reservoir_pa), comp
 
 
 def secant_compliance(p0_pa: ArrayLike, p1_pa: ArrayLike, air_fraction: ArrayLike,

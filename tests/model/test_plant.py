@@ -149,6 +149,34 @@ def test_air_law_limits():
     assert airy[0] < 0.02e9 and airy[-1] > 0.8e9
 
 
+def test_below_the_cavitation_floor_the_cavity_grows_at_the_floors_compliance():
+    """Below 1 kPa absolute the law's -ln V goes on falling with the compliance it states
+    there (a flat -ln V made a cavitating chamber stiff in the step's secant)."""
+    floor = 1000.0 - 101325.0
+    p = floor + np.array([-2e4, -1e4, -1e3, -10.0, 10.0])
+    air, beta, res = np.full(5, 0.005), np.full(5, 1.5e9), np.zeros(5)
+    h = 1.0
+    slope = (log_density(p + h, air, beta, res) - log_density(p - h, air, beta, res)) / (2 * h)
+    np.testing.assert_allclose(slope, compliance(p, air, beta, res), rtol=1e-4)
+    assert compliance(p[0], 0.005, 1.5e9, 0.0) > 1e3 / 1.5e9   # a cavity, not oil
+
+
+def test_the_oil_a_chamber_holds_is_its_pressure_without_air(cfg):
+    unit = DDHUnit.from_config(cfg, "bucket")
+    plant = Plant([RowSpec(unit), RowSpec(unit, air_fraction=0.006)], 1e-3)
+    p = np.array([-1.05e5, -1.0e5, -0.9e5, -0.3e5, 0.0, 1e5, 50e5, 350e5])
+    for dp in p:
+        stored = plant.stored_pa(dp)
+        assert stored[0] == dp                            # to the bit: the nominal filter
+        back = plant.pressure_pa(stored)
+        assert back[0] == dp and abs(back[1] - dp) < 1e-3
+    stored = np.array([plant.stored_pa(dp)[1] for dp in p])
+    # air only adds compliance: the oil stored changes by at least the oil's own share
+    assert np.all(np.diff(stored) >= np.diff(p))
+    # near vacuum a bar of pressure holds a share of the chamber, far more than the oil's
+    assert stored[3] - stored[1] > 50 * (p[3] - p[1])
+
+
 def test_end_stop_holds_and_is_not_passed(cfg):
     boom = DDHUnit.from_config(cfg, "boom")
     plant = Plant([RowSpec(boom, 0.0)] * 2, 1e-3)
