@@ -178,13 +178,14 @@ static double log_density(const struct ddh_params *p, double dp)
     return -log(oil + air) + (below < 0.0 ? compliance(p, dp) * below : 0.0);
 }
 
-/* mean compliance over [p0, p1]: the exact compression between the two pressures */
-static double secant_compliance(const struct ddh_params *p, double p0, double p1)
+/* mean compliance over [p0, p1]: the exact compression between the two pressures (ld0:
+ * log_density at p0, the step's start, computed once a step) */
+static double secant_compliance(const struct ddh_params *p, double p0, double ld0, double p1)
 {
     double dp = p1 - p0;
     if (fabs(dp) < 100.0)
         return compliance(p, 0.5 * (p0 + p1));
-    return (log_density(p, p1) - log_density(p, p0)) / dp;
+    return (log_density(p, p1) - ld0) / dp;
 }
 
 /* The oil a chamber of volume_m3 takes in per pascal at gauge pressure dp (m^3/Pa): the oil's
@@ -327,6 +328,8 @@ static int step_once(const struct ddh_params *p, struct ddh_state *s, const stru
     double x_stop = x, v_fix = 0.0, x_new = x, n = n0, v = v0, pa = pa0, pb = pb0;
     int air_passes = has_air ? AIR_PASSES : 0, first_pass = 1, converged = 0;
     double pa_prev = 0.0, pb_prev = 0.0, air_gap = 0.0;
+    const double ld_a0 = has_air ? log_density(p, pa0) : 0.0;
+    const double ld_b0 = has_air ? log_density(p, pb0) : 0.0;
     for (int it = 0; it < MAX_ITERATIONS; it++) {
         const double den_a = gca + h * p->valve_g_a_m3_s_pa[ra];
         const double den_b = gcb + h * p->valve_g_b_m3_s_pa[rb];
@@ -391,8 +394,8 @@ static int step_once(const struct ddh_params *p, struct ddh_state *s, const stru
             first_pass = 0;
             pa_prev = pa;
             pb_prev = pb;
-            ca = va * secant_compliance(p, pa0, pa) + hose_c;
-            cb = vb * secant_compliance(p, pb0, pb) + hose_c;
+            ca = va * secant_compliance(p, pa0, ld_a0, pa) + hose_c;
+            cb = vb * secant_compliance(p, pb0, ld_b0, pb) + hose_c;
             gca = ca + ga;
             gcb = cb + gb;
             cpa = ca * pa0 - cross;
