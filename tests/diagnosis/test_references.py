@@ -4,6 +4,7 @@ halved on held-out runs, as the position-truth analysis does."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 
@@ -12,20 +13,48 @@ import pytest
 
 from ddh_vsensor.io.blf import write_blf_inputs
 from ddh_vsensor.cli.main import main
+from ddh_vsensor.config import Config
 from ddh_vsensor.diagnosis.holds import model_holding_speed_rpm, model_holding_speeds_rpm
 from ddh_vsensor.diagnosis.reference_fit import POSITION_SENSOR_CAUSES, diagnose_references
 from ddh_vsensor.diagnosis.references import nominal_velocity_mm_s, reference_run
-from ddh_vsensor.diagnosis.trials import draw_trial, simulate_trial
+from ddh_vsensor.diagnosis.trials import Trial, draw_trial
+from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.steady import holding_speed, steady_state
+
+from .conftest import simulate_trials
 
 CASES = [("pump_leakage", "boom", 6101), ("time_offset", "bucket", 6102), ("none", "boom", 6103),
          ("position_scale", "bucket", 6104)]
+DISPLACEMENT_SEEDS = [6105, 6106]
+UNCATALOGUED = [("valve_leak", 7000, "boom"), ("bore_leak", 7328, "bucket")]
+
+
+def _one_oil_temperature(trial: Trial) -> Trial:
+    """The trial with every run at its warmer oil temperature."""
+    return dataclasses.replace(trial, oil_temps_c=(trial.oil_temps_c[1],) * 2)
+
+
+# every trial the module simulates
+TRIALS = [*(draw_trial(seed, effect) for effect, _, seed in CASES),
+          *(draw_trial(seed, "none") for seed in (6101, 6104, 6105)),
+          _one_oil_temperature(draw_trial(5106, "oil_temp_offset")),
+          *(draw_trial(seed, "displacement") for seed in DISPLACEMENT_SEEDS),
+          *(draw_trial(seed, effect) for effect, seed, _ in UNCATALOGUED)]
+
+
+@pytest.fixture(scope="module")
+def simulated(cfg: Config) -> dict[Trial, list[dict[str, Run]]]:
+    """Every trial of :data:`TRIALS` simulated in one lockstep batch, a fraction of the cost
+    of one batch per trial; each run is the one ``simulate_trial`` gives
+    (:func:`.conftest.simulate_trials`). Shared by the module's tests, which change only
+    copies."""
+    return dict(zip(TRIALS, simulate_trials(cfg, TRIALS)))
 
 
 @pytest.mark.parametrize("effect,actuator,seed", CASES)
-def test_named_from_references(tmp_path, cfg, effect, actuator, seed):
+def test_named_from_references(tmp_path, cfg, simulated, effect, actuator, seed):
     trial = draw_trial(seed, effect)
-    runs = simulate_trial(cfg, trial)
+    runs = simulated[trial]
     paths = []
     for i, per_unit in enumerate(runs):
         path = tmp_path / f"run{i:02d}.blf"
@@ -54,8 +83,8 @@ def test_named_from_references(tmp_path, cfg, effect, actuator, seed):
     assert ext["cause"] == (effect if effect != "none" else "none")
 
 
-def test_edges_and_holds_of_a_run(cfg):
-    runs = simulate_trial(cfg, draw_trial(6104, "none"))
+def test_edges_and_holds_of_a_run(cfg, simulated):
+    runs = simulated[draw_trial(6104, "none")]
     run = runs[-1]["bucket"]
     rr = reference_run(cfg, "bucket", run)
     first = int(np.flatnonzero(run.time_s == rr.run.time_s[0])[0])
@@ -84,8 +113,8 @@ def test_vectorised_holding_speed_agrees_with_the_exact_one(boom, bucket):
             assert fast == pytest.approx(n, abs=0.5)
 
 
-def test_too_few_edges_is_a_clear_error(tmp_path, cfg, capsys):
-    runs = simulate_trial(cfg, draw_trial(6105, "none"))
+def test_too_few_edges_is_a_clear_error(tmp_path, cfg, simulated, capsys):
+    runs = copy.deepcopy(simulated[draw_trial(6105, "none")])       # changed below
     paths = []
     for i, per_unit in enumerate(runs[:2]):
         for r in per_unit.values():
@@ -99,11 +128,11 @@ def test_too_few_edges_is_a_clear_error(tmp_path, cfg, capsys):
     assert code == 2 and len(err) == 1 and "reference edge" in err[0]
 
 
-def test_the_nominal_velocity_meets_no_made_up_end_stop(cfg):
+def test_the_nominal_velocity_meets_no_made_up_end_stop(cfg, simulated):
     """Holds and the direction at each edge come from the nominal model's velocity, started
     at a made-up position (mid-stroke): it must not stop the rod at an end stop met there
     (the boom of the paper cycle stood still for 23 s of fast motor work that way)."""
-    runs = simulate_trial(cfg, draw_trial(6101, "none"))
+    runs = simulated[draw_trial(6101, "none")]
     for actuator in cfg.unit_names:
         for per_unit in runs:
             run = per_unit[actuator]
@@ -130,16 +159,15 @@ def test_holds_at_an_end_of_the_stroke_are_left_out(cfg):
     assert _off_the_ends(cfg, "bucket", t, v, edges, edge_mm, holds)[:2] == holds[:2]
 
 
-def test_two_causes_the_references_cannot_tell_apart_are_ambiguous(cfg):
+def test_two_causes_the_references_cannot_tell_apart_are_ambiguous(cfg, simulated):
     """With every run at one oil temperature, a bucket's oil reading 7 degC low and a leakage
     x1.24 change its references and holds alike (both act on the leakage through the
     viscosity): the answer is ambiguous, with what would separate them (a run at another oil
     temperature: the same trial at two temperatures names the offset), not one of the two
     and no extension."""
     from ddh_vsensor.diagnosis.reference_report import extension_of
-    trial = draw_trial(5106, "oil_temp_offset")
-    trial = dataclasses.replace(trial, oil_temps_c=(trial.oil_temps_c[1],) * 2)
-    rr = [reference_run(cfg, "bucket", r["bucket"]) for r in simulate_trial(cfg, trial)]
+    trial = _one_oil_temperature(draw_trial(5106, "oil_temp_offset"))
+    rr = [reference_run(cfg, "bucket", r["bucket"]) for r in simulated[trial]]
     d = diagnose_references(cfg, "bucket", rr)
     assert d.cause == "ambiguous", (trial.describe(), d.decision.reason)
     assert {"pump_leakage", "oil_temp_offset"} in [set(pair) for pair in d.decision.ambiguous]
@@ -147,24 +175,22 @@ def test_two_causes_the_references_cannot_tell_apart_are_ambiguous(cfg):
     assert extension_of(d, cfg.physics_hash()).cause == "none"
 
 
-@pytest.mark.parametrize("seed", [6105, 6106])
-def test_holds_do_not_pull_a_travel_error_the_references_fix(cfg, seed):
+@pytest.mark.parametrize("seed", DISPLACEMENT_SEEDS)
+def test_holds_do_not_pull_a_travel_error_the_references_fix(cfg, simulated, seed):
     """A held rod is not quite still (the loop holding it lets it settle; whole-rpm speed):
     weighted like the increments' errors, the holds no longer drag a bucket's displacement
     fit (1.035 fitted 1.043, 0.950 fitted 0.959 at the former weight; now within 0.3 %)."""
     trial = draw_trial(seed, "displacement")
-    runs = simulate_trial(cfg, trial)
-    rr = [reference_run(cfg, "bucket", r["bucket"]) for r in runs]
+    rr = [reference_run(cfg, "bucket", r["bucket"]) for r in simulated[trial]]
     d = diagnose_references(cfg, "bucket", rr)
     assert d.cause == "displacement", d.decision.reason
     value, = d.chosen.parameters.values()
     assert abs(value / trial.value - 1.0) < 0.003, (value, trial.value)
 
 
-@pytest.mark.parametrize("effect,seed,actuator", [("valve_leak", 7000, "boom"),
-                                                   ("bore_leak", 7328, "bucket")])
+@pytest.mark.parametrize("effect,seed,actuator", UNCATALOGUED)
 def test_an_effect_the_catalogue_does_not_have_is_unexplained_not_a_look_alike(
-        cfg, effect, seed, actuator):
+        cfg, simulated, effect, seed, actuator):
     """A leaking valve on the boom looks like an oil offset to the references (66 % of the
     held-out error explained) but leaves 3.7 mm RMS of 6.5; a bore leak on the bucket (x3.0)
     looks like an oil reading 12.7 degC low (87 % explained) but leaves 0.40 mm of 1.18, where
@@ -172,7 +198,7 @@ def test_an_effect_the_catalogue_does_not_have_is_unexplained_not_a_look_alike(
     the error. Each answered unexplained, no extension, where it was named an oil offset."""
     from ddh_vsensor.diagnosis.reference_report import extension_of
     trial = draw_trial(seed, effect)
-    rr = [reference_run(cfg, actuator, r[actuator]) for r in simulate_trial(cfg, trial)]
+    rr = [reference_run(cfg, actuator, r[actuator]) for r in simulated[trial]]
     d = diagnose_references(cfg, actuator, rr)
     assert d.cause == "unexplained", (trial.describe(), d.decision.reason)
     assert "oil_temp_offset explains part" in d.decision.reason

@@ -2,8 +2,10 @@
 
 Every fenced ``bash``/``sh``/``console`` block is run line by line in a temporary directory that
 holds the repository's files (as a clone has them), in order, so a later block finds what an
-earlier one wrote. A block that cannot run here (systemd, root, a real CAN interface, the test
-suite itself) says so in an HTML comment on the line before it: ``<!-- not run in tests: why -->``.
+earlier one wrote (a command that replays in real time and writes nothing a later one reads,
+:data:`IN_BACKGROUND`, alongside the commands after it). A block that cannot run here
+(systemd, root, a real CAN interface, the test suite itself) says so in an HTML comment on the
+line before it: ``<!-- not run in tests: why -->``.
 """
 
 from __future__ import annotations
@@ -13,8 +15,11 @@ import os
 import re
 import subprocess
 import sys
+import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 import pytest
 
@@ -24,6 +29,10 @@ NOT_RUN = re.compile(r"^<!-- not run in tests: (.+\S) -->$")
 FENCE = re.compile(r"^```(\w*)\s*$")
 SHELLS = ("bash", "sh", "console")
 COMMAND_TIMEOUT_S = 120
+# Commands that replay in real time, mostly waiting on the clock, and write nothing a later
+# command reads (the demo: its figure): each starts in the background where the README has
+# it, the commands after it run meanwhile, and it is awaited and judged at the end.
+IN_BACKGROUND = ("ddh-vsensor demo ",)
 
 
 @dataclass
@@ -96,27 +105,74 @@ def test_readme_has_runnable_blocks_and_every_skip_says_why():
         assert b.not_run is None or len(b.not_run) > 10, (b.line, b.not_run)
 
 
+@dataclass
+class Background:
+    """A command of :data:`IN_BACKGROUND` running, its output going to files (a pipe left
+    unread could fill and stall it)."""
+    line: int
+    command: str
+    proc: subprocess.Popen
+    out: IO[str]
+    err: IO[str]
+    started_s: float
+
+
+def _failure(line: int, command: str, code: int, out: str, err: str) -> str:
+    return f"README line {line}: {command}: exit {code}\n{out[-1500:]}{err[-1500:]}"
+
+
 def test_every_unmarked_readme_command_runs(tmp_path: Path):
-    """Each command of each unmarked block exits 0 (run in order, one directory)."""
+    """Each command of each unmarked block exits 0 (run in order, one directory; those of
+    :data:`IN_BACKGROUND` alongside the commands after them)."""
     _clone_like(tmp_path)
     env = _env()
     ran, failed = 0, []
-    for block in README_BLOCKS:
-        if block.not_run is not None:
-            continue
-        for command in block.commands:
+    background: list[Background] = []
+    try:
+        for block in README_BLOCKS:
+            if block.not_run is not None:
+                continue
+            for command in block.commands:
+                if command.startswith(IN_BACKGROUND):
+                    out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
+                    proc = subprocess.Popen(["bash", "-o", "pipefail", "-c", command],
+                                            cwd=tmp_path, env=env, stdout=out, stderr=err,
+                                            text=True, stdin=subprocess.DEVNULL)
+                    background.append(Background(block.line, command, proc, out, err,
+                                                 time.monotonic()))
+                    continue
+                try:
+                    done = subprocess.run(["bash", "-o", "pipefail", "-c", command],
+                                          check=False, cwd=tmp_path,
+                                          env=env, capture_output=True, text=True,
+                                          stdin=subprocess.DEVNULL, timeout=COMMAND_TIMEOUT_S)
+                except subprocess.TimeoutExpired:
+                    failed.append(f"README line {block.line}: {command}: timed out")
+                    continue
+                ran += 1
+                if done.returncode != 0:
+                    failed.append(_failure(block.line, command, done.returncode, done.stdout,
+                                           done.stderr))
+        for b in background:
             try:
-                done = subprocess.run(["bash", "-o", "pipefail", "-c", command], check=False,
-                                      cwd=tmp_path,
-                                      env=env, capture_output=True, text=True,
-                                      stdin=subprocess.DEVNULL, timeout=COMMAND_TIMEOUT_S)
+                b.proc.wait(max(0.0, b.started_s + COMMAND_TIMEOUT_S - time.monotonic()))
             except subprocess.TimeoutExpired:
-                failed.append(f"README line {block.line}: {command}: timed out")
+                failed.append(f"README line {b.line}: {b.command}: timed out")
                 continue
             ran += 1
-            if done.returncode != 0:
-                failed.append(f"README line {block.line}: {command}: exit {done.returncode}\n"
-                              f"{done.stdout[-1500:]}{done.stderr[-1500:]}")
+            if b.proc.returncode != 0:
+                b.out.seek(0)
+                b.err.seek(0)
+                failed.append(_failure(b.line, b.command, b.proc.returncode, b.out.read(),
+                                       b.err.read()))
+    finally:
+        for b in background:
+            if b.proc.poll() is None:
+                b.proc.kill()
+                b.proc.wait()
+            b.out.close()
+            b.err.close()
+    assert len(background) == len(IN_BACKGROUND)
     assert not failed, "\n\n".join(failed)
     assert ran >= 15
 

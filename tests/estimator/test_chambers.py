@@ -8,7 +8,6 @@ import pytest
 
 from ddh_vsensor.estimator import chambers as ch
 from ddh_vsensor.sim.run import RunSpec, simulate
-from ddh_vsensor.sim.sensors import SensorSettings
 
 AIR = (0.0, 0.004, 0.02)
 
@@ -79,13 +78,13 @@ def test_a_rows_track_does_not_depend_on_its_batch(cfg, run, boom, numpy_step):
         np.testing.assert_array_equal(alone.position_mm, track.position_mm)
 
 
-def test_sampled_at_1_khz_the_torque_balance_is_taken_over_the_window(cfg, run, bucket):
+def test_sampled_at_1_khz_the_torque_balance_is_taken_over_the_window(cfg, run, bucket,
+                                                                      paper_at_1khz):
     """The diagnosis' chamber model as the dynamic mode: on the paper
     cycle at 1 kHz (speed 1, 1040 kg, 27 degC) the nominal model ends 2.04 mm off per sample,
     0.22 mm over the configured 10 ms window; at 100 Hz the window is not used (same tracks
     to the bit)."""
-    fast = simulate(cfg, RunSpec(speed=1, payload_kg=1040.0, oil_temp_c=27.0,
-                                 sensors=SensorSettings(rate_hz=1000.0)))["bucket"]
+    fast = paper_at_1khz["bucket"]
     rows = [ch.ChamberRow(fast.time_s, fast.speed_rpm, fast.torque_nm, fast.oil_temp_c,
                           float(fast.position_mm[0]))]
     window = cfg.estimator.dynamic_window_s

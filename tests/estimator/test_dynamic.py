@@ -7,13 +7,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from ddh_vsensor.config import Config
 from ddh_vsensor.estimator.dynamic import DynamicModel
 from ddh_vsensor.estimator.estimator import Estimator
+from ddh_vsensor.measured import Run
 from ddh_vsensor.physics.steady import holding_speed, steady_state
 from ddh_vsensor.sim.control import PIDSettings
 from ddh_vsensor.sim.cycles import dig_dump_cycle, random_cycle
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign
-from ddh_vsensor.sim.sensors import SensorSettings
 
 
 def _drive(model, run):
@@ -189,46 +190,128 @@ def _compiled_and_python_agree(unit, run):
     assert np.allclose(compiled.state, python.state, rtol=1e-12, atol=1e-6)
 
 
-def _random_run_worst(cfg, unit_tables, actuator, spec):
+def _random_run_worst(cfg, unit_tables, actuator, runs):
     """One simulated run of ``actuator`` and the `dynamic` estimate's worst error on it."""
-    run = simulate_campaign(cfg, [spec])[0][actuator]
+    run = runs[actuator]
     return run, _worst_of(cfg, unit_tables, actuator, run)
 
 
+def _drawn_random_spec(cfg, cycle_seed: int, end_stop_share: float, payload_kg: float,
+                       oil_temp_c: float, seed: int,
+                       drive: tuple[float, float, float] | None = None) -> RunSpec:
+    """A random cycle of a drawn set (`bench/accuracy.py --draw`), on the usual drive or one
+    tuned otherwise: ``drive`` its loop bandwidth (rad/s), derivative and torque filter (s)."""
+    tuned = {} if drive is None else {"controller": PIDSettings(
+        bandwidth_rad_s=drive[0], derivative_filter_s=drive[1], torque_filter_s=drive[2])}
+    return RunSpec(cycle=random_cycle(cfg, cycle_seed, end_stop_share=end_stop_share),
+                   payload_kg=payload_kg, oil_temp_c=oil_temp_c, seed=seed, **tuned)
+
+
+def _specs(cfg: Config) -> dict[str, RunSpec]:
+    """The simulated runs of the module's tests (each test says what its run shows)."""
+    return {
+        "random at 2 degC": RunSpec(
+            cycle=random_cycle(cfg, 31202, end_stop_share=0.012803929599974583),
+            payload_kg=0.0, oil_temp_c=2.0, seed=2),
+        "dig-dump at 77.9 degC": RunSpec(
+            cycle=dig_dump_cycle(cfg, 3), payload_kg=133.82040308733866, oil_temp_c=77.9,
+            seed=0, controller=PIDSettings(bandwidth_rad_s=5.449575331511433,
+                                           derivative_filter_s=0.13517065356614147,
+                                           torque_filter_s=0.01812906380129209)),
+        "drawn at 27.9 degC": _drawn_random_spec(cfg, 200554, 0.10226373223388749,
+                                                 568.7333611096577, 27.9, 6),
+        "random at -7 degC": RunSpec(
+            cycle=random_cycle(cfg, 85302, end_stop_share=0.11608123626627286),
+            payload_kg=1040.0, oil_temp_c=-7.0, seed=502),
+        "drawn at 51.3 degC": _drawn_random_spec(cfg, 119045, 0.15414745651373654,
+                                                 884.9807344225874, 51.3, 9),
+        "random at 49.6 degC, a 6.2 rad/s loop": RunSpec(
+            cycle=random_cycle(cfg, 119062, end_stop_share=0.536860241138741),
+            payload_kg=197.5911786580926, oil_temp_c=49.6, seed=2,
+            controller=PIDSettings(bandwidth_rad_s=6.245090428020477,
+                                   derivative_filter_s=0.10208132114240502,
+                                   torque_filter_s=0.01778734937123935)),
+        "paper at 80 degC": RunSpec(speed=1, payload_kg=1040.0, oil_temp_c=80.0),
+        "drawn at 34.5 degC": _drawn_random_spec(cfg, 200365, 0.2826108396234964,
+                                                 624.8852641953704, 34.5, 5),
+        "swinging drive": RunSpec(
+            cycle=random_cycle(cfg, 58607, end_stop_share=0.13334929005286927),
+            payload_kg=700.0, oil_temp_c=66.0, seed=107, controller=PIDSettings(
+                bandwidth_rad_s=5.986380242039887, torque_filter_s=0.01895034837386141)),
+        "random 413, empty": RunSpec(cycle=random_cycle(cfg, 413, end_stop_share=0.4),
+                                     payload_kg=0.0, oil_temp_c=40.0),
+        "random 415": RunSpec(cycle=random_cycle(cfg, 415, end_stop_share=0.4),
+                              payload_kg=700.0, oil_temp_c=40.0, seed=2),
+        "drawn at 36.7 degC": _drawn_random_spec(
+            cfg, 200963, 0.5434441858713159, 819.0135398181532, 36.7, 3,
+            (3.0331597623588498, 0.11324868953090919, 0.0056277058524570696)),
+        "drawn at 27.8 degC": _drawn_random_spec(
+            cfg, 200840, 0.5746341594830366, 607.1316666180794, 27.8, 4,
+            (6.26046329266064, 0.14129696975089423, 0.005507652580571883)),
+        "random 405": RunSpec(cycle=random_cycle(cfg, 405, end_stop_share=0.4),
+                              payload_kg=0.0, oil_temp_c=5.0, seed=0),
+        "random 413, 700 kg": RunSpec(cycle=random_cycle(cfg, 413, end_stop_share=0.4),
+                                      payload_kg=700.0, oil_temp_c=40.0),
+    }
+
+
+def _lagless_specs(cfg: Config) -> dict[str, RunSpec]:
+    """The runs of the tests measured with the torque's timing at 0 (:func:`_lagging`)."""
+    return {
+        "random at 45 degC": RunSpec(
+            cycle=random_cycle(cfg, 35501, end_stop_share=0.6079986148430917),
+            payload_kg=900.0, oil_temp_c=45.0, seed=1),
+        "a 6.7 ms torque ramp": RunSpec(
+            cycle=random_cycle(cfg, 54805, end_stop_share=0.10353854752850625),
+            payload_kg=200.0, oil_temp_c=28.0, seed=105, controller=PIDSettings(
+                bandwidth_rad_s=5.122519299516545, torque_filter_s=0.006656333457238676)),
+        "random 420": RunSpec(cycle=random_cycle(cfg, 420, end_stop_share=0.4),
+                              payload_kg=1040.0, oil_temp_c=65.0, seed=3),
+    }
+
+
+@pytest.fixture(scope="module")
+def simulated(cfg: Config) -> dict[str, dict[str, Run]]:
+    """The runs of :func:`_specs` (on ``cfg``) and of :func:`_lagless_specs` (on ``cfg`` with
+    the torque's timing at 0): name -> unit -> run. Each set is one call of the simulator,
+    which steps the runs in lockstep (each as it is simulated alone) at a fraction of the
+    cost of one call per run."""
+    lagless = _lagging(cfg, 0.0)
+    out: dict[str, dict[str, Run]] = {}
+    for config, specs in ((cfg, _specs(cfg)), (lagless, _lagless_specs(lagless))):
+        assert not out.keys() & specs.keys()
+        out.update(zip(specs, simulate_campaign(config, list(specs.values()))))
+    return out
+
+
 def test_reaching_the_speed_limit_within_a_sample_is_a_torque_step_of_unknown_shape(
-        cfg, unit_tables):
+        cfg, unit_tables, simulated):
     """A random cycle at 2 degC (a set no rule was made on) drives the bucket's motor into
     its 6000 rpm limit (32.82 s): the acceleration ends early in the sample and the torque
     falls 37 N*m, under the torque-step threshold (40.5 N*m); the end values' mean read as
     pump torque was 15 N*m off, +31 bar on B, 1.85 mm worst over the run. Reaching (or
     leaving) the limit is now such a step whatever its size: 0.75 mm measured."""
-    _, worst = _random_run_worst(cfg, unit_tables, "bucket", RunSpec(
-        cycle=random_cycle(cfg, 31202, end_stop_share=0.012803929599974583), payload_kg=0.0,
-        oil_temp_c=2.0, seed=2))
+    _, worst = _random_run_worst(cfg, unit_tables, "bucket", simulated["random at 2 degC"])
     assert worst <= 0.85
 
 
 def test_the_step_after_reaching_the_speed_limit_is_of_unknown_shape_too(cfg, unit_tables,
-                                                                          bucket):
+                                                                          bucket, simulated):
     """A dig-dump cycle at 77.9 degC on a drive tuned otherwise (a drawn set no rule was made
     on) takes the bucket's motor to -6000 rpm at one sample (4.56 s); only in the next step
     does the limiter's torque settle (-26 -> -14 N*m, the speed at the limit on both ends: no
     edge). Read as a ramp, the pump torque was 4 N*m off, +9 bar on B, 0.58 mm worst over the
     run; the step after an edge is now an edge too: 0.26 mm measured. The Python step does
     the same."""
-    run, worst = _random_run_worst(cfg, unit_tables, "bucket", RunSpec(
-        cycle=dig_dump_cycle(cfg, 3), payload_kg=133.82040308733866, oil_temp_c=77.9, seed=0,
-        controller=PIDSettings(bandwidth_rad_s=5.449575331511433,
-                               derivative_filter_s=0.13517065356614147,
-                               torque_filter_s=0.01812906380129209)))
+    run, worst = _random_run_worst(cfg, unit_tables, "bucket", simulated["dig-dump at 77.9 degC"])
     assert worst <= 0.32
     _compiled_and_python_agree(bucket, run)
 
 
-def _with_and_without(cfg, unit_tables, actuator, spec, **off):
+def _with_and_without(cfg, unit_tables, actuator, runs, **off):
     """The `dynamic` estimate's worst error on one simulated run, as configured and with the
     ``estimator.*`` keys ``off`` (a rule switched off)."""
-    run, worst = _random_run_worst(cfg, unit_tables, actuator, spec)
+    run, worst = _random_run_worst(cfg, unit_tables, actuator, runs)
     return worst, _worst_of(_tuned(cfg, **off), unit_tables, actuator, run)
 
 
@@ -242,7 +325,8 @@ def _lagging(cfg, torque_lag_s):
         u.motor, torque_lag_s=torque_lag_s)) for name, u in cfg.units.items()})
 
 
-def test_a_torque_bending_between_its_samples_is_not_read_as_pressure(cfg, unit_tables):
+def test_a_torque_bending_between_its_samples_is_not_read_as_pressure(cfg, unit_tables,
+                                                                     simulated):
     """A random cycle at 45 degC (900 kg, a set no rule was made on) starts the boom from a
     loaded hold: the drive's loop swings its torque 66 -> -31 -> 7 -> 49 N*m in four samples
     while the motor decelerates 671 -> 289 rpm and the true pressures stay within 70-90 bar.
@@ -252,27 +336,25 @@ def test_a_torque_bending_between_its_samples_is_not_read_as_pressure(cfg, unit_
     Measured with the torque's timing at 0: at the default 0.5 ms the lag alone takes this
     run to 0.25 mm without the band."""
     cfg = _lagging(cfg, 0.0)
-    worst, straight = _with_and_without(cfg, unit_tables, "boom", RunSpec(
-        cycle=random_cycle(cfg, 35501, end_stop_share=0.6079986148430917), payload_kg=900.0,
-        oil_temp_c=45.0, seed=1), dynamic_torque_curvature=0.0)
+    worst, straight = _with_and_without(cfg, unit_tables, "boom", simulated["random at 45 degC"],
+                                        dynamic_torque_curvature=0.0)
     assert worst <= 0.35
     assert straight >= 0.5
 
 
-def test_a_torque_bending_between_its_samples_may_peak_past_them(cfg, unit_tables):
+def test_a_torque_bending_between_its_samples_may_peak_past_them(cfg, unit_tables, simulated):
     """A drawn set's 27.9 degC bucket run (569 kg, the usual drive) brakes the motor from
     -1228 to -803 rpm in two samples while the torque reads 7, 59, 62 N*m: the speed's
     change asks 81 N*m of inertia torque of a trapezoid of 61, the drive's torque peaked
     between the samples. Within the step's ends the bend's band let the model read 5 N*m of
     it as pump torque, B 10 bar high, the rod thrown +31 mm/s for a sample: 0.67 mm worst.
     Past the ends as far as the last step's change, as the speed's band may: 0.19 mm."""
-    _, worst = _random_run_worst(cfg, unit_tables, "bucket", _drawn_random_spec(
-        cfg, 200554, 0.10226373223388749, 568.7333611096577, 27.9, 6))
+    _, worst = _random_run_worst(cfg, unit_tables, "bucket", simulated["drawn at 27.9 degC"])
     assert worst <= 0.25
 
 
 def test_where_the_speed_disagrees_with_the_torque_samples_the_mean_is_uncertain(
-        cfg, unit_tables):
+        cfg, unit_tables, simulated):
     """A drive with a faster torque ramp (6.7 ms; 5.1 rad/s loop; 28 degC, 200 kg) starts
     the bucket from a hold: 8 -> 188 rpm while the torque reads 10 -> 50 N*m, just under the
     step threshold and hardly bent. The speed's second difference says the step's mean
@@ -282,17 +364,14 @@ def test_where_the_speed_disagrees_with_the_torque_samples_the_mean_is_uncertain
     disagreement beyond its floor is now how far the mean may lie off the trapezoid: 0.49 mm.
     Measured with the torque's timing at 0 (at the default 0.5 ms, 0.31 / 1.92 mm)."""
     cfg = _lagging(cfg, 0.0)
-    spec = RunSpec(cycle=random_cycle(cfg, 54805, end_stop_share=0.10353854752850625),
-                   payload_kg=200.0, oil_temp_c=28.0, seed=105, controller=PIDSettings(
-                       bandwidth_rad_s=5.122519299516545,
-                       torque_filter_s=0.006656333457238676))
-    worst, deaf = _with_and_without(cfg, unit_tables, "bucket", spec,
+    worst, deaf = _with_and_without(cfg, unit_tables, "bucket", simulated["a 6.7 ms torque ramp"],
                                     dynamic_speed_disagreement=0.0)
     assert worst <= 0.55
     assert deaf >= 1.5
 
 
-def test_a_swing_may_peak_beyond_both_samples_where_the_speed_says_so(cfg, unit_tables):
+def test_a_swing_may_peak_beyond_both_samples_where_the_speed_says_so(cfg, unit_tables,
+                                                                     simulated):
     """Cold oil (-7 degC, 1040 kg, a set built after the speed's say): the bucket's drive
     swings -58 -> -42 -> -5 -> 5 -> -21 N*m while the motor speeds up and slows again
     (-271 -> -427 -> -327 rpm); over one sample the speed says the mean torque rose 47 N*m,
@@ -300,13 +379,12 @@ def test_a_swing_may_peak_beyond_both_samples_where_the_speed_says_so(cfg, unit_
     step's ends the pump torque was read 10 N*m low, A dipped below the anti-cavitation
     valve's cracking and the model's valve filled it: 1.19 mm. Up to a whole change past the
     trapezoid where the speed says so: 0.58 mm."""
-    _, worst = _random_run_worst(cfg, unit_tables, "bucket", RunSpec(
-        cycle=random_cycle(cfg, 85302, end_stop_share=0.11608123626627286), payload_kg=1040.0,
-        oil_temp_c=-7.0, seed=502))
+    _, worst = _random_run_worst(cfg, unit_tables, "bucket", simulated["random at -7 degC"])
     assert worst <= 0.7
 
 
-def test_a_torque_ringing_between_its_samples_may_peak_by_its_last_change(cfg, unit_tables):
+def test_a_torque_ringing_between_its_samples_may_peak_by_its_last_change(cfg, unit_tables,
+                                                                         simulated):
     """A drawn set's 51.3 degC bucket run (885 kg, the usual drive): the bucket stands at
     -24 rpm and starts with its torque ringing at about 25 Hz, four samples a period
     (-22, -52, -36, +6, +9, -20 N*m). Between the samples +6 and +9 the motor loses 123 rpm:
@@ -316,15 +394,14 @@ def test_a_torque_ringing_between_its_samples_may_peak_by_its_last_change(cfg, u
     Samples either side of a peak change little however large the swing: the band reaches
     the last step's change too (42 N*m here): 0.28 mm; without the speed's say, 1.00 (the
     bend's band, which may reach as far, reads part of it)."""
-    spec = _drawn_random_spec(cfg, 119045, 0.15414745651373654, 884.9807344225874, 51.3, 9)
-    worst, deaf = _with_and_without(cfg, unit_tables, "bucket", spec,
+    worst, deaf = _with_and_without(cfg, unit_tables, "bucket", simulated["drawn at 51.3 degC"],
                                     dynamic_speed_disagreement=0.0)
     assert worst <= 0.4
     assert deaf >= 0.8
 
 
 def test_a_rod_that_left_its_end_stop_goes_on_taking_up_speed_with_its_mass(
-        cfg, unit_tables, boom):
+        cfg, unit_tables, boom, simulated):
     """A drawn set's 49.6 degC boom run (200 kg; a drive tuned to a 6.2 rad/s loop and an
     18 ms torque ramp) drives the boom off its top stop at the torque limit, again and
     again. The first moving sample was held to what half the force beyond the load gives
@@ -332,17 +409,14 @@ def test_a_rod_that_left_its_end_stop_goes_on_taking_up_speed_with_its_mass(
     its full speed at once, a sample before the real one had it: 0.47 mm worst. In that
     sample too the rod takes up speed from the force beyond the load it held on the stop:
     0.26 mm. The Python step does the same."""
-    spec = RunSpec(cycle=random_cycle(cfg, 119062, end_stop_share=0.536860241138741),
-                   payload_kg=197.5911786580926, oil_temp_c=49.6, seed=2,
-                   controller=PIDSettings(bandwidth_rad_s=6.245090428020477,
-                                          derivative_filter_s=0.10208132114240502,
-                                          torque_filter_s=0.01778734937123935))
-    run, worst = _random_run_worst(cfg, unit_tables, "boom", spec)
+    run, worst = _random_run_worst(cfg, unit_tables, "boom",
+                                   simulated["random at 49.6 degC, a 6.2 rad/s loop"])
     assert worst <= 0.33
     _compiled_and_python_agree(boom, run)
 
 
-def test_a_standing_pump_holds_the_pressures_its_torque_cannot_tell(cfg, unit_tables):
+def test_a_standing_pump_holds_the_pressures_its_torque_cannot_tell(cfg, unit_tables,
+                                                                    simulated):
     """The paper's cycle at 80 degC with 1040 kg: the boom holds its load at 78 bar between
     moves, the motor at 0 rpm while the drive eases its torque off (29 -> 25 N*m) as the
     pumps' static friction takes part of the load. Read as pumping torque, the model's A
@@ -350,8 +424,7 @@ def test_a_standing_pump_holds_the_pressures_its_torque_cannot_tell(cfg, unit_ta
     its rod sank by leakage it does not have: 0.51 mm worst. Wherever the pumps stand (or
     reverse), a torque within their friction band holds the pressures: within 1 bar of the
     simulator's (0.41 measured), 0.20 mm worst."""
-    run = simulate_campaign(cfg, [RunSpec(speed=1, payload_kg=1040.0,
-                                          oil_temp_c=80.0)])[0]["boom"]
+    run = simulated["paper at 80 degC"]["boom"]
     est = Estimator(cfg, "boom", unit_tables["boom"], mode="dynamic", references=False,
                     initial_position_mm=float(run.position_mm[0]))
     x, p_a = np.empty(len(run.time_s)), np.empty(len(run.time_s))
@@ -365,7 +438,7 @@ def test_a_standing_pump_holds_the_pressures_its_torque_cannot_tell(cfg, unit_ta
     assert np.max(np.abs(x - run.position_mm)) <= 0.25
 
 
-def test_a_rod_at_rest_starts_with_the_force_that_starts_it(cfg, unit_tables):
+def test_a_rod_at_rest_starts_with_the_force_that_starts_it(cfg, unit_tables, simulated):
     """A drawn set's 34.5 degC bucket run (625 kg, the usual drive): the bucket holds at
     -11 rpm, then the drive kicks it to +64 rpm in one sample while its torque reads
     -12.9 -> +10.0 -> -13.1 N*m (a change under the speed's floor, 5 N*m, from the
@@ -373,21 +446,17 @@ def test_a_rod_at_rest_starts_with_the_force_that_starts_it(cfg, unit_tables):
     travel where the rod crept at 1-3 mm/s: 0.64 mm worst. A rod at rest takes up speed
     only the way the chambers' force changed beyond its static friction, no faster than
     that gives the empty machine's mass: 0.41 mm."""
-    spec = _drawn_random_spec(cfg, 200365, 0.2826108396234964, 624.8852641953704, 34.5, 5)
-    worst, unbound = _with_and_without(cfg, unit_tables, "bucket", spec,
+    worst, unbound = _with_and_without(cfg, unit_tables, "bucket", simulated["drawn at 34.5 degC"],
                                        dynamic_start_tolerance_m_s2=1000.0)
     assert worst <= 0.47
     assert unbound >= 0.58
 
 
 @pytest.fixture(scope="module")
-def swinging_drive_run(cfg):
+def swinging_drive_run(simulated) -> Run:
     """A drive tuned otherwise (position loop 6 rad/s, a 19 ms torque ramp; 66 degC, 700 kg):
     the bucket swings between -6000 and +2000 rpm at the torque limit for most of a minute."""
-    return simulate_campaign(cfg, [RunSpec(
-        cycle=random_cycle(cfg, 58607, end_stop_share=0.13334929005286927), payload_kg=700.0,
-        oil_temp_c=66.0, seed=107, controller=PIDSettings(
-            bandwidth_rad_s=5.986380242039887, torque_filter_s=0.01895034837386141))])[0]["bucket"]
+    return simulated["swinging drive"]["bucket"]
 
 
 def test_a_reading_one_rpm_below_the_limit_may_be_the_limit_reached_a_sample_later(
@@ -414,41 +483,28 @@ def test_a_torque_reported_behind_the_speed_is_carried_to_the_speeds_instants(
     assert _worst_of(_lagging(cfg, -0.0005), unit_tables, "bucket", run) >= 1.5
 
 
-def test_a_reversal_on_an_end_stop_is_read_through_the_pumps_friction_band(cfg, unit_tables):
+def test_a_reversal_on_an_end_stop_is_read_through_the_pumps_friction_band(cfg, unit_tables,
+                                                                          simulated):
     """A random cycle at 40 degC that presses the boom onto its top stop and reverses off it
     within one sample (56.69 s): the step's mean torque mixes the pumping and the motoring
     friction, and read as pressure it moved the rod 0.4 mm off the stop (worst 0.76 mm over
     the run). Within the band between the two the pressures are held: 0.37 mm measured."""
-    _, worst = _random_run_worst(cfg, unit_tables, "boom", RunSpec(
-        cycle=random_cycle(cfg, 413, end_stop_share=0.4), payload_kg=0.0, oil_temp_c=40.0))
+    _, worst = _random_run_worst(cfg, unit_tables, "boom", simulated["random 413, empty"])
     assert worst <= 0.5
 
 
-def test_a_rod_driven_off_its_end_stop_waits_for_its_load(cfg, unit_tables, bucket):
+def test_a_rod_driven_off_its_end_stop_waits_for_its_load(cfg, unit_tables, bucket, simulated):
     """A random cycle at 40 degC (700 kg) presses the bucket onto its bottom stop, B at
     190 bar, and reverses off it at the torque limit (51.36 s): the rod stays on the stop for
     60 ms more, until B has decompressed and the chambers' force overcomes the load it held
     arriving. Read as pressure, the torque had moved the model's rod 0.5 mm early (0.56 mm
     worst over the run); waiting for that force: 0.38 mm. The Python step waits the same."""
-    run, worst = _random_run_worst(cfg, unit_tables, "bucket", RunSpec(
-        cycle=random_cycle(cfg, 415, end_stop_share=0.4), payload_kg=700.0, oil_temp_c=40.0,
-        seed=2))
+    run, worst = _random_run_worst(cfg, unit_tables, "bucket", simulated["random 415"])
     assert worst <= 0.45
     _compiled_and_python_agree(bucket, run)
 
 
-def _drawn_random_spec(cfg, cycle_seed: int, end_stop_share: float, payload_kg: float,
-                       oil_temp_c: float, seed: int,
-                       drive: tuple[float, float, float] | None = None) -> RunSpec:
-    """A random cycle of a drawn set (`bench/accuracy.py --draw`), on the usual drive or one
-    tuned otherwise: ``drive`` its loop bandwidth (rad/s), derivative and torque filter (s)."""
-    tuned = {} if drive is None else {"controller": PIDSettings(
-        bandwidth_rad_s=drive[0], derivative_filter_s=drive[1], torque_filter_s=drive[2])}
-    return RunSpec(cycle=random_cycle(cfg, cycle_seed, end_stop_share=end_stop_share),
-                   payload_kg=payload_kg, oil_temp_c=oil_temp_c, seed=seed, **tuned)
-
-
-def test_a_rod_held_back_leaves_the_pumps_flow_to_the_valves(cfg, unit_tables, boom):
+def test_a_rod_held_back_leaves_the_pumps_flow_to_the_valves(cfg, unit_tables, boom, simulated):
     """A drawn set's 36.7 degC boom run (819 kg, a drive tuned to a 3 rad/s loop) reverses
     off its top stop with the motor at -3500 rpm, its rod side on the 76 bar relief. In the
     first moving sample the rod is held to what the force beyond its load gives its mass;
@@ -456,14 +512,12 @@ def test_a_rod_held_back_leaves_the_pumps_flow_to_the_valves(cfg, unit_tables, b
     the chamber force then threw the rod off the stop early: 0.60 mm worst. The pressures at
     the speed the rod is given are each chamber's own, valves included (B stays at 76 bar):
     0.49 mm. The Python step does the same."""
-    run, worst = _random_run_worst(cfg, unit_tables, "boom", _drawn_random_spec(
-        cfg, 200963, 0.5434441858713159, 819.0135398181532, 36.7, 3,
-        (3.0331597623588498, 0.11324868953090919, 0.0056277058524570696)))
+    run, worst = _random_run_worst(cfg, unit_tables, "boom", simulated["drawn at 36.7 degC"])
     assert worst <= 0.53
     _compiled_and_python_agree(boom, run)
 
 
-def test_a_rod_pressed_onto_its_stop_by_both_reliefs_stays(cfg, unit_tables, bucket):
+def test_a_rod_pressed_onto_its_stop_by_both_reliefs_stays(cfg, unit_tables, bucket, simulated):
     """A drawn set's 27.8 degC bucket run (607 kg, a drive with a 5.5 ms torque ramp) presses
     the bucket onto its bottom stop, B on its 172 bar relief, and reverses off it at the
     torque limit (20.42 s): the pumps fill the stiff A chamber to its 70 bar relief within a
@@ -472,14 +526,12 @@ def test_a_rod_pressed_onto_its_stop_by_both_reliefs_stays(cfg, unit_tables, buc
     pressed it onto the stop (-78 kN against a held load of -35): 0.54 mm worst. Only the
     valves that push a rod off its stop (off the bottom: A's relief, B's anti-cavitation
     valve) let it go whatever it held: 0.24 mm. The Python step does the same."""
-    run, worst = _random_run_worst(cfg, unit_tables, "bucket", _drawn_random_spec(
-        cfg, 200840, 0.5746341594830366, 607.1316666180794, 27.8, 4,
-        (6.26046329266064, 0.14129696975089423, 0.005507652580571883)))
+    run, worst = _random_run_worst(cfg, unit_tables, "bucket", simulated["drawn at 27.8 degC"])
     assert worst <= 0.3
     _compiled_and_python_agree(bucket, run)
 
 
-def test_a_rod_leaving_its_end_stop_breaks_its_friction_first(cfg, unit_tables):
+def test_a_rod_leaving_its_end_stop_breaks_its_friction_first(cfg, unit_tables, simulated):
     """The check set's 65 degC bucket run (a random cycle, 1040 kg) holds the bucket on its
     bottom stop at 200 bar and reverses off it at the torque limit (49.9 s). The load the rod
     held arriving is the chamber force less the friction that helped it then; leaving, the
@@ -489,9 +541,7 @@ def test_a_rod_leaving_its_end_stop_breaks_its_friction_first(cfg, unit_tables):
     torque's timing at 0. With the rod's mass in the sample after leaving too (a later test)
     the frictionless rod is caught up there: 0.26 mm in the window, 0.27 over the run."""
     cfg = _lagging(cfg, 0.0)
-    spec = RunSpec(cycle=random_cycle(cfg, 420, end_stop_share=0.4), payload_kg=1040.0,
-                   oil_temp_c=65.0, seed=3)
-    run, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
+    run, worst = _random_run_worst(cfg, unit_tables, "bucket", simulated["random 420"])
     assert worst <= 0.3
     est = Estimator(cfg, "bucket", unit_tables["bucket"], mode="dynamic", references=False,
                     initial_position_mm=float(run.position_mm[0]))
@@ -509,16 +559,14 @@ def test_a_rod_leaving_its_end_stop_breaks_its_friction_first(cfg, unit_tables):
     assert np.max(np.abs(err[window])) >= 0.24
 
 
-def test_a_rod_leaving_its_end_stop_takes_up_speed_with_its_mass(cfg, unit_tables):
+def test_a_rod_leaving_its_end_stop_takes_up_speed_with_its_mass(cfg, unit_tables, simulated):
     """The check set's 5 degC bucket run (a random cycle, empty) drives the bucket off its end
     stops at the torque limit. Once the chambers' force passes what held the rod, the torque
     read as pressure gave the model's rod its full speed in that sample, while the real one
     (with the empty machine's 3 t at the rod at least) accelerates from the force beyond the
     threshold, growing from nothing within the sample: 0.35 mm worst over the run. Limited
     to what half that force gives the empty machine's mass in the sample: 0.17 mm."""
-    spec = RunSpec(cycle=random_cycle(cfg, 405, end_stop_share=0.4), payload_kg=0.0,
-                   oil_temp_c=5.0, seed=0)
-    run, worst = _random_run_worst(cfg, unit_tables, "bucket", spec)
+    run, worst = _random_run_worst(cfg, unit_tables, "bucket", simulated["random 405"])
     assert worst <= 0.22
     massless = dataclasses.replace(cfg, units={**cfg.units, "bucket": dataclasses.replace(
         cfg.units["bucket"], load=dataclasses.replace(cfg.units["bucket"].load, mass_kg=1e-3))})
@@ -553,15 +601,14 @@ def _window_run(cfg, unit_tables, run, actuator, window_s):
 
 
 def test_at_1_khz_whole_rpm_speed_steps_are_not_read_as_inertia_torque(cfg, unit_tables,
-                                                                       bucket):
+                                                                       bucket, paper_at_1khz):
     """The drive reports whole rpm: sampled at 1 kHz, one rpm of speed difference is 3 N m of
     bucket inertia torque, and per sample the paper cycle (speed 1, 1040 kg, 27 degC) ends
     2.04 mm off (0.14 mm with the speed unrounded). Over the 10 ms window: 0.22 mm measured.
     (Per sample with a rod at rest starting only with the force that starts it: 0.51 mm, as
     that rule holds much of the same noise at standstill; the window's own figure is taken
     without it.) The ring of the window is the same arithmetic in C and Python."""
-    run = simulate_campaign(cfg, [RunSpec(speed=1, payload_kg=1040.0, oil_temp_c=27.0,
-                                          sensors=SensorSettings(rate_hz=1000.0))])[0]["bucket"]
+    run = paper_at_1khz["bucket"]
     assert np.all(run.speed_rpm == np.round(run.speed_rpm))
     unbound = _tuned(cfg, dynamic_start_tolerance_m_s2=1000.0)
     worst = {w: float(np.nanmax(np.abs(_window_run(c, unit_tables, run, "bucket", w)
@@ -581,32 +628,30 @@ def test_at_1_khz_whole_rpm_speed_steps_are_not_read_as_inertia_torque(cfg, unit
     assert np.allclose(compiled.state, python.state, rtol=1e-12, atol=1e-6)
 
 
-def test_at_the_drives_100_hz_the_window_is_one_sample(cfg, unit_tables):
+def test_at_the_drives_100_hz_the_window_is_one_sample(cfg, unit_tables, simulated):
     """The rules of this mode were measured at 100 Hz; there the window is the sample
     itself, and the estimate is the per-sample balance's to the bit."""
-    run = simulate_campaign(cfg, [RunSpec(cycle=random_cycle(cfg, 413, end_stop_share=0.4),
-                                          payload_kg=700.0, oil_temp_c=40.0)])[0]["bucket"]
+    run = simulated["random 413, 700 kg"]["bucket"]
     assert np.array_equal(_window_run(cfg, unit_tables, run, "bucket", 0.0),
                           _window_run(cfg, unit_tables, run, "bucket", 0.01))
 
 
-def test_a_lost_frame_is_two_periods_and_a_late_one_is_one(cfg, unit_tables, bucket):
+def test_a_lost_frame_is_two_periods_and_a_late_one_is_one(cfg, unit_tables, bucket, simulated,
+                                                           paper_at_1khz):
     """The step is taken over the drive's periods, not the stamps' difference. A random cycle
     at 40 degC (700 kg, 100 Hz) with 5 % of the frames lost: bucket 0.48 mm (clean 0.32;
     1.23 when lost frames lengthened the learnt cadence); stamps jittered +-3 ms: 0.67 mm
     (0.84). The paper cycle at 1 kHz with frames
     late by 0..0.8 ms: 0.20 mm (4.9 mm when a short stamp difference was taken as the step).
     Compiled and Python steps agree through the learning, the lost and the late frames."""
-    run = simulate_campaign(cfg, [RunSpec(cycle=random_cycle(cfg, 413, end_stop_share=0.4),
-                                          payload_kg=700.0, oil_temp_c=40.0)])[0]["bucket"]
+    run = simulated["random 413, 700 kg"]["bucket"]
     every = np.ones(len(run.time_s), dtype=bool)
     kept = np.random.default_rng(1).random(len(run.time_s)) >= 0.05
     kept[0] = True
     jittered = run.time_s + np.random.default_rng(2).uniform(-0.003, 0.003, len(run.time_s))
     assert _worst_of(cfg, unit_tables, "bucket", run, run.time_s, kept) <= 0.6
     assert _worst_of(cfg, unit_tables, "bucket", run, jittered, every) <= 0.8
-    fast = simulate_campaign(cfg, [RunSpec(speed=1, payload_kg=1040.0, oil_temp_c=27.0,
-                                           sensors=SensorSettings(rate_hz=1000.0))])[0]["bucket"]
+    fast = paper_at_1khz["bucket"]
     late = fast.time_s + np.random.default_rng(3).uniform(0.0, 0.0008, len(fast.time_s))
     assert _worst_of(cfg, unit_tables, "bucket", fast, late, np.ones(len(late), dtype=bool)) <= 0.3
     part = SimpleNamespace(time_s=late[:3000][kept[:3000]], **{

@@ -11,30 +11,69 @@ import dataclasses
 import numpy as np
 import pytest
 
-from ddh_vsensor.config import DATASHEET_TOLERANCES
+from ddh_vsensor.config import DATASHEET_TOLERANCES, Config
 from ddh_vsensor.estimator import kalman
 from ddh_vsensor.estimator.flags import EXPLAINING
+from ddh_vsensor.measured import Run
 from ddh_vsensor.sim.cycles import dig_dump_cycle, random_cycle
 from ddh_vsensor.sim.effects import build_effects, structure_effects
 from ddh_vsensor.sim.run import RunSpec, simulate_campaign
 
 RANDOM_SEED_27C = 207           # bench/accuracy.py's first random cycle at 27 degC
+AIR = 0.0058                    # the entrained air of the near-vacuum test
+
+
+def _specs(cfg: Config) -> dict[str, RunSpec]:
+    """The simulated runs of the module's tests (each test says what its run shows)."""
+    def structure(times: float) -> dict:
+        effects = structure_effects(times)
+        return {a: effects for a in cfg.unit_names}
+
+    return {
+        **{f"nominal {t:g} degC": RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=t)
+           for t in (-10.0, 27.0)},
+        **{f"typical {t:g} degC": RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=t,
+                                          effects=structure(1.0)) for t in (-10.0, 27.0)},
+        "typical 75 degC, 500 kg": RunSpec(speed=4, payload_kg=500.0, oil_temp_c=75.0,
+                                           effects=structure(1.0)),
+        "twice typical -10 degC": RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=-10.0,
+                                          effects=structure(2.0)),
+        "random typical": RunSpec(cycle=random_cycle(cfg, RANDOM_SEED_27C), payload_kg=0.0,
+                                  oil_temp_c=27.0, effects=structure(1.0)),
+        **{f"dig-dump {t:g} degC": RunSpec(cycle=dig_dump_cycle(cfg, 4), payload_kg=0.0,
+                                           oil_temp_c=t) for t in (27.0, 80.0)},
+        "dig-dump with air": RunSpec(cycle=dig_dump_cycle(cfg, 3), speed=3, payload_kg=500.0,
+                                     oil_temp_c=-10.0, seed=1,
+                                     effects=build_effects([f"compressibility={AIR}"],
+                                                           cfg.unit_names)),
+        "paper -5 degC": RunSpec(speed=4, payload_kg=500.0, oil_temp_c=-5.0),
+        "random twice typical": RunSpec(cycle=random_cycle(cfg, RANDOM_SEED_27C),
+                                        payload_kg=0.0, oil_temp_c=27.0,
+                                        effects=structure(2.0)),
+        "torque 40 % high": RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=27.0,
+                                    effects=build_effects(["torque_gain=1.4"], cfg.unit_names)),
+    }
 
 
 @pytest.fixture(scope="module")
-def nominal(cfg):
+def simulated(cfg: Config) -> dict[str, dict[str, Run]]:
+    """The runs of :func:`_specs`, name -> unit -> run: one call of the simulator, which
+    steps them in lockstep (each as it is simulated alone) at a fraction of the cost of one
+    call per run."""
+    specs = _specs(cfg)
+    return dict(zip(specs, simulate_campaign(cfg, list(specs.values()))))
+
+
+@pytest.fixture(scope="module")
+def nominal(simulated) -> list[dict[str, Run]]:
     """The paper cycle at speed 4 with 1040 kg, cold and warm oil."""
-    specs = [RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=t) for t in (-10.0, 27.0)]
-    return simulate_campaign(cfg, specs)
+    return [simulated[f"nominal {t:g} degC"] for t in (-10.0, 27.0)]
 
 
 @pytest.fixture(scope="module")
-def typical(cfg):
+def typical(simulated) -> list[dict[str, Run]]:
     """The same runs with every structure effect the model lacks at its typical value."""
-    effects = structure_effects(1.0)
-    specs = [RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=t,
-                     effects={a: effects for a in cfg.unit_names}) for t in (-10.0, 27.0)]
-    return simulate_campaign(cfg, specs)
+    return [simulated[f"typical {t:g} degC"] for t in (-10.0, 27.0)]
 
 
 def _jobs(cfg, runs):
@@ -75,7 +114,7 @@ def test_typical_structure_stays_covered_without_references(cfg, typical):
         assert _unflagged_beyond(e, r) <= 0.005, a                         # measured: 0
 
 
-def test_a_rod_held_short_of_its_stop_by_a_leakage_the_model_lacks_is_covered(cfg):
+def test_a_rod_held_short_of_its_stop_by_a_leakage_the_model_lacks_is_covered(cfg, simulated):
     """The boom at 75 degC on the paper cycle, every structure effect at its typical value:
     its pumps, 30 % of their leakage through orifices, leak less in hot oil than the laminar
     model says, so the boom hovers 1.0-1.5 mm above its bottom stop while the datasheet
@@ -83,9 +122,7 @@ def test_a_rod_held_short_of_its_stop_by_a_leakage_the_model_lacks_is_covered(cf
     torque says the rod floats; where the flow error moved nothing at a stroke end, the spread
     closed onto the stop and 8 % of the run was published up to 0.9 mm beyond its
     uncertainty with no flag."""
-    effects = structure_effects(1.0)
-    run = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=500.0, oil_temp_c=75.0, effects={
-        a: effects for a in cfg.unit_names})])[0]["boom"]
+    run = simulated["typical 75 degC, 500 kg"]["boom"]
     datasheet = dataclasses.replace(cfg, tolerances=DATASHEET_TOLERANCES)
     res = kalman.run_many(datasheet, [("boom", run)], references=True,
                           initial_positions_mm=[float(run.position_mm[0])],
@@ -109,15 +146,12 @@ def test_edge_innovations_say_the_flow_bounds_fit_the_typical_structure(cfg, typ
         assert res.flow_variance_scale == 1.0, a
 
 
-def test_edges_widen_the_flow_error_where_the_bounds_are_wrong(cfg):
+def test_edges_widen_the_flow_error_where_the_bounds_are_wrong(cfg, simulated):
     """Twice the typical structure (beyond the bounds): the boom's edges on the cold paper
     cycle see the excess (measured: the flow error's variance scaled 2.05 times the bands')
     and its readings stay covered where they are not flagged (measured 0; 44 % before the
     edges widened and the flow error was kept over holds)."""
-    effects = structure_effects(2.0)
-    run = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=-10.0,
-                                          effects={a: effects for a in cfg.unit_names})])[0]
-    r = run["boom"]
+    r = simulated["twice typical -10 degC"]["boom"]
     res = kalman.run_many(cfg, [("boom", r)], references=True,
                           initial_positions_mm=[float(r.position_mm[0])])[0]
     assert res.flow_variance_scale > 1.5
@@ -141,16 +175,13 @@ def test_the_edge_cusum_threshold_gives_its_false_alarm_rate():
     assert abs(length.mean() * rate - 1.0) < 0.1
 
 
-def test_a_torque_the_model_cannot_explain_does_not_move_the_load(cfg):
+def test_a_torque_the_model_cannot_explain_does_not_move_the_load(cfg, simulated):
     """The typical structure's random cycle at 27 degC: the bucket reverses off its top stop
     after a 4 s push while the real chamber B still cavitates and the model's pressurises
     (the torque's innovation far beyond its gate). The load stays within 4 kN over that
     reversal (measured 2.2 kN; it moved 7 kN before the gate) and no reading is wrong by more
     than it says unflagged (measured 0; 4.9 % before)."""
-    effects = structure_effects(1.0)
-    spec = RunSpec(cycle=random_cycle(cfg, RANDOM_SEED_27C), payload_kg=0.0, oil_temp_c=27.0,
-                   effects={a: effects for a in cfg.unit_names})
-    r = simulate_campaign(cfg, [spec])[0]["bucket"]
+    r = simulated["random typical"]["bucket"]
     res = kalman.run_many(cfg, [("bucket", r)], references=True,
                           initial_positions_mm=[float(r.position_mm[0])])[0]
     reversal = (r.time_s > 46.8) & (r.time_s < 47.3)
@@ -158,14 +189,12 @@ def test_a_torque_the_model_cannot_explain_does_not_move_the_load(cfg):
     assert _unflagged_beyond(res.estimate, r) <= 0.001
 
 
-def test_a_rod_pressed_on_a_stop_at_the_torque_limit_keeps_its_switches(cfg):
+def test_a_rod_pressed_on_a_stop_at_the_torque_limit_keeps_its_switches(cfg, simulated):
     """Dig-dump presses the bucket on both stops with the drive at its -90 N*m limit, and the
     bottom switch's edge is accepted after the rod has reached the stop: the edge speaks of
     the rod at its instant (kept from then), so the stop is not taken for the switch's
     offset (a switch offset taken from it once carried the estimate 38 mm off)."""
-    runs = simulate_campaign(cfg, [RunSpec(cycle=dig_dump_cycle(cfg, 4), payload_kg=0.0,
-                                           oil_temp_c=t) for t in (27.0, 80.0)])
-    for run in runs:
+    for run in (simulated[f"dig-dump {t:g} degC"] for t in (27.0, 80.0)):
         r = run["bucket"]
         res = kalman.run_many(cfg, [("bucket", r)], references=True,
                               initial_positions_mm=[float(r.position_mm[0])])[0]
@@ -176,20 +205,16 @@ def test_a_rod_pressed_on_a_stop_at_the_torque_limit_keeps_its_switches(cfg):
         assert max(abs(v) for v in res.edge_innovations) < 2.0      # measured: 0.26
 
 
-def test_a_chamber_holding_air_near_vacuum_is_tracked_by_the_oil_it_holds(cfg):
+def test_a_chamber_holding_air_near_vacuum_is_tracked_by_the_oil_it_holds(cfg, simulated):
     """Dig-dump at -10 degC with 0.58 % of entrained air, stated in the configuration: the
     bucket pressed on a stop draws the other chamber onto its anti-cavitation valve near
     vacuum, where the air fills a share of it, and at the reversal the pumps fill that before
     the rod moves. A chamber's state is the oil it holds: as a pressure, the Jacobian's
     0.2 bar took a perturbed row off the vacuum and the torque's update emptied the filter's
     bubble early (measured 2.0 mm; now 0.26 mm, as on the plant without air)."""
-    air = 0.0058
-    run = simulate_campaign(cfg, [RunSpec(cycle=dig_dump_cycle(cfg, 3), speed=3,
-                                          payload_kg=500.0, oil_temp_c=-10.0, seed=1,
-                                          effects=build_effects([f"compressibility={air}"],
-                                                                cfg.unit_names))])[0]["bucket"]
+    run = simulated["dig-dump with air"]["bucket"]
     airy = dataclasses.replace(cfg, hydraulics=dataclasses.replace(cfg.hydraulics,
-                                                                   air_fraction=air))
+                                                                   air_fraction=AIR))
     res = kalman.run_many(airy, [("bucket", run)], references=False,
                           initial_positions_mm=[float(run.position_mm[0])],
                           settings=kalman.settings_from_config(airy))[0]
@@ -197,14 +222,13 @@ def test_a_chamber_holding_air_near_vacuum_is_tracked_by_the_oil_it_holds(cfg):
     assert _unflagged_beyond(res.estimate, run) == 0.0
 
 
-def test_a_motor_stuck_in_its_friction_band_teaches_what_one_sample_does(cfg):
+def test_a_motor_stuck_in_its_friction_band_teaches_what_one_sample_does(cfg, simulated):
     """Dig-dump at 27 degC: the boom stands 20 s at the top with its motor stuck in the pumps'
     friction band. Where in the band it stuck is one value for the stop (a state), not a new
     noise each sample: read as white noise, a hundred samples of one stuck torque took the
     pumps' oil 4.8 K colder than the sensor and crept the held rod 1.5 mm. Measured: the oil
     offset stays within 0.6 K, the worst error 0.20 mm without references."""
-    r = simulate_campaign(cfg, [RunSpec(cycle=dig_dump_cycle(cfg, 4), payload_kg=0.0,
-                                        oil_temp_c=27.0)])[0]["boom"]
+    r = simulated["dig-dump 27 degC"]["boom"]
     res = kalman.run_many(cfg, [("boom", r)], references=False,
                           initial_positions_mm=[float(r.position_mm[0])],
                           settings=kalman.settings_from_config(cfg))[0]
@@ -212,26 +236,24 @@ def test_a_motor_stuck_in_its_friction_band_teaches_what_one_sample_does(cfg):
     assert np.abs(res.estimate.position_mm - r.position_mm).max() < 0.3
 
 
-def test_the_speed_between_samples_is_a_parabola_not_a_line(cfg):
+def test_the_speed_between_samples_is_a_parabola_not_a_line(cfg, simulated):
     """The paper cycle at -5 degC with 500 kg: the bucket's motor decelerates from 5300 rpm in
     half a second. Followed as a line between samples, the model's inertia torque at each
     sample was the mean slope's, half a sample late: the rising torque read as a falling
     pressure, whose oil moved the rod. Measured: worst error without references 0.44 mm
     (0.79 mm with the line)."""
-    r = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=500.0, oil_temp_c=-5.0)])[0]["bucket"]
+    r = simulated["paper -5 degC"]["bucket"]
     res = kalman.run_many(cfg, [("bucket", r)], references=False,
                           initial_positions_mm=[float(r.position_mm[0])],
                           settings=kalman.settings_from_config(cfg))[0]
     assert np.abs(res.estimate.position_mm - r.position_mm).max() < 0.55
 
 
-def test_twice_the_typical_structure_stays_finite_and_bounded(cfg):
+def test_twice_the_typical_structure_stays_finite_and_bounded(cfg, simulated):
     """The random cycle at 27 degC with the structure at twice its typical value (beyond the
     bounds): the oil's offset is held within its bound, so the viscosity stays finite and so
     does every published value (its offset once ran away until the viscosity overflowed)."""
-    spec = RunSpec(cycle=random_cycle(cfg, RANDOM_SEED_27C), payload_kg=0.0, oil_temp_c=27.0,
-                   effects={a: structure_effects(2.0) for a in cfg.unit_names})
-    run = simulate_campaign(cfg, [spec])[0]
+    run = simulated["random twice typical"]
     jobs, x0 = _jobs(cfg, [run])
     settings = kalman.KalmanSettings()
     for refs in (False, True):
@@ -280,16 +302,14 @@ def test_a_switch_mounted_elsewhere_is_flagged_model_inconsistent(cfg, nominal):
     assert np.all(err[first:][plain[first:]] <= est.uncertainty_mm[first:][plain[first:]])
 
 
-def test_a_drive_whose_torque_reads_high_fails_the_self_check(cfg):
+def test_a_drive_whose_torque_reads_high_fails_the_self_check(cfg, simulated):
     """A torque 40 % high (a drive calibrated for another motor) is no offset the filter may
     take up. The bucket's pressures swing over the cycle, so its torque innovations fail the
     chi-square test (measured: 24 % of the samples flagged, the window at 3.8 times its
     bound; asserted: over 5 %); the boom's load takes most of it up (the window at 0.96 of its
     bound: not flagged), and its error (5.6 mm) stays within what it publishes. On both, no
     sample errs beyond its uncertainty unflagged."""
-    effects = build_effects(["torque_gain=1.4"], cfg.unit_names)
-    run = simulate_campaign(cfg, [RunSpec(speed=4, payload_kg=1040.0, oil_temp_c=27.0,
-                                          effects=effects)])[0]
+    run = simulated["torque 40 % high"]
     jobs = [(unit, run[unit]) for unit in ("boom", "bucket")]
     boom, bucket = kalman.run_many(cfg, jobs, references=False,
                                    initial_positions_mm=[float(r.position_mm[0])
