@@ -80,8 +80,8 @@ enum { X, V, PA, PB, LOAD, DT, EPS, TOFF, COMP, DISP, STICK, N_BASE };
     F(double, q_per_rpm_a_m3_s, )                                                            \
     F(double, q_per_rpm_b_m3_s, )                                                            \
     F(double, band_half_nm_per_pa, [2])   /* half the pumps' friction band at standstill */  \
-    F(double, p_floor_pa, [2])            /* what the valves let a chamber reach */          \
-    F(double, p_ceiling_pa, [2])
+    F(double, stored_floor_pa, [2])       /* the oil the valves let a chamber hold (stored) */ \
+    F(double, stored_ceiling_pa, [2])
 
 /* One filter's state besides z and P: its discrete modes, its noise scales, what Python's
  * edge updates set (referenced, held: a suspect switch or the edges' CUSUM beyond), and the
@@ -227,9 +227,8 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     const double t_mid = 0.5 * (a->temp_c[(k - 1) * B + b] + a->temp_c[k * B + b]);
     const double x_before = z[X];
     /* the chambers' states are the oil they hold (ddh_stored_pa, the pressure itself without
-     * air): the rows start from the pressures holding it, a perturbed one by that much oil */
-    f->p_pa[0] = ddh_pressure_pa(rp, z[PA], f->p_pa[0]);
-    f->p_pa[1] = ddh_pressure_pa(rp, z[PB], f->p_pa[1]);
+     * air): the rows start from the pressures holding it (f->p_pa, kept by kf_finish), a
+     * perturbed one by that much oil */
     const double per_pa[2] = {ddh_stored_per_pa(rp, f->p_pa[0]),
                               ddh_stored_per_pa(rp, f->p_pa[1])};
     /* x is perturbed away from the nearer stroke end by stop_reach sigma: the slope of a
@@ -459,8 +458,7 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     for (long i = 0; i < n; i++)
         z[i] += K[i] * y;
     for (int c = 0; c < 2; c++)
-        z[PA + c] = clip(z[PA + c], ddh_stored_pa(rp, u->p_floor_pa[c]),
-                         ddh_stored_pa(rp, u->p_ceiling_pa[c]));
+        z[PA + c] = clip(z[PA + c], u->stored_floor_pa[c], u->stored_ceiling_pa[c]);
     /* Joseph's form for that gain */
     for (long i = 0; i < n; i++) {
         for (long j = 0; j < n; j++)

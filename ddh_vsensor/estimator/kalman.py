@@ -471,12 +471,15 @@ class _Bank:
             return col(lambda j: abs(getattr(j.unit, side).pump.geometric_flow_m3_s(
                 j.unit.motor.speed_limit_rpm)) / getattr(getattr(j.unit, side),
                                                          valve).gradient_m3_s_pa)
-        self.p_floor = np.stack(
-            [col(lambda j: j.unit.a.anticav.cracking_pa) - reach("a", "anticav"),
-             col(lambda j: j.unit.b.anticav.cracking_pa) - reach("b", "anticav")], axis=1)
-        self.p_ceiling = np.stack(
-            [col(lambda j: j.unit.a.relief.setting_pa) + reach("a", "relief"),
-             col(lambda j: j.unit.b.relief.setting_pa) + reach("b", "relief")], axis=1)
+        # the chambers' states are the oil they hold (the pressure itself without air)
+        stored_floor = np.stack(
+            [self._stored(col(lambda j: j.unit.a.anticav.cracking_pa) - reach("a", "anticav")),
+             self._stored(col(lambda j: j.unit.b.anticav.cracking_pa) - reach("b", "anticav"))],
+            axis=1)
+        stored_ceiling = np.stack(
+            [self._stored(col(lambda j: j.unit.a.relief.setting_pa) + reach("a", "relief")),
+             self._stored(col(lambda j: j.unit.b.relief.setting_pa) + reach("b", "relief"))],
+            axis=1)
         # a side's leakage at the rating point, through an orifice: k_lam dp_r / mu_r sqrt(dp/dp_r)
         dp_r = hydraulics.nominal_pressure_bar * BAR_PA
         mu_r = rating_viscosity_pa_s(jobs[0].unit.oil, hydraulics)
@@ -507,11 +510,7 @@ class _Bank:
                                            * sd.pump.displacement_m3_rev / (2.0 * math.pi)
                                            * (1.0 / sd.pump.eta_hm - sd.pump.eta_hm) / 2.0
                                            for sd in j.unit.sides] for j in jobs]),
-            p_floor_pa=self.p_floor, p_ceiling_pa=self.p_ceiling)
-        # the chambers' states are the oil they hold (the pressure itself without air)
-        self.stored_floor = np.stack([self._stored(self.p_floor[:, i]) for i in (0, 1)], axis=1)
-        self.stored_ceiling = np.stack([self._stored(self.p_ceiling[:, i]) for i in (0, 1)],
-                                       axis=1)
+            stored_floor_pa=stored_floor, stored_ceiling_pa=stored_ceiling)
         walther_a, walther_b = oil.walther_coefficients
         win = max(1, int(round(s.nis_window_s / period_s)))
         self.edge_gate = float(chi2.ppf(1.0 - s.false_alarm, 1))
@@ -869,7 +868,8 @@ class _Bank:
         s_ = max(float(h @ ph), 0.0) + r
         K = ph / s_
         z[b] += K * y
-        z[b, [PA, PB]] = np.clip(z[b, [PA, PB]], self.stored_floor[b], self.stored_ceiling[b])
+        z[b, [PA, PB]] = np.clip(z[b, [PA, PB]], self.units["stored_floor_pa"][b],
+                                 self.units["stored_ceiling_pa"][b])
         P[b] -= np.outer(K, ph)
         events[b].append(ReferenceEvent(k, c, sw.name, rising, p_mm, -y * 1e3, False,
                                         float(K[X])))

@@ -46,9 +46,7 @@ def _cavity(p_gauge_pa: ArrayLike, reservoir_pa: float) -> np.ndarray:
 def log_density(p_gauge_pa: ArrayLike, air_fraction: ArrayLike, beta_oil_pa: float,
                 reservoir_pa: float = 0.0) -> np.ndarray:
     """-ln of the mixture's specific volume relative to atmospheric pressure."""
-    p, oil, air = _parts(p_gauge_pa, air_fraction, beta_oil_pa, reservoir_pa)
-    comp = (oil / beta_oil_pa + air / (POLYTROPIC_EXPONENT * p)) / (oil + air)
-    return -np.log(oil + air) + comp * _cavity(p_gauge_pa, reservoir_pa)
+    return log_density_and_compliance(p_gauge_pa, air_fraction, beta_oil_pa, reservoir_pa)[0]
 
 
 def compliance(p_gauge_pa: ArrayLike, air_fraction: ArrayLike, beta_oil_pa: float,
