@@ -123,6 +123,7 @@ def test_no_machine_no_summaries_and_a_bad_name_is_one_line(cfg, unit_tables, tm
                       ServiceOptions(state_dir=tmp_path))
     assert service.summaries is None
     assert all(u.summary_feed is None for u in service.units.values())
+    capsys.readouterr()     # the service's own start lines (logging set up by earlier tests)
     assert main(["run", "--machine", "no/name", "--state-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--machine: machine name 'no/name'" in err[0]
