@@ -545,11 +545,11 @@ class _Bank:
 
     def _stored(self, dp_pa: np.ndarray) -> np.ndarray:
         """Per filter, the oil its chamber holds at gauge pressure ``dp_pa``, as a pressure."""
-        return self.plant.stored_pa(np.repeat(dp_pa, N_ROWS))[self.nom]
+        return self.plant.stored_pa(dp_pa, self.nom)
 
     def _pressure(self, stored_pa: np.ndarray) -> np.ndarray:
         """Per filter, the gauge pressure at which its chamber holds ``stored_pa``."""
-        return self.plant.pressure_pa(np.repeat(stored_pa, N_ROWS))[self.nom]
+        return self.plant.pressure_pa(stored_pa, self.nom)
 
     def _initial(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         s, B = self.s, self.B
@@ -697,8 +697,8 @@ class _Bank:
         P[fast, :] = 0.0
         P[:, fast] = 0.0
         p_a, p_b = float(st.p_a_pa - j.unit.reservoir_pa), float(st.p_b_pa - j.unit.reservoir_pa)
-        z[fast] = [float(st.velocity_m_s), float(self._stored(np.array([p_a]))[0]),
-                   float(self._stored(np.array([p_b]))[0]), 0.0]
+        stored_a, stored_b = self.plant.stored_pa([p_a, p_b], self.nom[[0, 0]])
+        z[fast] = [float(st.velocity_m_s), float(stored_a), float(stored_b), 0.0]
         P[V, V] = (s.velocity_mm_s * 1e-3) ** 2
         P[PA, PA] = P[PB, PB] = (s.pressure_bar * 1e5) ** 2
         self.plant.set_state(np.full(N_ROWS, z[X]), np.full(N_ROWS, self.speed[k, 0]),

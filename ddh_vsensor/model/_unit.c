@@ -160,12 +160,19 @@ static void mixture(const struct ddh_params *p, double dp, double *abs_pa, doubl
     *air = x * pow(ATMOSPHERE_PA / *abs_pa, 1.0 / POLYTROPIC_EXPONENT);
 }
 
+/* 1 / effective bulk modulus of a mixture's shares at its absolute pressure (1/Pa) */
+static double mixture_compliance(const struct ddh_params *p, double abs_pa, double oil,
+                                 double air)
+{
+    return (oil / p->bulk_modulus_pa + air / (POLYTROPIC_EXPONENT * abs_pa)) / (oil + air);
+}
+
 /* 1 / effective bulk modulus at a gauge pressure (1/Pa) */
 static double compliance(const struct ddh_params *p, double dp)
 {
     double abs_pa, oil, air;
     mixture(p, dp, &abs_pa, &oil, &air);
-    return (oil / p->bulk_modulus_pa + air / (POLYTROPIC_EXPONENT * abs_pa)) / (oil + air);
+    return mixture_compliance(p, abs_pa, oil, air);
 }
 
 /* -ln of the mixture's specific volume; below the floor the cavity grows at the floor's
@@ -175,7 +182,8 @@ static double log_density(const struct ddh_params *p, double dp)
     double abs_pa, oil, air;
     mixture(p, dp, &abs_pa, &oil, &air);
     const double below = dp + p->reservoir_pa + ATMOSPHERE_PA - MIN_ABSOLUTE_PA;
-    return -log(oil + air) + (below < 0.0 ? compliance(p, dp) * below : 0.0);
+    return -log(oil + air) + (below < 0.0 ? mixture_compliance(p, abs_pa, oil, air) * below
+                                          : 0.0);
 }
 
 /* mean compliance over [p0, p1]: the exact compression between the two pressures (ld0:

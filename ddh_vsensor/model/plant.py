@@ -128,21 +128,24 @@ class Plant:
         self._lib.ddh_settle_rows(self.size, self.params.ctypes.data, s.ctypes.data,
                                   self._input.ctypes.data)
 
-    def stored_pa(self, dp_pa: np.ndarray) -> np.ndarray:
-        """Per row, the oil a chamber at gauge pressure ``dp_pa`` holds, as the pressure at
-        which air-free oil would hold as much (the pressure itself without air)."""
-        dp = np.broadcast_to(np.asarray(dp_pa, dtype=float), (self.size,))
+    def stored_pa(self, dp_pa: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Per row (of ``rows``, default all), the oil a chamber at gauge pressure ``dp_pa``
+        holds, as the pressure at which air-free oil would hold as much (the pressure itself
+        without air)."""
+        idx = np.arange(self.size) if rows is None else np.asarray(rows)
+        dp = np.broadcast_to(np.asarray(dp_pa, dtype=float), idx.shape)
         row = self.params.ctypes.data
-        return np.array([self._lib.ddh_stored_pa(row + i * self.params.itemsize, float(dp[i]))
-                         for i in range(self.size)])
+        return np.array([self._lib.ddh_stored_pa(row + int(i) * self.params.itemsize, float(d))
+                         for i, d in zip(idx, dp)])
 
-    def pressure_pa(self, stored_pa: np.ndarray) -> np.ndarray:
-        """Per row, the gauge pressure at which a chamber holds ``stored_pa``
-        (:meth:`stored_pa`'s inverse)."""
-        q = np.broadcast_to(np.asarray(stored_pa, dtype=float), (self.size,))
+    def pressure_pa(self, stored_pa: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """Per row (of ``rows``, default all), the gauge pressure at which a chamber holds
+        ``stored_pa`` (:meth:`stored_pa`'s inverse)."""
+        idx = np.arange(self.size) if rows is None else np.asarray(rows)
+        q = np.broadcast_to(np.asarray(stored_pa, dtype=float), idx.shape)
         row = self.params.ctypes.data
-        return np.array([self._lib.ddh_pressure_pa(row + i * self.params.itemsize, float(q[i]),
-                                                   float(q[i])) for i in range(self.size)])
+        return np.array([self._lib.ddh_pressure_pa(row + int(i) * self.params.itemsize,
+                                                   float(v), float(v)) for i, v in zip(idx, q)])
 
     def pump_torque(self, dp_a: np.ndarray, dp_b: np.ndarray, n: np.ndarray) -> np.ndarray:
         """Pump torque at the motor for given pressures and speeds (physics' efficiency law)."""
