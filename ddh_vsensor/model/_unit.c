@@ -1,6 +1,7 @@
 /* One DDH unit's discrete-time dynamics: one backward-Euler step of motor, pumps, chambers,
- * valves, rod and load (the equations, the discrete states and each effect's law are in
- * unit.py's docstring). One row is one unit; ddh_step_rows runs a batch.
+ * valves, rod and load, the pumps' delivery at the step's mean speed (the equations, the
+ * discrete states and each effect's law are in unit.py's docstring). One row is one unit;
+ * ddh_step_rows runs a batch.
  *
  * Each struct's fields are listed once, in an X-macro that declares the struct and fills its
  * field table (name, offset, size), which the Python binding checks its ctypes mirror against
@@ -304,8 +305,10 @@ static int step_once(const struct ddh_params *p, struct ddh_state *s, const stru
     const double ratio = fmax(1.0 - p->belt_slip_per_nm * fabs(s->torque_nm), 0.0);
     const double at_limit = n0 / lim;
     const double filled = 1.0 - p->fill_loss * (at_limit * at_limit);
-    const double qa = h * p->flow_a_m3_s_per_rpm * ratio * filled;
-    const double qb = h * p->flow_b_m3_s_per_rpm * ratio * filled;
+    /* over the step the pumps turn at the mean of its start and end speeds (the trapezoid:
+     * the oil delivered is the speed's integral to second order, as the rod's travel) */
+    const double qa = 0.5 * h * p->flow_a_m3_s_per_rpm * ratio * filled;
+    const double qb = 0.5 * h * p->flow_b_m3_s_per_rpm * ratio * filled;
     /* oil taken in per pascal: the oil's (and air's) compression and the hoses' walls */
     const int has_air = p->air_fraction > 0.0;
     const double hose_c = p->dead_volume_m3 * p->hose_compliance_per_pa;
@@ -315,7 +318,7 @@ static int step_once(const struct ddh_params *p, struct ddh_state *s, const stru
     /* oil passing a scored piston (m^3), explicit: slow next to the step */
     const double cross = fabs(x / stroke - 0.5) < 1.0 / 6.0
                          ? h * p->bore_leak_m3_s_pa * (pa0 - pb0) : 0.0;
-    double cpa = ca * pa0 - cross, cpb = cb * pb0 + cross;
+    double cpa = ca * pa0 - cross + qa * n0, cpb = cb * pb0 + cross + qb * n0;
     /* seals pressed by the start pressures */
     const double seal = p->seal_friction_a_n_per_pa * fmax(pa0, 0.0)
                         + p->seal_friction_b_n_per_pa * fmax(pb0, 0.0);
@@ -406,8 +409,8 @@ static int step_once(const struct ddh_params *p, struct ddh_state *s, const stru
             cb = vb * secant_compliance(p, pb0, ld_b0, pb) + hose_c;
             gca = ca + ga;
             gcb = cb + gb;
-            cpa = ca * pa0 - cross;
-            cpb = cb * pb0 + cross;
+            cpa = ca * pa0 - cross + qa * n0;
+            cpb = cb * pb0 + cross + qb * n0;
             air_passes--;
             if (!bad)
                 continue;

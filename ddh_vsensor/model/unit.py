@@ -13,7 +13,10 @@ with V_a = dead + A_a x and V_b = dead + A_b (stroke - x). Every element is the 
 this model is exactly ``physics.steady.steady_state``.
 
 Integration is fixed-step backward (implicit) Euler on (v, dp_a, dp_b, n), position by
-x_{k+1} = x_k + h v_{k+1}, chamber volumes taken at x_k. Each element is piecewise linear, so
+x_{k+1} = x_k + h v_{k+1}, chamber volumes taken at x_k; the pumps deliver over the step at
+the mean of its start and end speeds, (n_k + n_{k+1}) / 2 (the trapezoid: the oil delivered
+is the speed's integral to second order in h, so the rod's travel is, and a plant stepped at
+1 ms and a filter at 2 ms agree on it). Each element is piecewise linear, so
 for a given set of discrete states - per side the valve regime (anti-cavitation, closed below
 or above the reservoir pressure, relief), the friction state (moving up, moving down, stuck,
 hitting an end stop) and the motor state (turning either way, held in the pump's own friction
