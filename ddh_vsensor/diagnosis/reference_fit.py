@@ -29,7 +29,7 @@ from ddh_vsensor.diagnosis.observability import (Observability, observe_referenc
                                                  with_observability)
 from ddh_vsensor.diagnosis.references import ReferenceRun
 from ddh_vsensor.diagnosis.selection import (OWN_SPREAD, SIMULATOR, Decision, OwnError,
-                                             Thresholds, decide_single)
+                                             Thresholds, decide_single, rms)
 from ddh_vsensor.diagnosis.workbench import Workbench, resolve_mode
 
 Progress = Callable[[str, float], None]
@@ -147,6 +147,16 @@ def _sampling_mm(rruns: Sequence[ReferenceRun]) -> float:
     return float(np.sqrt(np.mean(np.concatenate([rr.increment_var_mm2() for rr in rruns]))))
 
 
+def _leading(decision: Decision) -> tuple[str, str]:
+    """The cause that explains most of the error, named or not (one of an ambiguous pair),
+    and the words for its rivals: two causes that explain the error alike but leave much of
+    it both fail to explain it, and the answer is then unexplained, not ambiguous."""
+    if decision.cause == "ambiguous":
+        rivals = ", ".join(second for _, second in decision.ambiguous)
+        return decision.ambiguous[0][0], f" as {rivals} does alike"
+    return ("", "") if decision.cause == "none" else (decision.cause, "")
+
+
 def reference_thresholds(rruns: Sequence[ReferenceRun], own: OwnError | None) -> Thresholds:
     """What a named cause may leave (with the edges' own sampling) and beyond what the
     references are unexplained: the simulator's constants, or each raised to the machine's
@@ -200,15 +210,16 @@ def diagnose_references(cfg: Config, actuator: str, rruns: Sequence[ReferenceRun
     fits.sort(key=lambda f: (-f.score, f.cause.name != "none"))
     limits = reference_thresholds(rruns, own)
     decision = decide_single(fits, model, weights, limits.machine_rms_mm)
-    named = decision.cause not in ("none", "ambiguous")
-    before, after = decision.rms_before_mm, decision.rms_after_mm
+    lead, alike = _leading(decision)
+    before = decision.rms_before_mm
+    after = next((rms(f.heldout, weights) for f in fits if f.cause.name == lead), before)
     whose = "the simulator's" if limits.simulator else "this machine's baseline"
-    if named and after > LEFT_SHARE * before and after > limits.left_rms_mm:
-        decision = Decision("unexplained", f"{decision.cause} explains part of the references' "
-                            f"error (RMS {before:.2f} -> {after:.2f} mm held out) but leaves "
-                            f"{after / before:.0%} of it, beyond what the nominal model errs on "
-                            f"its own ({limits.left_rms_mm:.2f} mm, {whose}): a cause the "
-                            "catalogue does not have, or more than one", before, before)
+    if lead and after > LEFT_SHARE * before and after > limits.left_rms_mm:
+        decision = Decision("unexplained", f"{lead} explains part of the references' "
+                            f"error (RMS {before:.2f} -> {after:.2f} mm held out){alike} but "
+                            f"leaves {after / before:.0%} of it, beyond what the nominal model "
+                            f"errs on its own ({limits.left_rms_mm:.2f} mm, {whose}): a cause "
+                            "the catalogue does not have, or more than one", before, before)
     elif decision.cause == "none" and decision.rms_before_mm > limits.unexplained_rms_mm:
         decision = Decision("unexplained", f"the references err by {decision.rms_before_mm:.2f}"
                             f" mm RMS from edge to edge, beyond the nominal model's own error "

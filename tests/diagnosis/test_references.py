@@ -193,9 +193,10 @@ def test_an_effect_the_catalogue_does_not_have_is_unexplained_not_a_look_alike(
         cfg, simulated, effect, seed, actuator):
     """A leaking valve on the boom looks like an oil offset to the references (66 % of the
     held-out error explained) but leaves 3.7 mm RMS of 6.5; a bore leak on the bucket (x3.0)
-    looks like an oil reading 12.7 degC low (87 % explained) but leaves 0.40 mm of 1.18, where
-    catalogued causes named right left at most 0.11 mm whenever they left over a quarter of
-    the error. Each answered unexplained, no extension, where it was named an oil offset."""
+    looks like an oil reading low, and alike like a torque gain, but leaves 0.43 mm of 1.16,
+    where catalogued causes named right left at most 0.11 mm whenever they left over a
+    quarter of the error. Each answered unexplained, no extension: two causes that each leave
+    that much are not an ambiguity between them."""
     from ddh_vsensor.diagnosis.reference_report import extension_of
     trial = draw_trial(seed, effect)
     rr = [reference_run(cfg, actuator, r[actuator]) for r in simulated[trial]]
