@@ -68,7 +68,8 @@ def _units(figures: dict[str, Any], pattern: str) -> list[str]:
 # --- accuracy.json -----------------------------------------------------------------------
 
 _WORST = r"^(?P<mode>dynamic|full|paper)_(?P<unit>[a-z0-9_]+?)_worst_max_abs_error_mm$"
-_NOMINAL = r"^(?P<mode>dynamic|full|paper)_(?P<unit>[a-z0-9_]+?)_speed(?P<speed>\d+)_(?P<kg>[\d.]+)kg$"
+_NOMINAL = (r"^(?P<mode>dynamic|full|paper)_(?P<unit>[a-z0-9_]+?)_speed(?P<speed>\d+)_"
+            r"(?P<kg>[\d.]+)kg$")
 _CYCLES = (r"^(?P<mode>dynamic|full|paper)_(?P<unit>[a-z0-9_]+?)_(?P<n>\d+)cycles_"
            r"(?P<kind>norefs|refs_rows|refs)_(?P<what>max_abs_error_mm|first10_max_mm|"
            r"last10_max_mm)$")
@@ -339,8 +340,31 @@ def _fleet_acceptance(figures: dict[str, Any], consumed: set[str]) -> str:
                   "per 20 machine-months", "scheduler + 2 workers identical", "passes"], rows)
 
 
+def _switches(figures: dict[str, Any], consumed: set[str]) -> str:
+    """Per configuration (the datasheet's switch positions, or the commissioned ones),
+    estimator and unit, with references: the worst run, the runs within 0.5 mm, the median
+    uncertainty and what was published beyond it with no flag; then how far the commissioned
+    switching points are from the drawn ones (per machine and run: the JSON's
+    ``per_machine`` and ``failures``)."""
+    consumed.update({"per_machine", "failures", "sources", "sources_at_end"})
+    rows = []
+    for key, v in figures.items():
+        m = re.fullmatch(r"(uncommissioned|commissioned)_([a-z]+)_([a-z0-9_]+)", key)
+        if not (m and isinstance(v, dict) and "max_abs_error_mm" in v):
+            continue
+        consumed.add(key)
+        config, estimator, unit = m.groups()
+        rows.append([config, estimator, unit, fmt(v["max_abs_error_mm"]),
+                     f"{v['runs_within_0_5mm']}/{v['runs']}", fmt(v["median_uncertainty_mm"]),
+                     fmt(v["unflagged_beyond_share"]), fmt(v["max_unflagged_excess_mm"])])
+    return table(["switch positions", "estimator", "unit", "worst mm", "runs within 0.5 mm",
+                  "median u mm", "share unflagged beyond u", "largest unflagged excess mm"],
+                 rows)
+
+
 CURATED = {"accuracy": _accuracy_all, "daemon": _daemon, "diagnosis": _diagnosis,
-           "kalman": _kalman, "commission": _commission, "fleet_acceptance": _fleet_acceptance}
+           "kalman": _kalman, "commission": _commission, "fleet_acceptance": _fleet_acceptance,
+           "switches": _switches, "switches_calibration_runs2": _switches}
 
 
 def bench_section(root: Path, name: str) -> str:
