@@ -362,6 +362,35 @@ def _switches(figures: dict[str, Any], consumed: set[str]) -> str:
                  rows)
 
 
+_ORACLE_RUNS = (("commission", "as commissioned"),
+                ("commission_ideal_drive", "the drive's torque reading exact"),
+                ("commission_oracle_pumps", "+ the pumps' true parameters"),
+                ("commission_oracle_friction", "+ the true friction"),
+                ("commission_oracle_air", "+ the true entrained air"),
+                ("commission_oracle_air_friction_pumps", "+ all three"),
+                ("commission_oracle_air_friction_pumps_ideal_drive",
+                 "+ all three, the reading exact"))
+
+
+def commission_oracles(root: Path) -> str:
+    """The commission bench's machines again, each time knowing one more thing the
+    calibration day did not measure (``--oracle``, ``--ideal-drive``): per unit, no
+    references, the median and the worst machine's worst run from 27 degC up, with the
+    pressures logged and read from the torque."""
+    rows = []
+    for name, label in _ORACLE_RUNS:
+        figures = load(root, name)["figures"]
+        for unit in ("boom", "bucket"):
+            cells = []
+            for how in ("logged", "estimated"):
+                base = f"after_{how}_norefs_{unit}_"
+                cells += [fmt(figures[base + "warm_median_mm"]),
+                          fmt(figures[base + "warm_max_mm"])]
+            rows.append([label, unit, *cells])
+    return table(["what is known", "unit", "logged: median mm", "logged: worst mm",
+                  "read from the torque: median mm", "read from the torque: worst mm"], rows)
+
+
 CURATED = {"accuracy": _accuracy_all, "daemon": _daemon, "diagnosis": _diagnosis,
            "kalman": _kalman, "commission": _commission, "fleet_acceptance": _fleet_acceptance,
            "switches": _switches, "switches_calibration_runs2": _switches}

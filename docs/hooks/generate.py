@@ -31,6 +31,7 @@ GENERATORS = {
     "kalman-settings": lambda root, arg: gen_code.kalman_settings(),
     "bench": lambda root, arg: gen_bench.bench_section(root, arg),
     "accuracy-headline": lambda root, arg: gen_bench.accuracy_headline(root),
+    "commission-oracles": lambda root, arg: gen_bench.commission_oracles(root),
 }
 
 
