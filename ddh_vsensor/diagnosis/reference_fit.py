@@ -7,8 +7,9 @@ estimate is mapped to the observations of :class:`.references.ReferenceRun` (a l
 so the same search, the same quadratic stencil and the same held-out score apply. Added here:
 a 90 % interval per parameter (jackknife over the leave-one-run-out fits) and the answer
 ``unexplained`` when no cause is named although the references err far beyond what the
-nominal model does on its own (:data:`UNEXPLAINED_RMS_MM`), or when the named cause leaves
-them erring far beyond that (:data:`LEFT_RMS_MM`, :data:`LEFT_SHARE`); with a machine's
+nominal model does on its own (:data:`UNEXPLAINED_RMS_MM`), or when the named cause (or the
+first of two that explain it alike) leaves them erring far beyond that
+(:data:`LEFT_RMS_MM`, :data:`LEFT_SHARE`); with a machine's
 baseline, beyond its own error (:func:`reference_thresholds`). Each cause is also checked for
 whether these references and holds could show it at all (:mod:`.observability`).
 """
