@@ -954,7 +954,7 @@ def summary_worker_cost(cfg, minutes: int = 10) -> dict[str, object]:
     cpu = time.process_time() - cpu0
     size = days.written[0].stat().st_size
     started = time.perf_counter()
-    worker = Worker(("start", cfg, "bench", str(out / "w"), 300.0))
+    worker = Worker(("start", cfg, "bench", str(out / "w"), 300.0, str(out / "health.json")))
     worker.send(("feed", blocks[0][0], blocks[0][1]))
     while worker.queued:
         worker.collect()

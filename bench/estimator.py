@@ -5,8 +5,11 @@ Kalman filter (`kalman`: :mod:`ddh_vsensor.estimator.kalman`): its offline face
 (``OnlineKalman.update``) sample by sample, the first sample (which builds the filter) not
 timed, and again with entrained air configured (``hydraulics.air_fraction``, as commissioning
 writes it where the pressures were logged: the mixture law's compression is iterated in every
-row's step). The signals are no plant's: the filter finds them inconsistent with its model and
-widens; its cost per sample is the same either way."""
+row's step). The table and chamber modes take a synthetic signal; the filter takes the
+simulator's paper cycle at the drive's 100 Hz, once on the configured plant and once with the
+air in it too: on a signal no unit could produce the filter's state leaves the physical range
+and its cost follows where it ends up (the air law's iterations), so it is timed following a
+plant."""
 
 from __future__ import annotations
 
@@ -24,9 +27,11 @@ from ddh_vsensor.config import load_config  # noqa: E402
 from ddh_vsensor.estimator import kalman, kalman_online  # noqa: E402
 from ddh_vsensor.estimator.estimator import Estimator  # noqa: E402
 from ddh_vsensor.measured import Run  # noqa: E402
+from ddh_vsensor.sim.run import RunSpec, simulate  # noqa: E402
 from ddh_vsensor.tables.build import build_unit_tables  # noqa: E402
 
-KALMAN_OFFLINE = 200_000        # samples of the filter's offline run (some 8 us each)
+KALMAN_CYCLES = 80              # paper cycles of the filter's timed run (~200 k samples)
+KALMAN_ONLINE = 20_000          # of them, the samples the online face is timed over
 AIR_FRACTION = 0.005            # entrained air of the online filter's second timing
 
 
@@ -41,15 +46,27 @@ def _signals(count: int, seed: int) -> tuple[np.ndarray, ...]:
     return t, speed, torque, temp, mid
 
 
-def _run(signals: tuple[np.ndarray, ...], count: int) -> Run:
-    """The signals' first ``count`` samples as a log (no position measured)."""
-    t, speed, torque, temp, mid = (a[:count] for a in signals)
-    return Run(t, speed, torque, temp, np.full(count, np.nan),
-               refs={"mid": mid.astype(np.int8)}, source="<bench>")
+def _head(run: Run, count: int) -> Run:
+    """A run's first ``count`` samples."""
+    return dataclasses.replace(run, time_s=run.time_s[:count], speed_rpm=run.speed_rpm[:count],
+                               torque_nm=run.torque_nm[:count],
+                               oil_temp_c=run.oil_temp_c[:count],
+                               position_mm=run.position_mm[:count], p_a_bar=None, p_b_bar=None,
+                               refs={k: v[:count] for k, v in run.refs.items()},
+                               ref_edge_s={k: v[:count] for k, v in run.ref_edge_s.items()})
+
+
+def _work(cfg) -> dict[str, Run]:
+    """The paper cycle :data:`KALMAN_CYCLES` times over (500 kg, 40 degC): a plant's signals."""
+    return simulate(cfg, RunSpec(cycle="paper", speed=4, payload_kg=500.0, oil_temp_c=40.0,
+                                 cycles=KALMAN_CYCLES))
 
 
 def main() -> None:
     cfg = load_config(None)
+    airy = dataclasses.replace(cfg, hydraulics=dataclasses.replace(
+        cfg.hydraulics, air_fraction=AIR_FRACTION))
+    work = {"online_step_us": (cfg, _work(cfg)), "online_step_us_with_air": (airy, _work(airy))}
     figures: dict[str, object] = {}
     for actuator in cfg.unit_names:
         tables = build_unit_tables(cfg, actuator)
@@ -78,28 +95,29 @@ def main() -> None:
                   f"{figures[f'{mode}_{actuator}_online_step_us']} us/step", flush=True)
         # the Kalman filter: offline on one run alone (no batch to share the plant's calls),
         # after a short run untimed (a process computes the filter's CUSUM threshold once)
-        signals = (t, n, q, temp, mid)
-        kalman.run_many(cfg, [(actuator, _run(signals, 1000))], initial_positions_mm=[100.0])
-        n_off = KALMAN_OFFLINE
-        run = _run(signals, n_off)
+        run = work["online_step_us"][1][actuator]
+        x0 = [float(run.position_mm[0])]
+        kalman.run_many(cfg, [(actuator, _head(run, 1000))], initial_positions_mm=x0)
         t0 = time.perf_counter()
-        kalman.run_many(cfg, [(actuator, run)], initial_positions_mm=[100.0])
+        kalman.run_many(cfg, [(actuator, run)], initial_positions_mm=x0)
         figures[f"kalman_{actuator}_offline_samples_per_s"] = round(
-            n_off / (time.perf_counter() - t0))
+            len(run.time_s) / (time.perf_counter() - t0))
         # online: sample by sample, as a service feeds it, without air and with
-        airy = dataclasses.replace(cfg, hydraulics=dataclasses.replace(
-            cfg.hydraulics, air_fraction=AIR_FRACTION))
-        for key, config in (("online_step_us", cfg), ("online_step_us_with_air", airy)):
-            online = kalman_online.OnlineKalman(config, actuator, float(t[1] - t[0]),
-                                                initial_position_mm=100.0)
+        for key, (config, runs) in work.items():
+            r = runs[actuator]
+            inputs = list(zip(r.time_s.tolist(), r.speed_rpm.tolist(), r.torque_nm.tolist(),
+                              r.oil_temp_c.tolist(),
+                              ({name: bool(v[k]) for name, v in r.refs.items()}
+                               for k in range(len(r.time_s)))))[:KALMAN_ONLINE]
+            online = kalman_online.OnlineKalman(config, actuator, float(r.time_s[1] - r.time_s[0]),
+                                                initial_position_mm=float(r.position_mm[0]))
             update = online.update
-            update(*args[0], ref_dicts[0])
-            rest = list(zip(args[1:], ref_dicts[1:]))
+            update(*inputs[0])
             t0 = time.perf_counter()
-            for (tk, nk, qk, tc), r in rest:
-                update(tk, nk, qk, tc, r)
+            for tk, nk, qk, tc, refs_k in inputs[1:]:
+                update(tk, nk, qk, tc, refs_k)
             figures[f"kalman_{actuator}_{key}"] = round(
-                (time.perf_counter() - t0) / (count - 1) * 1e6, 2)
+                (time.perf_counter() - t0) / (len(inputs) - 1) * 1e6, 2)
         print(f"{'kalman':8} {actuator:7} offline "
               f"{figures[f'kalman_{actuator}_offline_samples_per_s']} samples/s, online "
               f"{figures[f'kalman_{actuator}_online_step_us']} us/step, with "
