@@ -179,7 +179,9 @@ class KalmanSettings:
     """The filter's noises and choices, each with what it stands for (the comments above or
     beside a field are its meaning; the docs' table of settings is made from them)."""
 
-    # plant steps per sample (2 ms at 100 Hz)
+    # plant steps per sample (2 ms at 100 Hz): backward Euler over them damps what the samples
+    # cannot resolve (a nearly empty chamber's stiffness against the rod's mass rings near
+    # the samples' Nyquist frequency; finer steps resolve it and the torque's update chases it)
     substeps: int = 5
     # the published uncertainty, in the position's sigmas
     coverage: float = 3.0
