@@ -46,16 +46,6 @@ def _signals(count: int, seed: int) -> tuple[np.ndarray, ...]:
     return t, speed, torque, temp, mid
 
 
-def _head(run: Run, count: int) -> Run:
-    """A run's first ``count`` samples."""
-    return dataclasses.replace(run, time_s=run.time_s[:count], speed_rpm=run.speed_rpm[:count],
-                               torque_nm=run.torque_nm[:count],
-                               oil_temp_c=run.oil_temp_c[:count],
-                               position_mm=run.position_mm[:count], p_a_bar=None, p_b_bar=None,
-                               refs={k: v[:count] for k, v in run.refs.items()},
-                               ref_edge_s={k: v[:count] for k, v in run.ref_edge_s.items()})
-
-
 def _work(cfg) -> dict[str, Run]:
     """The paper cycle :data:`KALMAN_CYCLES` times over (500 kg, 40 degC): a plant's signals."""
     return simulate(cfg, RunSpec(cycle="paper", speed=4, payload_kg=500.0, oil_temp_c=40.0,
@@ -97,18 +87,18 @@ def main() -> None:
         # after a short run untimed (a process computes the filter's CUSUM threshold once)
         run = work["online_step_us"][1][actuator]
         x0 = [float(run.position_mm[0])]
-        kalman.run_many(cfg, [(actuator, _head(run, 1000))], initial_positions_mm=x0)
+        kalman.run_many(cfg, [(actuator, run.head(1000))], initial_positions_mm=x0)
         t0 = time.perf_counter()
         kalman.run_many(cfg, [(actuator, run)], initial_positions_mm=x0)
         figures[f"kalman_{actuator}_offline_samples_per_s"] = round(
             len(run.time_s) / (time.perf_counter() - t0))
         # online: sample by sample, as a service feeds it, without air and with
         for key, (config, runs) in work.items():
-            r = runs[actuator]
+            r = runs[actuator].head(KALMAN_ONLINE)
             inputs = list(zip(r.time_s.tolist(), r.speed_rpm.tolist(), r.torque_nm.tolist(),
                               r.oil_temp_c.tolist(),
                               ({name: bool(v[k]) for name, v in r.refs.items()}
-                               for k in range(len(r.time_s)))))[:KALMAN_ONLINE]
+                               for k in range(len(r.time_s)))))
             online = kalman_online.OnlineKalman(config, actuator, float(r.time_s[1] - r.time_s[0]),
                                                 initial_position_mm=float(r.position_mm[0]))
             update = online.update

@@ -140,11 +140,7 @@ def _single_cost(cfg, seconds_of_run: float = 20.0) -> float:
     """One filter alone on one run (no batch to share the plant's calls): us per sample."""
     r = simulate_campaign(cfg, [sweep_specs(cfg, 27.0)[PICK[0]]])[0]["boom"]
     n = min(len(r.time_s), int(seconds_of_run * 100))
-    r = dataclasses.replace(r, time_s=r.time_s[:n], speed_rpm=r.speed_rpm[:n],
-                            torque_nm=r.torque_nm[:n], oil_temp_c=r.oil_temp_c[:n],
-                            position_mm=r.position_mm[:n], p_a_bar=None, p_b_bar=None,
-                            refs={k: v[:n] for k, v in r.refs.items()},
-                            ref_edge_s={k: v[:n] for k, v in r.ref_edge_s.items()})
+    r = r.head(n)
     t0 = time.perf_counter()
     kalman.run(cfg, "boom", r, initial_position_mm=float(r.position_mm[0]))
     return (time.perf_counter() - t0) / n * 1e6

@@ -68,6 +68,14 @@ class Run:
                 raise ValueError(f"run {self.source}: the {name} switch's edge time "
                                  f"{t[k[bad][0]]!r} s is not within its sample's period")
 
+    def head(self, count: int) -> Run:
+        """The run's first ``count`` samples (every column, switches and edge times too)."""
+        cut = {name: getattr(self, name)[:count] for name in (*REQUIRED, *PRESSURES)
+               if getattr(self, name) is not None}
+        return Run(**cut, refs={k: v[:count] for k, v in self.refs.items()},
+                   comments=list(self.comments), source=self.source,
+                   ref_edge_s={k: v[:count] for k, v in self.ref_edge_s.items()})
+
     def shift_time(self, offset_s: float) -> None:
         """Move the run in time (e.g. onto the wall clock), its switches' edge times along
         (kept within their samples' periods where the coarser float of a larger time would

@@ -474,14 +474,12 @@ class _Bank:
                 j.unit.motor.speed_limit_rpm)) / getattr(getattr(j.unit, side),
                                                          valve).gradient_m3_s_pa)
         # the chambers' states are the oil they hold (the pressure itself without air)
-        stored_floor = np.stack(
-            [self._stored(col(lambda j: j.unit.a.anticav.cracking_pa) - reach("a", "anticav")),
-             self._stored(col(lambda j: j.unit.b.anticav.cracking_pa) - reach("b", "anticav"))],
-            axis=1)
-        stored_ceiling = np.stack(
-            [self._stored(col(lambda j: j.unit.a.relief.setting_pa) + reach("a", "relief")),
-             self._stored(col(lambda j: j.unit.b.relief.setting_pa) + reach("b", "relief"))],
-            axis=1)
+        stored_floor = np.stack([self._stored(col(
+            lambda j, side=side: getattr(j.unit, side).anticav.cracking_pa)
+            - reach(side, "anticav")) for side in "ab"], axis=1)
+        stored_ceiling = np.stack([self._stored(col(
+            lambda j, side=side: getattr(j.unit, side).relief.setting_pa)
+            + reach(side, "relief")) for side in "ab"], axis=1)
         # a side's leakage at the rating point, through an orifice: k_lam dp_r / mu_r sqrt(dp/dp_r)
         dp_r = hydraulics.nominal_pressure_bar * BAR_PA
         mu_r = rating_viscosity_pa_s(jobs[0].unit.oil, hydraulics)

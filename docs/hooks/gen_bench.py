@@ -343,9 +343,8 @@ def _fleet_acceptance(figures: dict[str, Any], consumed: set[str]) -> str:
 def _switches(figures: dict[str, Any], consumed: set[str]) -> str:
     """Per configuration (the datasheet's switch positions, or the commissioned ones),
     estimator and unit, with references: the worst run, the runs within 0.5 mm, the median
-    uncertainty and what was published beyond it with no flag; then how far the commissioned
-    switching points are from the drawn ones (per machine and run: the JSON's
-    ``per_machine`` and ``failures``)."""
+    uncertainty and what was published beyond it with no flag (per machine and run: the
+    JSON's ``per_machine`` and ``failures``, not rendered)."""
     consumed.update({"per_machine", "failures", "sources", "sources_at_end"})
     rows = []
     for key, v in figures.items():
@@ -380,7 +379,10 @@ def commission_oracles(root: Path) -> str:
     rows = []
     for name, label in _ORACLE_RUNS:
         figures = load(root, name)["figures"]
-        for unit in ("boom", "bucket"):
+        units = [k.removeprefix("after_logged_norefs_").removesuffix("_warm_median_mm")
+                 for k in figures
+                 if k.startswith("after_logged_norefs_") and k.endswith("_warm_median_mm")]
+        for unit in units:
             cells = []
             for how in ("logged", "estimated"):
                 base = f"after_{how}_norefs_{unit}_"
