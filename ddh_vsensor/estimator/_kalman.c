@@ -173,10 +173,9 @@ static double viscosity_pa_s(const struct kf_settings *s, double temp_c)
  * laminar leakage off by each side's band, the share of the rating point's leakage that may
  * pass orifice-like gaps (the orifice law against the laminar one), the trapped volumes'
  * compression, each a bound whose RMS is bound / sqrt(3), and a floor for the seals. */
-static double flow_sigma(const struct kf_settings *s, const struct kf_unit *u, const double *z,
-                         const double *p_pa, double temp_c, double speed_rpm)
+static double flow_sigma(const struct kf_settings *s, const struct kf_unit *u, double mu,
+                         const double *p_pa, double speed_rpm)
 {
-    const double mu = viscosity_pa_s(s, temp_c + z[DT]);
     const double pa = fabs(p_pa[0]), pb = fabs(p_pa[1]);
     const double leak = (u->leak_band_a * fabs(u->leak_a_m3 * p_pa[0])
                          + u->leak_band_b * fabs(u->leak_b_m3 * p_pa[1])) / mu;
@@ -239,6 +238,9 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     const double away = z[X] > 0.5 * stroke ? -1.0 : 1.0;
     deltas[X] = away * fmin(fmax(s->deltas[X], s->stop_reach * sqrt(fmax(P[X * n + X], 0.0))),
                             0.5 * stroke);
+    /* the oil's viscosity, the nominal rows' and the oil offset's perturbed row's */
+    const double mu = viscosity_pa_s(s, t_mid + z[DT]);
+    const double mu_dt = viscosity_pa_s(s, t_mid + (z[DT] + deltas[DT]));
     for (int j = 0; j < N_ROWS; j++) {
         double row[N_PLANT];
         for (int i = 0; i < N_PLANT; i++)
@@ -259,7 +261,7 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         st->regime_a = f->regime_a;
         st->regime_b = f->regime_b;
         st->n_rpm = n0;
-        in->mu_pa_s = viscosity_pa_s(s, t_mid + row[DT]);
+        in->mu_pa_s = j - 1 == DT ? mu_dt : mu;
         in->torque_nm = 0.0;
         in->speed_controlled = 1;
     }
@@ -289,7 +291,7 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
     /* the flow error forgets as the operating point moves, and at a hold over flow_tau_s */
     const double moved = fabs(nom[X] - z[X]) / (s->flow_travel_strokes * stroke);
     f->phi_q = exp(-(T / s->flow_tau_s + moved));
-    f->flow_sigma_m3_s = flow_sigma(s, u, z, f->p_pa, t_mid, 0.5 * (n0 + n1))
+    f->flow_sigma_m3_s = flow_sigma(s, u, mu, f->p_pa, 0.5 * (n0 + n1))
                          * sqrt(f->flow_scale);
     /* the unmodelled flow, the chambers' compliance and the delivered displacement move the
      * rod (against a stroke end the compliance and displacement nothing, the flow as far as
@@ -388,15 +390,22 @@ static void predict_update(long B, long n, long k, const struct kf_settings *s,
         const double grow = ratio > 1.0
                             ? pow(fmin(ratio, s->max_inflation), s->inflate_per_sample) : 1.0;
         double d[KF_MAX_STATES];
-        for (long i = 0; i < n; i++) {
-            for (long c = 0; c < n; c++)
-                P[i * n + c] *= grow;
+        if (grow != 1.0) {
+            for (long i = 0; i < n; i++) {
+                for (long c = 0; c < n; c++)
+                    P[i * n + c] *= grow;
+            }
         }
-        for (long i = 0; i < n; i++)
-            d[i] = sqrt(fmin(1.0, prior_var[i] / fmax(P[i * n + i], 1e-300)));
+        int bounded = 0;
         for (long i = 0; i < n; i++) {
-            for (long c = 0; c < n; c++)
-                P[i * n + c] = d[i] * P[i * n + c] * d[c];
+            d[i] = sqrt(fmin(1.0, prior_var[i] / fmax(P[i * n + i], 1e-300)));
+            bounded |= d[i] < 1.0;
+        }
+        if (bounded) {
+            for (long i = 0; i < n; i++) {
+                for (long c = 0; c < n; c++)
+                    P[i * n + c] = d[i] * P[i * n + c] * d[c];
+            }
         }
     }
     /* the torque's update; a frame the bus lost (its inputs interpolated) measures nothing */
@@ -555,4 +564,18 @@ long kf_sample(long B, long n, long k, const struct kf_settings *s,
 {
     kf_predict_update(B, n, k, s, units, filters, z, P, prior_var, rp, rs, ri, a, counters);
     return kf_finish(B, n, k, s, units, filters, z, P, rp, a);
+}
+
+/* Samples k0 to k1 - 1, none with an edge: kf_sample each, the loop of an offline run between
+ * its edges. Returns k1, or the first sample after which a filter's state is not finite. */
+long kf_run(long B, long n, long k0, long k1, const struct kf_settings *s,
+            const struct kf_unit *units, struct kf_filter *filters, double *z, double *P,
+            double *prior_var, struct ddh_params *rp, struct ddh_state *rs,
+            struct ddh_input *ri, const struct kf_arrays *a, struct ddh_counters *counters)
+{
+    for (long k = k0; k < k1; k++) {
+        if (kf_sample(B, n, k, s, units, filters, z, P, prior_var, rp, rs, ri, a, counters))
+            return k;
+    }
+    return k1;
 }

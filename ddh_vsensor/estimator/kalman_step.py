@@ -68,6 +68,8 @@ def library() -> ctypes.CDLL:
         lib.kf_finish.restype = long_
         lib.kf_sample.argtypes = [long_, long_, long_] + [ptr] * 11
         lib.kf_sample.restype = long_
+        lib.kf_run.argtypes = [long_, long_, long_, long_] + [ptr] * 11
+        lib.kf_run.restype = long_
         for kind, name in enumerate(KINDS):
             _DTYPES[name] = _dtype(lib, kind)
         _LIB = lib

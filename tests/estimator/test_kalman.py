@@ -318,3 +318,14 @@ def test_a_drive_whose_torque_reads_high_fails_the_self_check(cfg, simulated):
     assert flagged.mean() > 0.05
     assert _unflagged_beyond(boom.estimate, run["boom"]) == 0.0
     assert _unflagged_beyond(bucket.estimate, run["bucket"]) == 0.0
+
+
+def test_a_state_that_leaves_the_finite_numbers_stops_the_run_naming_its_sample(cfg, nominal):
+    """Between the edges the samples run in one compiled loop; a state gone non-finite there
+    (a torque reading of infinity) still stops the run at that sample, naming the run."""
+    r = nominal[1]["bucket"].head(3000)
+    r.torque_nm = r.torque_nm.copy()            # the head's columns are the fixture's views
+    r.torque_nm[2000] = np.inf
+    with pytest.raises(FloatingPointError, match=f"sample 2000: .*{r.source}"):
+        kalman.run(cfg, "bucket", r, references=False,
+                   initial_position_mm=float(r.position_mm[0]))
