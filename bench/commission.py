@@ -207,7 +207,8 @@ def main() -> None:
         ap.error(f"--oracle: unknown group(s) {', '.join(sorted(oracle - set(ORACLES)))}; "
                  f"choose from {', '.join(ORACLES)}")
     base = load_config(None)
-    work = Path(tempfile.mkdtemp(prefix="ddh-commission-"))
+    scratch = tempfile.TemporaryDirectory(prefix="ddh-commission-")     # gone at exit, crash too
+    work = Path(scratch.name)
     datasheet_path = work / "datasheet.yaml"
     datasheet_path.write_text(datasheet_text())
     datasheet = load_config(datasheet_path)

@@ -217,7 +217,8 @@ def main() -> None:
     code = sources()
     base = load_config(None)
     tables = {a: build_unit_tables(base, a) for a in base.unit_names}
-    work = Path(tempfile.mkdtemp(prefix="ddh-switches-"))
+    scratch = tempfile.TemporaryDirectory(prefix="ddh-switches-")     # gone at exit, crash too
+    work = Path(scratch.name)
     started = time.time()
     seconds = {"simulate": 0.0, "commission": 0.0, "kalman": 0.0, "dynamic": 0.0}
     cases = [(c, e, a) for c in CONFIGS for e in ESTIMATORS for a in base.unit_names]
