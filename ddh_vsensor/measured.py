@@ -69,7 +69,8 @@ class Run:
                                  f"{t[k[bad][0]]!r} s is not within its sample's period")
 
     def head(self, count: int) -> Run:
-        """The run's first ``count`` samples (every column, switches and edge times too)."""
+        """The run's first ``count`` samples (every column, switches and edge times too), as
+        views of this run's arrays: copy a column before writing into it."""
         cut = {name: getattr(self, name)[:count] for name in (*REQUIRED, *PRESSURES)
                if getattr(self, name) is not None}
         return Run(**cut, refs={k: v[:count] for k, v in self.refs.items()},
